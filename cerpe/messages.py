@@ -1,0 +1,212 @@
+"""Messages robots exchange, with an exact wire encoding (bytes are what we count).
+
+Frame layout (little endian), shared by every message type::
+
+    magic  b"CE"   2 B
+    version u8     1 B
+    type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply)
+    sender  u16    2 B
+    step    u32    4 B
+    payload        ...
+    crc32   u32    4 B   (over everything before it)
+
+The paper's broadcast ``m_i^t = (i, X_i^t, d_i^t)`` travels as two frames: the
+:class:`DescriptorMessage` before the joint backbone pass (the gate needs it) and
+the :class:`PoseMessage` right after it (propagation needs ``X_j^t`` of the same
+step). This costs one extra 14-byte header per robot and step and keeps one
+backbone pass per step. A garbled frame (bad magic, length or checksum) raises
+:class:`MessageError` in :func:`decode`; transports count and drop such frames.
+"""
+from __future__ import annotations
+
+from .errors import CerpeError
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import ClassVar, Union
+
+import numpy as np
+
+from .geometry import GeometryError, se3_from_tq_xyzw, se3_to_tq_xyzw
+
+MAGIC = b"CE"
+VERSION = 1
+_HEADER = struct.Struct("<2sBBHI")
+_CRC = struct.Struct("<I")
+HEADER_BYTES = _HEADER.size + _CRC.size  # 14
+
+DESCRIPTOR_DTYPES = {"fp32": 0, "fp16": 1, "int8": 2}
+_DTYPE_CODES = {v: k for k, v in DESCRIPTOR_DTYPES.items()}
+
+
+class MessageError(CerpeError, ValueError):
+    """A frame that cannot be decoded (garbled, truncated, unknown type)."""
+
+
+def _frame(mtype: int, sender: int, step: int, payload: bytes) -> bytes:
+    if not (0 <= sender < 2**16 and 0 <= step < 2**32):
+        raise MessageError(f"sender {sender} or step {step} out of range")
+    head = _HEADER.pack(MAGIC, VERSION, mtype, sender, step) + payload
+    return head + _CRC.pack(zlib.crc32(head) & 0xFFFFFFFF)
+
+
+@dataclass(frozen=True)
+class DescriptorMessage:
+    """Robot ``sender``'s global descriptor at ``step``.
+
+    The descriptor is quantised for the wire as ``dtype`` (fp32, fp16 or int8 with
+    one fp32 scale); receivers use the decoded, quantised values.
+    """
+
+    TYPE: ClassVar[int] = 1
+    sender: int
+    step: int
+    descriptor: np.ndarray
+    dtype: str = "fp16"
+
+    def encode(self) -> bytes:
+        d = np.asarray(self.descriptor, dtype=np.float32).ravel()
+        if d.size == 0 or not np.all(np.isfinite(d)):
+            raise MessageError("descriptor must be non-empty and finite")
+        if self.dtype not in DESCRIPTOR_DTYPES:
+            raise MessageError(f"descriptor dtype must be one of {list(DESCRIPTOR_DTYPES)}, got {self.dtype!r}")
+        head = struct.pack("<BI", DESCRIPTOR_DTYPES[self.dtype], d.size)
+        if self.dtype == "fp32":
+            body = d.astype("<f4").tobytes()
+        elif self.dtype == "fp16":
+            body = d.astype("<f2").tobytes()
+        else:
+            scale = float(np.max(np.abs(d))) / 127.0 or 1.0
+            q = np.clip(np.round(d / scale), -127, 127).astype(np.int8)
+            body = struct.pack("<f", scale) + q.tobytes()
+        return _frame(self.TYPE, self.sender, self.step, head + body)
+
+    @staticmethod
+    def wire_bytes(dim: int, dtype: str) -> int:
+        """Exact frame size for a descriptor of ``dim`` values in ``dtype``."""
+        per = {"fp32": 4, "fp16": 2, "int8": 1}[dtype]
+        return HEADER_BYTES + 5 + dim * per + (4 if dtype == "int8" else 0)
+
+
+@dataclass(frozen=True)
+class PoseMessage:
+    """Robot ``sender``'s metric odometry pose ``X = T_odom_cam`` at ``step`` (float64)."""
+
+    TYPE: ClassVar[int] = 2
+    sender: int
+    step: int
+    T_odom_cam: np.ndarray
+
+    def encode(self) -> bytes:
+        try:
+            t, q = se3_to_tq_xyzw(self.T_odom_cam)
+        except GeometryError as exc:
+            raise MessageError(f"pose message: {exc}") from None
+        return _frame(self.TYPE, self.sender, self.step, struct.pack("<7d", *t, *q))
+
+
+@dataclass(frozen=True)
+class ImageRequest:
+    """Robot ``sender`` asks robot ``target`` for its raw image of ``step``."""
+
+    TYPE: ClassVar[int] = 3
+    sender: int
+    step: int
+    target: int
+
+    def encode(self) -> bytes:
+        return _frame(self.TYPE, self.sender, self.step, struct.pack("<H", self.target))
+
+
+@dataclass(frozen=True)
+class ImageReply:
+    """Robot ``sender``'s image of ``step`` as JPEG bytes, with its intrinsics.
+
+    ``intrinsics`` is ``(fx, fy, cx, cy)`` in pixels of the encoded image.
+    """
+
+    TYPE: ClassVar[int] = 4
+    sender: int
+    step: int
+    jpeg: bytes
+    intrinsics: tuple[float, float, float, float]
+
+    def encode(self) -> bytes:
+        payload = struct.pack("<4fI", *self.intrinsics, len(self.jpeg)) + self.jpeg
+        return _frame(self.TYPE, self.sender, self.step, payload)
+
+    @staticmethod
+    def from_image(sender: int, step: int, image_rgb: np.ndarray,
+                   intrinsics: tuple[float, float, float, float], quality: int = 90) -> "ImageReply":
+        import cv2
+
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image_rgb[:, :, ::-1]),
+                               [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+        if not ok:
+            raise MessageError("JPEG encoding failed")
+        return ImageReply(sender, step, buf.tobytes(), tuple(float(v) for v in intrinsics))
+
+    def image_rgb(self) -> np.ndarray:
+        import cv2
+
+        arr = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        if arr is None:
+            raise MessageError(f"image reply from robot {self.sender} step {self.step}: JPEG does not decode")
+        return arr[:, :, ::-1].copy()
+
+
+Message = Union[DescriptorMessage, PoseMessage, ImageRequest, ImageReply]
+
+
+def decode(frame: bytes) -> Message:
+    """Parse one frame; raises :class:`MessageError` on any inconsistency."""
+    if len(frame) < HEADER_BYTES:
+        raise MessageError(f"frame too short ({len(frame)} B)")
+    body, (crc,) = frame[:-4], _CRC.unpack(frame[-4:])
+    if zlib.crc32(body) & 0xFFFFFFFF != crc:
+        raise MessageError("checksum mismatch (garbled frame)")
+    magic, version, mtype, sender, step = _HEADER.unpack(body[: _HEADER.size])
+    if magic != MAGIC or version != VERSION:
+        raise MessageError(f"bad magic/version {magic!r}/{version}")
+    p = body[_HEADER.size:]
+    try:
+        if mtype == DescriptorMessage.TYPE:
+            code, dim = struct.unpack("<BI", p[:5])
+            dtype = _DTYPE_CODES.get(code)
+            if dtype is None:
+                raise MessageError(f"unknown descriptor dtype code {code}")
+            raw = p[5:]
+            if dtype == "fp32":
+                d = np.frombuffer(raw, "<f4", count=dim).astype(np.float32)
+                rest = raw[4 * dim:]
+            elif dtype == "fp16":
+                d = np.frombuffer(raw, "<f2", count=dim).astype(np.float32)
+                rest = raw[2 * dim:]
+            else:
+                (scale,) = struct.unpack("<f", raw[:4])
+                d = np.frombuffer(raw[4:], np.int8, count=dim).astype(np.float32) * scale
+                rest = raw[4 + dim:]
+            if rest:
+                raise MessageError("descriptor frame has trailing bytes")
+            return DescriptorMessage(sender, step, d, dtype)
+        if mtype == PoseMessage.TYPE:
+            if len(p) != 56:
+                raise MessageError("pose frame has wrong length")
+            v = struct.unpack("<7d", p)
+            if not np.all(np.isfinite(v)):
+                raise MessageError("pose frame carries non-finite values")
+            return PoseMessage(sender, step, se3_from_tq_xyzw(v[:3], v[3:]))
+        if mtype == ImageRequest.TYPE:
+            if len(p) != 2:
+                raise MessageError("image request has wrong length")
+            return ImageRequest(sender, step, struct.unpack("<H", p)[0])
+        if mtype == ImageReply.TYPE:
+            fx, fy, cx, cy, n = struct.unpack("<4fI", p[:20])
+            if len(p) != 20 + n:
+                raise MessageError("image reply length does not match its JPEG size")
+            return ImageReply(sender, step, bytes(p[20:]), (fx, fy, cx, cy))
+    except (struct.error, ValueError, GeometryError) as exc:
+        if isinstance(exc, MessageError):
+            raise
+        raise MessageError(f"malformed payload for type {mtype}: {exc}") from None
+    raise MessageError(f"unknown message type {mtype}")

@@ -1,0 +1,137 @@
+"""The three plug-in roles of CERPE as small typed protocols.
+
+Algorithm code depends only on these; concrete models live in ``cerpe.backbones``
+and are constructed from a config by ``cerpe.backbones.build``.
+
+* :class:`DescriptorEncoder` -- image -> fixed-size, L2-normalised global descriptor.
+* :class:`PoseBackbone` -- a batch of views -> per-view camera-to-frame poses in one
+  shared, up-to-scale frame, plus per-view depth maps with confidence.
+* :class:`MetricDepthSource` -- a frame -> metric depth (possibly sparse).
+
+Failures that are part of normal operation (no overlap, no texture, degenerate
+geometry) are *returned* (``ok=False`` / per-view ``valid=False`` with a reason),
+never raised: a robot must keep going. Programming errors and malformed input
+raise :class:`BackboneError`.
+"""
+from __future__ import annotations
+
+from .errors import CerpeError
+from dataclasses import dataclass, field
+from typing import Hashable, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from .scene import CameraIntrinsics
+
+
+class BackboneError(CerpeError, ValueError):
+    """Malformed input to a plug-in (wrong shape, dtype, descriptor length...)."""
+
+
+@dataclass
+class View:
+    """One image handed to a backbone.
+
+    Attributes:
+        key: stable identifier ``(robot_id, step)`` (or any hashable); backbones may
+            cache per-key work (features, 3D points) across calls.
+        image: ``[H,W,3] uint8`` RGB.
+        intrinsics: known intrinsics when the robot has them (collaborator images
+            carry theirs in the image reply); a backbone may ignore them.
+    """
+
+    key: Hashable
+    image: np.ndarray
+    intrinsics: CameraIntrinsics | None = None
+
+
+@dataclass
+class BackboneOutput:
+    """Result of one joint pass over ``S`` views, in the order they were given.
+
+    Attributes:
+        T_frame_cam: ``[S,4,4]`` camera-to-frame poses in one shared frame whose
+            translation unit is arbitrary (consistent with ``depth``). Rows of an
+            invalid view are NaN.
+        valid: ``[S] bool``; False where the backbone could not place the view.
+        depth: ``S`` arrays ``[H_s,W_s] float32`` in the same unit as the
+            translations, 0 where unknown (may be sparse).
+        depth_conf: ``S`` arrays like ``depth``, >= 0, 0 where invalid.
+        intrinsics: ``S`` intrinsics (estimated or passed through), None if unknown.
+        reasons: per-view reason when not valid (``""`` when valid).
+        timings_s: stage name -> seconds spent in this pass.
+    """
+
+    T_frame_cam: np.ndarray
+    valid: np.ndarray
+    depth: list[np.ndarray]
+    depth_conf: list[np.ndarray]
+    intrinsics: list[CameraIntrinsics | None] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        S = len(self.valid)
+        if self.T_frame_cam.shape != (S, 4, 4):
+            raise BackboneError(f"BackboneOutput: T_frame_cam {self.T_frame_cam.shape} for {S} views")
+        if len(self.depth) != S or len(self.depth_conf) != S:
+            raise BackboneError("BackboneOutput: one depth and one confidence map per view required")
+        if not self.reasons:
+            self.reasons = ["" for _ in range(S)]
+        if not self.intrinsics:
+            self.intrinsics = [None for _ in range(S)]
+
+
+@runtime_checkable
+class DescriptorEncoder(Protocol):
+    """Image -> fixed-size global descriptor (the gate and memory use it).
+
+    ``describe`` returns ``[dim] float32``, L2-normalised. Thresholds calibrated
+    for this descriptor live in ``thresholds`` (keys ``tau``, ``tau_m``, ``tau_k``).
+    """
+
+    dim: int
+    thresholds: dict[str, float]
+
+    def describe(self, view: View) -> np.ndarray: ...
+
+
+@runtime_checkable
+class PoseBackbone(Protocol):
+    """Joint multi-view pass: ``views`` -> :class:`BackboneOutput`.
+
+    The first view is the robot's current image, then its memory keyframes
+    (newest first), then collaborator images. The output frame is arbitrary and
+    may differ between calls.
+    """
+
+    def infer(self, views: Sequence[View]) -> BackboneOutput: ...
+
+
+@runtime_checkable
+class MetricDepthSource(Protocol):
+    """Metric depth for a robot's own frame: ``[H,W] float32`` metres, 0 = unknown.
+
+    Returns None when the source has nothing for this frame (the scale step then
+    skips it and counts it).
+    """
+
+    name: str
+
+    def depth_m(self, view: View, frame: "FrameContext") -> np.ndarray | None: ...
+
+
+@dataclass
+class FrameContext:
+    """What a depth source may know about a robot's own frame beyond its pixels.
+
+    ``sensor_depth_m`` is the dataset's metric depth for this frame when there is
+    one (RGB-D, projected LiDAR, or a renderer's exact depth for simulated
+    sources); a monocular network ignores it.
+    """
+
+    robot_id: str
+    step: int
+    intrinsics: CameraIntrinsics | None
+    sensor_depth_m: np.ndarray | None = None
+    seed: int = 0

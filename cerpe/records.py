@@ -1,0 +1,125 @@
+"""What one step of the algorithm leaves behind: per ordered pair and per robot.
+
+These records are the only interface between the algorithm and everything that
+evaluates, stores or plots it (``cerpe.pipeline``, notebooks). They are plain
+data; :func:`PairRecord.as_row` / :func:`RobotRecord.as_row` flatten them to the
+columns of ``steps.csv`` / ``robots.csv`` (see ``docs/ARCHITECTURE.md``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from .geometry import se3_to_tq_xyzw
+
+Source = Literal["direct", "propagated", "none"]
+SOURCES: tuple[str, ...] = ("direct", "propagated", "none")
+
+STAGES: tuple[str, ...] = ("encode", "descriptor", "gate", "backbone", "scale", "propagation")
+
+
+def _pose_cols(prefix: str, T: np.ndarray | None) -> dict[str, float]:
+    names = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+    if T is None or not np.all(np.isfinite(T)):
+        return {f"{prefix}_{n}": float("nan") for n in names}
+    t, q = se3_to_tq_xyzw(T)
+    return {f"{prefix}_{n}": float(v) for n, v in zip(names, [*t, *q])}
+
+
+@dataclass
+class PairRecord:
+    """Robot ``ego`` (the paper's i) about robot ``other`` (j) at one step.
+
+    Attributes:
+        step: step index within the encounter.
+        stamp_s: capture time of the ego image.
+        ego, other: robot ids.
+        gate_score: cosine similarity of the two received descriptors; NaN if the
+            other's descriptor message was lost or garbled.
+        gate_open: ``gate_score >= tau``.
+        source: ``direct`` (anchor from a joint pass), ``propagated`` (last anchor
+            moved by both robots' ego-motion) or ``none``.
+        T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
+        reason: why there is no direct estimate although the gate was open, or
+            why there is no estimate at all; ``""`` otherwise.
+        bytes_pair: bytes of the image request and image reply for this pair.
+        anchor_step: step of the anchor a propagated estimate comes from (-1 if none).
+    """
+
+    step: int
+    stamp_s: float
+    ego: str
+    other: str
+    gate_score: float
+    gate_open: bool
+    source: Source
+    T_cj_ci: np.ndarray | None
+    reason: str = ""
+    bytes_pair: int = 0
+    anchor_step: int = -1
+
+    def as_row(self) -> dict:
+        row = {
+            "step": self.step, "stamp_s": self.stamp_s, "ego": self.ego, "other": self.other,
+            "gate_score": self.gate_score, "gate_open": bool(self.gate_open), "source": self.source,
+            "reason": self.reason, "bytes_pair": int(self.bytes_pair), "anchor_step": self.anchor_step,
+        }
+        row.update(_pose_cols("est", self.T_cj_ci))
+        return row
+
+
+@dataclass
+class RobotRecord:
+    """One robot at one step.
+
+    Attributes:
+        T_odom_cam: the broadcast metric odometry pose ``X_i^t``.
+        scale: the memory scale ``s`` used at this step (NaN if none could be computed).
+        n_keyframes: memory size after this step's memory management.
+        keyframe: whether this step's image became a keyframe.
+        bytes_sent: bytes this robot put on the wire at this step, by message kind
+            (``descriptor``, ``pose``, ``request``, ``reply``).
+        timings_s: seconds per stage (see :data:`STAGES`).
+        degradations: counted, logged problems of this step (``"depth:no-valid-pixels"``,
+            ``"msg:garbled"``, ``"backbone:no-estimate"``...).
+    """
+
+    step: int
+    stamp_s: float
+    robot: str
+    T_odom_cam: np.ndarray
+    scale: float
+    n_keyframes: int
+    keyframe: bool
+    bytes_sent: dict[str, int] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    degradations: list[str] = field(default_factory=list)
+
+    @property
+    def bytes_total(self) -> int:
+        return int(sum(self.bytes_sent.values()))
+
+    def as_row(self) -> dict:
+        row = {
+            "step": self.step, "stamp_s": self.stamp_s, "robot": self.robot, "scale": self.scale,
+            "n_keyframes": self.n_keyframes, "keyframe": bool(self.keyframe),
+            "bytes_total": self.bytes_total,
+            "degradations": ";".join(self.degradations),
+        }
+        for k in ("descriptor", "pose", "request", "reply"):
+            row[f"bytes_{k}"] = int(self.bytes_sent.get(k, 0))
+        for s in STAGES:
+            row[f"t_{s}_s"] = float(self.timings_s.get(s, 0.0))
+        row.update(_pose_cols("odom", self.T_odom_cam))
+        return row
+
+
+@dataclass
+class StepResult:
+    """Everything the team produced at one step."""
+
+    step: int
+    pairs: list[PairRecord]
+    robots: list[RobotRecord]
