@@ -1,0 +1,476 @@
+"""Multi-view geometry backbone that runs offline: XFeat matching + RANSAC + triangulation + PnP.
+
+Implements :class:`cerpe.protocols.PoseBackbone` without a learned multi-view
+model. The stand-in for VGGT's joint pass over ``[current] + memory +
+collaborators`` is classical structure from motion:
+
+1. Features: XFeat keypoints per view (:mod:`cerpe.backbones.xfeat`, cached per key).
+2. Matching: mutual nearest neighbours of the 64-d descriptors with a minimum
+   cosine similarity and Lowe's ratio test. Matches between two views seen
+   before (e.g. two keyframes) come from an LRU cache keyed by both view keys.
+3. Reference pair: the current view (index 0, the pass's frame: ``T_frame_cam[0]
+   = I``) and the first candidate (newest keyframe, then older keyframes, then
+   collaborators) whose essential matrix (poselib 5-point RANSAC, known
+   intrinsics) has enough inliers and enough parallax. Its baseline defines the
+   unit of the pass (``||t|| = 1``).
+4. Triangulation of the reference inliers (linear, in the current camera frame);
+   points behind a camera, with large reprojection error or a small
+   triangulation angle are dropped.
+5. Every other view: absolute pose (poselib P3P RANSAC + refinement) from 2D-3D
+   correspondences obtained through its matches with the current view and with
+   the reference view; if too few, a two-view fallback (essential matrix with
+   the current view; translation scale from the depths of the shared
+   triangulated points).
+6. Per-view sparse depth: the inlier points' camera-frame depths splatted at
+   their pixels (0 elsewhere), confidence ``n_obs / (1 + reprojection error px)``.
+
+Views that cannot be placed are ``valid=False`` with a reason (``few-matches``,
+``few-inliers``, ``no-parallax``, ``few-3d-points``, ``no-reference``,
+``low-texture``); their pose rows are NaN. No exception leaves :meth:`infer`
+for data reasons; a view without intrinsics or with a malformed image raises
+:class:`OfflineBackboneError` (a configuration/programming error).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Hashable, Sequence
+
+import numpy as np
+
+from ..protocols import BackboneError, BackboneOutput, View
+from ..scene import CameraIntrinsics
+from .xfeat import XFeatEncoder, XFeatFeatures, check_image, shared_encoder
+
+logger = logging.getLogger(__name__)
+
+
+class OfflineBackboneError(BackboneError):
+    """A view the offline backbone cannot take at all (no intrinsics, malformed image)."""
+
+
+# ---------------------------------------------------------------------------- pure helpers
+def match_mnn(desc0: np.ndarray, desc1: np.ndarray, min_cossim: float = 0.82,
+              ratio: float = 0.95) -> np.ndarray:
+    """Mutual nearest-neighbour matches of L2-normalised descriptors.
+
+    Args:
+        desc0: ``[N0,D]``; desc1: ``[N1,D]`` (unit rows).
+        min_cossim: a match needs cosine similarity above this.
+        ratio: Lowe's ratio on distances (best / second best) must be below it
+            in both directions (1 disables it).
+
+    Returns:
+        ``[M,2] int64`` index pairs ``(i0, i1)``.
+    """
+    if len(desc0) == 0 or len(desc1) == 0:
+        return np.zeros((0, 2), np.int64)
+    import torch
+
+    with torch.inference_mode():
+        sim = torch.from_numpy(np.ascontiguousarray(desc0, np.float32)) @ torch.from_numpy(
+            np.ascontiguousarray(desc1, np.float32)).T
+        k0 = min(2, sim.shape[1])
+        k1 = min(2, sim.shape[0])
+        top01, idx01 = torch.topk(sim, k0, dim=1)
+        top10, idx10 = torch.topk(sim, k1, dim=0)
+        nn01 = idx01[:, 0].numpy()
+        nn10 = idx10[0, :].numpy()
+        best = top01[:, 0].numpy().astype(np.float64)
+        i0 = np.arange(len(desc0))
+        keep = (nn10[nn01] == i0) & (best > min_cossim)
+        if ratio < 1.0 and k0 == 2 and k1 == 2:
+            # distances of unit vectors: d^2 = 2 - 2 cos
+            second01 = top01[:, 1].numpy().astype(np.float64)
+            second10 = top10[1, :].numpy().astype(np.float64)[nn01]
+            d_best = np.sqrt(np.maximum(2 - 2 * best, 0))
+            keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second01, 0))
+            keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second10, 0))
+    return np.stack([i0[keep], nn01[keep]], axis=1).astype(np.int64)
+
+
+def pixels_to_rays(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``[N,2]`` pixels -> ``[N,3]`` normalised camera rays ``(x, y, 1)``."""
+    return np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))])
+
+
+def triangulate(rays0: np.ndarray, rays1: np.ndarray, T_1_0: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of ray pairs; points in camera-0 coordinates.
+
+    Args:
+        rays0, rays1: ``[N,3]`` normalised rays ``(x, y, 1)`` in cameras 0 and 1.
+        T_1_0: ``[4,4]`` maps camera-0 points into camera 1.
+
+    Returns:
+        ``[N,3]`` points (may be NaN/inf for degenerate rays; callers filter).
+    """
+    P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
+    P1 = T_1_0[:3, :]
+    A = np.stack([
+        rays0[:, 0:1] * P0[2] - P0[0], rays0[:, 1:2] * P0[2] - P0[1],
+        rays1[:, 0:1] * P1[2] - P1[0], rays1[:, 1:2] * P1[2] - P1[1],
+    ], axis=1)  # [N,4,4]
+    _, _, Vt = np.linalg.svd(A)
+    X = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[:, :3] / X[:, 3:4]
+
+
+def reprojection_error(X_cam: np.ndarray, uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel distance between projected camera-frame points ``[N,3]`` and ``uv [N,2]``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = X_cam @ K.T
+        proj = proj[:, :2] / proj[:, 2:3]
+    err = np.linalg.norm(proj - uv, axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def triangulation_angle_deg(X: np.ndarray, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
+    """Angle at each point ``[N,3]`` between the rays to camera centres ``c0`` and ``c1``."""
+    a = X - c0
+    b = X - c1
+    cos = np.sum(a * b, axis=1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _pose_to_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, float)
+    T[:3, 3] = np.asarray(t, float).ravel()
+    return T
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def _camera(intr: CameraIntrinsics) -> dict[str, Any]:
+    return {"model": "PINHOLE", "width": int(intr.width), "height": int(intr.height),
+            "params": [float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy)]}
+
+
+def splat_depth(uv: np.ndarray, depth: np.ndarray, conf: np.ndarray, hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse ``[H,W]`` depth and confidence maps from point depths at pixels ``uv``.
+
+    The nearest point wins where two fall on one pixel. Non-finite or
+    non-positive depths are dropped; everything else stays 0.
+    """
+    H, W = hw
+    D = np.zeros((H, W), np.float32)
+    C = np.zeros((H, W), np.float32)
+    if len(uv) == 0:
+        return D, C
+    u = np.round(uv[:, 0]).astype(np.int64)
+    v = np.round(uv[:, 1]).astype(np.int64)
+    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H) & np.isfinite(depth) & (depth > 0) & np.isfinite(conf)
+    u, v, d, c = u[ok], v[ok], depth[ok], conf[ok]
+    order = np.argsort(-d)  # far first, so the nearest is written last and wins
+    D[v[order], u[order]] = d[order]
+    C[v[order], u[order]] = np.maximum(c[order], 0)
+    return D, C
+
+
+# ---------------------------------------------------------------------------- the backbone
+@dataclass
+class _Track3D:
+    """Triangulated points of one pass, in the current camera frame (= pass frame)."""
+
+    X: np.ndarray                      # [P,3]
+    kp_cur: np.ndarray                 # [P] keypoint index in the current view
+    kp_ref: np.ndarray                 # [P] keypoint index in the reference view
+    err_px: np.ndarray                 # [P] mean reprojection error over both views
+    obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # view -> (point ids, uv)
+
+
+class OfflineGeometryBackbone:
+    """Classical multi-view geometry behind the :class:`~cerpe.protocols.PoseBackbone` protocol.
+
+    ``default_conf`` (thresholds in pixels / degrees / counts):
+        xfeat: configuration of the shared :class:`XFeatEncoder`.
+        min_cossim, ratio: matching (see :func:`match_mnn`).
+        match_cache_size: matched view pairs kept (LRU).
+        min_matches: fewer matches than this -> ``few-matches``.
+        epipolar_px: RANSAC threshold of the essential matrix (Sampson, px).
+        min_inliers: fewer essential-matrix inliers -> ``few-inliers``.
+        min_inlier_ratio: inliers / matches below this -> ``few-inliers``.
+        min_parallax_deg: median triangulation angle of the reference pair below
+            this -> ``no-parallax`` (pure rotation, tiny baseline).
+        max_reproj_px: triangulated points reprojecting worse are dropped.
+        min_point_angle_deg: points with a smaller triangulation angle are dropped.
+        pnp_px: RANSAC threshold of the absolute pose (px).
+        min_pnp_inliers: fewer 2D-3D inliers -> two-view fallback.
+        min_scale_points: shared points the two-view fallback needs for its scale.
+        min_texture_std: grey-level standard deviation below which an image is
+            ``low-texture`` (blank, black).
+    """
+
+    default_conf: dict[str, Any] = {
+        "xfeat": {},
+        "min_cossim": 0.82,
+        "ratio": 0.95,
+        "match_cache_size": 256,
+        "min_matches": 30,
+        "epipolar_px": 1.0,
+        "min_inliers": 25,
+        "min_inlier_ratio": 0.2,
+        "min_parallax_deg": 0.5,
+        "max_reproj_px": 3.0,
+        "min_point_angle_deg": 0.2,
+        "pnp_px": 3.0,
+        "min_pnp_inliers": 15,
+        "min_scale_points": 8,
+        "min_texture_std": 2.0,
+    }
+
+    def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
+        self.conf = {**self.default_conf, **(conf or {})}
+        self.encoder = encoder or shared_encoder(self.conf["xfeat"])
+        self._matches: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self.n_match_computed = 0
+        self.n_match_cached = 0
+
+    # ------------------------------------------------------------------ matching with cache
+    def _match(self, ka: Hashable, fa: XFeatFeatures, kb: Hashable, fb: XFeatFeatures) -> np.ndarray:
+        key = (ka, kb)
+        m = self._matches.get(key)
+        if m is not None:
+            self._matches.move_to_end(key)
+            self.n_match_cached += 1
+            return m
+        rkey = (kb, ka)
+        if rkey in self._matches:
+            self.n_match_cached += 1
+            return self._matches[rkey][:, ::-1]
+        m = match_mnn(fa.descriptors, fb.descriptors, self.conf["min_cossim"], self.conf["ratio"])
+        self.n_match_computed += 1
+        self._matches[key] = m
+        while len(self._matches) > int(self.conf["match_cache_size"]):
+            self._matches.popitem(last=False)
+        return m
+
+    # ------------------------------------------------------------------ two-view geometry
+    def _relative_pose(self, uv0: np.ndarray, uv1: np.ndarray, cam0: dict, cam1: dict
+                       ) -> tuple[np.ndarray | None, np.ndarray, str]:
+        """Essential-matrix RANSAC: ``T_1_0`` with unit translation, inlier mask, reason."""
+        import poselib
+
+        c = self.conf
+        if len(uv0) < c["min_matches"]:
+            return None, np.zeros(len(uv0), bool), "few-matches"
+        pose, info = poselib.estimate_relative_pose(
+            uv0.astype(np.float64), uv1.astype(np.float64), cam0, cam1,
+            {"max_epipolar_error": float(c["epipolar_px"])}, {})
+        inl = np.asarray(info["inliers"], bool)
+        if inl.sum() < c["min_inliers"] or inl.mean() < c["min_inlier_ratio"]:
+            return None, inl, "few-inliers"
+        T = _pose_to_T(pose.R, pose.t)
+        if not np.all(np.isfinite(T)) or np.linalg.norm(T[:3, 3]) < 1e-9:
+            return None, inl, "few-inliers"
+        T[:3, 3] /= np.linalg.norm(T[:3, 3])
+        return T, inl, ""
+
+    def _triangulate_pair(self, uv0: np.ndarray, uv1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
+                          T_1_0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Points in camera 0, a keep mask, mean reprojection error (px) and triangulation angle (deg)."""
+        X = triangulate(pixels_to_rays(uv0, K0), pixels_to_rays(uv1, K1), T_1_0)
+        X1 = X @ T_1_0[:3, :3].T + T_1_0[:3, 3]
+        e0 = reprojection_error(X, uv0, K0)
+        e1 = reprojection_error(X1, uv1, K1)
+        ang = triangulation_angle_deg(X, np.zeros(3), _inv(T_1_0)[:3, 3])
+        keep = (np.all(np.isfinite(X), axis=1) & (X[:, 2] > 0) & (X1[:, 2] > 0)
+                & (e0 < self.conf["max_reproj_px"]) & (e1 < self.conf["max_reproj_px"]))
+        return X, keep & (ang >= self.conf["min_point_angle_deg"]), 0.5 * (e0 + e1), ang
+
+    # ------------------------------------------------------------------ main entry
+    def infer(self, views: Sequence[View]) -> BackboneOutput:
+        """One joint pass; see the module docstring for the method and the reasons."""
+        import poselib
+
+        S = len(views)
+        if S == 0:
+            raise OfflineBackboneError("offline backbone: no views given")
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        intr: list[CameraIntrinsics] = []
+        for s, v in enumerate(views):
+            if v.intrinsics is None:
+                raise OfflineBackboneError(
+                    f"offline backbone: view {s} (key {v.key!r}) has no intrinsics; this backbone needs them")
+            check_image(v.image, f"view {s} (key {v.key!r})", int(self.encoder.conf["min_size"]))
+            intr.append(v.intrinsics)
+        feats = [self.encoder.encode(v) for v in views]
+        timings["encode"] = time.perf_counter() - t0
+
+        T = np.full((S, 4, 4), np.nan)
+        T[0] = np.eye(4)
+        valid = np.zeros(S, bool)
+        valid[0] = True
+        reasons = [""] + ["no-reference"] * (S - 1)
+        hw = [f.image_hw for f in feats]
+        Ks = [i.K for i in intr]
+        cams = [_camera(i) for i in intr]
+        low_tex = [float(np.std(v.image.mean(axis=2))) < self.conf["min_texture_std"] for v in views]
+        pts_uv: list[list[np.ndarray]] = [[] for _ in range(S)]
+        pts_d: list[list[np.ndarray]] = [[] for _ in range(S)]
+        pts_c: list[list[np.ndarray]] = [[] for _ in range(S)]
+
+        def _outputs() -> BackboneOutput:
+            depth, conf = [], []
+            for s in range(S):
+                if valid[s] and pts_uv[s]:
+                    D, C = splat_depth(np.concatenate(pts_uv[s]), np.concatenate(pts_d[s]),
+                                       np.concatenate(pts_c[s]), hw[s])
+                else:
+                    D = np.zeros(hw[s], np.float32)
+                    C = np.zeros(hw[s], np.float32)
+                depth.append(D)
+                conf.append(C)
+            timings["total"] = time.perf_counter() - t0
+            return BackboneOutput(T_frame_cam=T, valid=valid.copy(), depth=depth, depth_conf=conf,
+                                  intrinsics=list(intr), reasons=reasons, timings_s=timings)
+
+        if S == 1:
+            return _outputs()
+        if low_tex[0] or feats[0].n < self.conf["min_matches"]:
+            for s in range(1, S):
+                reasons[s] = "low-texture" if low_tex[0] else "few-matches"
+            return _outputs()
+
+        # -- matches of the current view with every other view
+        tm = time.perf_counter()
+        m0 = [np.zeros((0, 2), np.int64)] + [
+            (np.zeros((0, 2), np.int64) if low_tex[s] else self._match(views[0].key, feats[0], views[s].key, feats[s]))
+            for s in range(1, S)]
+        timings["match"] = time.perf_counter() - tm
+
+        # -- reference pair: first candidate with a good essential matrix and parallax
+        tg = time.perf_counter()
+        ref, track = -1, None
+        pair_reason = {s: ("low-texture" if low_tex[s] else "") for s in range(1, S)}
+        for s in range(1, S):
+            if low_tex[s]:
+                continue
+            uv0 = feats[0].keypoints[m0[s][:, 0]]
+            uvs = feats[s].keypoints[m0[s][:, 1]]
+            T_s_0, inl, why = self._relative_pose(uv0, uvs, cams[0], cams[s])
+            if T_s_0 is None:
+                pair_reason[s] = why
+                continue
+            X, keep, err, ang = self._triangulate_pair(uv0[inl], uvs[inl], Ks[0], Ks[s], T_s_0)
+            if np.median(ang) < self.conf["min_parallax_deg"]:
+                pair_reason[s] = "no-parallax"
+                continue
+            if keep.sum() < self.conf["min_inliers"]:
+                pair_reason[s] = "few-3d-points"
+                continue
+            ref = s
+            mi = m0[s][inl][keep]
+            track = _Track3D(X=X[keep], kp_cur=mi[:, 0], kp_ref=mi[:, 1], err_px=err[keep])
+            T[s] = _inv(T_s_0)
+            valid[s] = True
+            reasons[s] = ""
+            P = len(track.X)
+            ids = np.arange(P)
+            track.obs[0] = (ids, feats[0].keypoints[track.kp_cur])
+            track.obs[s] = (ids, feats[s].keypoints[track.kp_ref])
+            break
+        timings["two_view"] = time.perf_counter() - tg
+        if track is None:
+            for s in range(1, S):
+                reasons[s] = pair_reason[s] or "no-reference"
+            return _outputs()
+
+        # -- every other view: PnP against the track, else two-view with scale from shared points
+        tp = time.perf_counter()
+        cur_to_pt = np.full(feats[0].n, -1, np.int64)
+        cur_to_pt[track.kp_cur] = np.arange(len(track.X))
+        ref_to_pt = np.full(feats[ref].n, -1, np.int64)
+        ref_to_pt[track.kp_ref] = np.arange(len(track.X))
+        for s in range(1, S):
+            if s == ref:
+                continue
+            if low_tex[s]:
+                reasons[s] = "low-texture"
+                continue
+            # 2D-3D through the current view's matches and through the reference view's (cached) matches
+            cand_kp, cand_pt = [], []
+            a = cur_to_pt[m0[s][:, 0]]
+            cand_kp.append(m0[s][a >= 0, 1])
+            cand_pt.append(a[a >= 0])
+            mr = self._match(views[ref].key, feats[ref], views[s].key, feats[s])
+            b = ref_to_pt[mr[:, 0]]
+            cand_kp.append(mr[b >= 0, 1])
+            cand_pt.append(b[b >= 0])
+            kp = np.concatenate(cand_kp)
+            pt = np.concatenate(cand_pt)
+            _, first = np.unique(kp, return_index=True)  # one 3D point per keypoint of view s
+            kp, pt = kp[first], pt[first]
+            placed = False
+            if len(kp) >= self.conf["min_pnp_inliers"]:
+                pose, info = poselib.estimate_absolute_pose(
+                    feats[s].keypoints[kp].astype(np.float64), track.X[pt], cams[s],
+                    {"max_reproj_error": float(self.conf["pnp_px"])}, {})
+                inl = np.asarray(info["inliers"], bool)
+                T_s_f = _pose_to_T(pose.R, pose.t)
+                if inl.sum() >= self.conf["min_pnp_inliers"] and np.all(np.isfinite(T_s_f)):
+                    T[s] = _inv(T_s_f)
+                    valid[s] = True
+                    reasons[s] = ""
+                    track.obs[s] = (pt[inl], feats[s].keypoints[kp[inl]])
+                    placed = True
+            if not placed:
+                why = self._two_view_with_scale(s, m0[s], feats, Ks, cams, track, cur_to_pt, T)
+                if why:
+                    reasons[s] = pair_reason[s] or why
+                else:
+                    valid[s] = True
+                    reasons[s] = ""
+        timings["pnp"] = time.perf_counter() - tp
+
+        # -- sparse depth per placed view
+        n_obs = np.zeros(len(track.X))
+        for ids, _ in track.obs.values():
+            np.add.at(n_obs, ids, 1)
+        for s, (ids, uv) in track.obs.items():
+            if not valid[s]:
+                continue
+            Tsf = _inv(T[s])
+            Xs = track.X[ids] @ Tsf[:3, :3].T + Tsf[:3, 3]
+            err = reprojection_error(Xs, uv, Ks[s])
+            pts_uv[s].append(uv)
+            pts_d[s].append(Xs[:, 2])
+            pts_c[s].append(n_obs[ids] / (1.0 + np.minimum(err, 1e3)))
+        return _outputs()
+
+    def _two_view_with_scale(self, s: int, m0s: np.ndarray, feats: list[XFeatFeatures], Ks: list[np.ndarray],
+                             cams: list[dict], track: _Track3D, cur_to_pt: np.ndarray, T: np.ndarray) -> str:
+        """Place view ``s`` by its essential matrix with the current view; scale from shared points.
+
+        Writes ``T[s]`` and the view's observations on success; returns ``""`` or a reason.
+        """
+        uv0 = feats[0].keypoints[m0s[:, 0]]
+        uvs = feats[s].keypoints[m0s[:, 1]]
+        T_s_0, inl, why = self._relative_pose(uv0, uvs, cams[0], cams[s])
+        if T_s_0 is None:
+            return why
+        shared = inl & (cur_to_pt[m0s[:, 0]] >= 0)
+        if shared.sum() < self.conf["min_scale_points"]:
+            return "few-3d-points"
+        X_unit, keep, _, _ = self._triangulate_pair(uv0[shared], uvs[shared], Ks[0], Ks[s], T_s_0)
+        pt = cur_to_pt[m0s[shared, 0]]
+        if keep.sum() < self.conf["min_scale_points"]:
+            return "no-parallax"
+        ratio = track.X[pt[keep], 2] / X_unit[keep, 2]
+        scale = float(np.median(ratio))
+        if not np.isfinite(scale) or scale <= 0:
+            return "few-3d-points"
+        T_s_0 = T_s_0.copy()
+        T_s_0[:3, 3] *= scale
+        T[s] = _inv(T_s_0)
+        track.obs[s] = (pt[keep], uvs[shared][keep])
+        return ""
