@@ -1,0 +1,100 @@
+"""Metric depth sources behind :class:`cerpe.protocols.MetricDepthSource`, by name.
+
+``build_depth_source(name, conf)`` with ``name`` one of :data:`DEPTH_SOURCES`:
+
+* ``sensor``   -- simulated RGB-D sensor over the renderer's exact depth
+  (:class:`cerpe.synth.SensorDepthSim`: noise, range limits, holes);
+* ``mono-sim`` -- simulated monocular metric-depth network
+  (:class:`cerpe.synth.MonoDepthSim`: global scale bias and structured error),
+  the stand-in for Metric3Dv2 on synthetic data;
+* ``dataset``  -- the dataset's own metric depth, :attr:`FrameContext.sensor_depth_m`
+  (RGB-D images, LiDAR projected into the camera by the adapter);
+* ``metric3d`` -- Metric3Dv2 from user-supplied weights (:mod:`cerpe.backbones.metric3d`);
+* ``none``     -- no metric depth (scale stays unknown; the algorithm counts it).
+
+Heavy or optional modules are imported only when their source is built.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..protocols import BackboneError, FrameContext, View
+
+DEPTH_SOURCES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
+
+
+class DepthSourceError(BackboneError):
+    """Unknown depth source name or a depth source that cannot be built."""
+
+
+class DatasetDepth:
+    """Returns the dataset's metric depth for the frame (``FrameContext.sensor_depth_m``).
+
+    Non-finite and non-positive values become 0 (unknown); a map whose size
+    differs from the image raises :class:`DepthSourceError` naming robot and step.
+    """
+
+    name = "dataset"
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = dict(conf or {})
+
+    def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
+        d = frame.sensor_depth_m
+        if d is None:
+            return None
+        d = np.asarray(d, dtype=np.float32)
+        if d.ndim != 2 or d.shape != view.image.shape[:2]:
+            raise DepthSourceError(
+                f"dataset depth of robot {frame.robot_id} step {frame.step}: shape {d.shape} "
+                f"does not match the image {view.image.shape[:2]}")
+        return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+
+
+class NoDepth:
+    """No metric depth at all: every frame returns None."""
+
+    name = "none"
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = dict(conf or {})
+
+    def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
+        return None
+
+
+def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what: str) -> Any:
+    import importlib
+
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        raise DepthSourceError(f"depth source {what!r}: module {module} is not available ({exc})") from None
+    for n in names:
+        obj = getattr(mod, n, None)
+        if obj is not None:
+            return obj(conf) if conf else obj()
+    raise DepthSourceError(f"depth source {what!r}: {module} defines none of {list(names)}")
+
+
+def build_depth_source(name: str, conf: dict[str, Any] | None = None) -> Any:
+    """Build the metric depth source called ``name`` (see the module docstring).
+
+    Raises:
+        DepthSourceError: for an unknown name (listing the valid ones) or a
+            source whose module is missing.
+    """
+    conf = dict(conf or {})
+    if name == "dataset":
+        return DatasetDepth(conf)
+    if name == "none":
+        return NoDepth(conf)
+    if name == "sensor":
+        return _from_module("cerpe.synth", ("SensorDepthSim",), conf, name)
+    if name == "mono-sim":
+        return _from_module("cerpe.synth", ("MonoDepthSim",), conf, name)
+    if name == "metric3d":
+        return _from_module("cerpe.backbones.metric3d", ("build_metric3d", "Metric3DDepth", "Metric3D"), conf, name)
+    raise DepthSourceError(f"unknown depth source {name!r}; valid: {', '.join(DEPTH_SOURCES)}")
