@@ -1,0 +1,111 @@
+"""Dataset adapters: manifests in, :class:`cerpe.scene.Setting` out.
+
+Public API::
+
+    load_manifest(path) -> Manifest                 # validate a YAML manifest (all problems at once)
+    load_setting(path_or_manifest) -> Setting       # validate, then read the data with its adapter
+    find_manifests(folder) -> list[Manifest]        # every manifest in a folder, enabled or not
+
+Adapters: ``mocap`` (image folders + TUM/EuRoC/CSV trajectories; also what
+``cerpe synth`` writes), ``openmars`` (nuScenes-format multi-agent tables),
+``synthetic`` (generate a suite on demand, then ``mocap``), ``example`` (a
+KITTI-odometry-style template); more through the ``cerpe.adapters`` entry points.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..scene import Setting
+from .manifest import Manifest, ManifestError, Problem, build_manifest, read_yaml, validate
+from .registry import Adapter, get_adapter, known_adapters, register_adapter
+from .report import LoadReport
+
+__all__ = [
+    "Adapter", "LoadReport", "Manifest", "ManifestError", "Problem", "find_manifests", "get_adapter",
+    "known_adapters", "load_manifest", "load_setting", "register_adapter",
+]
+
+MANIFEST_SUFFIXES = (".yaml", ".yml")
+
+
+def load_manifest(path: str | os.PathLike) -> Manifest:
+    """Parse and validate a manifest file; raises :class:`ManifestError` listing every problem.
+
+    Adapter-specific checks run for enabled and disabled manifests alike (they
+    do not read data); a disabled manifest may leave ``data_root`` unresolved.
+    """
+    path = Path(path).resolve()
+    raw = read_yaml(path)
+    problems: list[Problem] = []
+    adapter: Adapter | None = None
+    if isinstance(raw, dict) and isinstance(raw.get("adapter"), str) and raw["adapter"]:
+        try:
+            adapter = get_adapter(raw["adapter"], str(path))
+        except ManifestError as exc:
+            problems.extend(exc.problems)
+    problems.extend(validate(raw, path, adapter.top_level_fields if adapter else None))
+    if not isinstance(raw, dict):
+        raise ManifestError(problems)
+    manifest = build_manifest(raw, path)
+    if adapter is not None and not problems:
+        problems.extend(adapter.validate(manifest))
+    if problems:
+        raise ManifestError(problems)
+    return manifest
+
+
+def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None = None) -> Setting:
+    """Validate (when given a path) and load a setting with its adapter.
+
+    Args:
+        source: a manifest path or an already loaded :class:`Manifest`.
+        report: collects counted degradations (frames without ground truth,
+            unsynchronised frames...) and sync residuals; a fresh one by default.
+            Its summary is also stored in ``setting.meta["load_report"]``.
+
+    Raises:
+        ManifestError: listing every problem found in the manifest and its data,
+            or because the manifest is disabled.
+    """
+    manifest = source if isinstance(source, Manifest) else load_manifest(source)
+    if not manifest.enabled:
+        raise ManifestError("the manifest is disabled (enabled: false); fill data_root and set enabled: true",
+                            file=str(manifest.path), field="enabled")
+    report = report if report is not None else LoadReport()
+    setting = get_adapter(manifest.adapter, str(manifest.path)).load(manifest, report)
+    report.raise_if_problems()
+    setting.metric_depth = manifest.metric_depth
+    setting.meta.setdefault("manifest", str(manifest.path))
+    setting.meta.setdefault("adapter", manifest.adapter)
+    setting.meta["evaluation_every"] = manifest.evaluation_every
+    setting.meta["sync_tolerance_s"] = manifest.sync_tolerance_s
+    setting.meta["load_report"] = report.as_dict()
+    return setting
+
+
+def find_manifests(folder: str | os.PathLike) -> list[Manifest]:
+    """Every ``*.yaml``/``*.yml`` manifest in ``folder`` (sorted by file name), enabled or not.
+
+    Raises one :class:`ManifestError` listing the problems of all invalid files.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ManifestError("manifest folder not found", file=str(folder))
+    out: list[Manifest] = []
+    problems: list[Problem] = []
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() not in MANIFEST_SUFFIXES or not p.is_file():
+            continue
+        try:
+            out.append(load_manifest(p))
+        except ManifestError as exc:
+            problems.extend(exc.problems)
+    if problems:
+        raise ManifestError(problems)
+    names = [m.name for m in out]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ManifestError(f"setting name(s) used by more than one manifest: {', '.join(dupes)}",
+                            file=str(folder), field="name")
+    return out

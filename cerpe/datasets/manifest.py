@@ -1,0 +1,234 @@
+"""Dataset manifests: the YAML file that says where a setting's data is and how to read it.
+
+A manifest is validated completely before anything is loaded: :func:`validate`
+returns *every* problem it finds (file, dotted field path, what was expected),
+and :func:`load_manifest` raises one :class:`ManifestError` carrying them all.
+
+Common fields (adapter-specific ones are checked by the adapter)::
+
+    name: synthetic-cad        # str, the setting name (column group of Table I)
+    adapter: mocap             # a registered adapter (see cerpe.datasets.registry)
+    enabled: true              # false: the setting is listed as "not supplied"
+    data_root: ../build/x      # relative to the manifest file; ${VAR} expands from the environment
+    metric_depth: sensor       # sensor | mono-sim | dataset | metric3d | none
+    sync_tolerance_s: 0.02     # > 0, seconds
+    evaluation: {every: 1}     # evaluate every n-th step (n >= 1)
+    encounters: [...]          # adapter-specific
+
+See ``datasets_manifest/README.md`` for a guide.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import yaml
+
+from ..errors import CerpeError
+
+METRIC_DEPTH_CHOICES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
+COMMON_FIELDS: tuple[str, ...] = (
+    "name", "adapter", "enabled", "data_root", "metric_depth", "sync_tolerance_s",
+    "evaluation", "encounters", "description",
+)
+_VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a manifest or the data it points to.
+
+    Attributes:
+        file: the file at fault (the manifest, or a data file it names).
+        field: dotted path into the manifest (``encounters[2].robots[0].trajectory``),
+            optionally followed by a location inside the data file (``line 7``).
+        message: what was found and what was expected.
+    """
+
+    file: str
+    field: str
+    message: str
+
+    def __str__(self) -> str:
+        where = f"{self.file}: {self.field}" if self.field else self.file
+        return f"{where}: {self.message}"
+
+
+class ManifestError(CerpeError, ValueError):
+    """A manifest or the data it names is invalid; ``problems`` lists every problem found."""
+
+    def __init__(self, problems: Iterable[Problem] | str, file: str = "", field: str = "") -> None:
+        if isinstance(problems, str):
+            problems = [Problem(file, field, problems)]
+        self.problems: list[Problem] = list(problems)
+        n = len(self.problems)
+        if n == 1:
+            msg = str(self.problems[0])
+        else:
+            msg = f"{n} problems:\n" + "\n".join(f"  - {p}" for p in self.problems)
+        super().__init__(msg)
+
+
+@dataclass
+class Manifest:
+    """A validated manifest.
+
+    Attributes:
+        path: the manifest file (absolute).
+        name, adapter, enabled, metric_depth, sync_tolerance_s: common fields.
+        data_root: absolute data folder (None when it cannot be resolved, which is
+            only allowed for a disabled manifest).
+        evaluation_every: evaluate every n-th step.
+        encounters: the raw, adapter-specific ``encounters`` value (list or None).
+        raw: the whole parsed YAML mapping (adapter-specific top-level fields too).
+    """
+
+    path: Path
+    name: str
+    adapter: str
+    enabled: bool
+    data_root: Path | None
+    metric_depth: str
+    sync_tolerance_s: float
+    evaluation_every: int
+    encounters: Any
+    raw: dict = field(default_factory=dict)
+
+    def resolve(self, rel: str | os.PathLike) -> Path:
+        """A path from the manifest, relative to ``data_root`` (absolute paths pass through)."""
+        p = Path(expand_vars(str(rel))[0])
+        if p.is_absolute():
+            return p
+        base = self.data_root if self.data_root is not None else self.path.parent
+        return (base / p).resolve()
+
+    def problem(self, field_: str, message: str, file: str | os.PathLike | None = None) -> Problem:
+        """A :class:`Problem` for this manifest (``file`` defaults to the manifest itself)."""
+        return Problem(str(file) if file is not None else str(self.path), field_, message)
+
+
+# --------------------------------------------------------------------------- helpers
+def expand_vars(text: str) -> tuple[str, list[str]]:
+    """Expand ``${VAR}`` from the environment; returns the text and the unset names."""
+    missing: list[str] = []
+
+    def sub(m: re.Match) -> str:
+        val = os.environ.get(m.group(1))
+        if val is None:
+            missing.append(m.group(1))
+            return m.group(0)
+        return val
+
+    return _VAR_RE.sub(sub, text), missing
+
+
+def type_name(v: Any) -> str:
+    return "null" if v is None else type(v).__name__
+
+
+def is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+
+
+def read_yaml(path: Path, what: str = "manifest") -> Any:
+    """``yaml.safe_load`` a file, turning every failure into a :class:`ManifestError`."""
+    if not path.is_file():
+        raise ManifestError(f"{what} file not found", file=str(path))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"cannot read {what}: {exc}", file=str(path)) from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else ""
+        raise ManifestError(f"not valid YAML: {getattr(exc, 'problem', exc)}", file=str(path), field=where) from None
+
+
+# --------------------------------------------------------------------------- validation
+def validate(raw: Any, path: Path, adapter_fields: Iterable[str] | None = ()) -> list[Problem]:
+    """Check the common fields of a parsed manifest; returns every problem found.
+
+    Args:
+        raw: the parsed YAML document.
+        path: the manifest file (for messages and to resolve ``data_root``).
+        adapter_fields: extra top-level fields the adapter accepts; None skips the
+            unknown-field check (the adapter itself is unknown, so is its schema).
+    """
+    f = str(path)
+    probs: list[Problem] = []
+    if not isinstance(raw, dict):
+        return [Problem(f, "", f"expected a YAML mapping at the top level, got {type_name(raw)}")]
+    known = set(COMMON_FIELDS) | set(adapter_fields or ())
+    for key in raw:
+        if adapter_fields is not None and key not in known:
+            probs.append(Problem(f, str(key), f"unknown field; known fields: {', '.join(sorted(known))}"))
+    name = raw.get("name")
+    if not isinstance(name, str) or not name.strip():
+        probs.append(Problem(f, "name", f"required: a non-empty string, got {type_name(name)}"))
+    elif not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+        probs.append(Problem(f, "name", f"{name!r}: use letters, digits, '-', '_', '.' (it names run folders)"))
+    adapter = raw.get("adapter")
+    if not isinstance(adapter, str) or not adapter:
+        probs.append(Problem(f, "adapter", f"required: the adapter name (a string), got {type_name(adapter)}"))
+    enabled = raw.get("enabled", True)
+    if not isinstance(enabled, bool):
+        probs.append(Problem(f, "enabled", f"expected true or false, got {enabled!r}"))
+    md = raw.get("metric_depth", "dataset")
+    if md not in METRIC_DEPTH_CHOICES:
+        probs.append(Problem(f, "metric_depth", f"expected one of {', '.join(METRIC_DEPTH_CHOICES)}, got {md!r}"))
+    tol = raw.get("sync_tolerance_s", 0.02)
+    if not is_number(tol) or float(tol) <= 0:
+        probs.append(Problem(f, "sync_tolerance_s", f"expected a positive number of seconds, got {tol!r}"))
+    ev = raw.get("evaluation", {"every": 1})
+    if not isinstance(ev, dict):
+        probs.append(Problem(f, "evaluation", f"expected a mapping like {{every: 1}}, got {type_name(ev)}"))
+    else:
+        for k in ev:
+            if k != "every":
+                probs.append(Problem(f, f"evaluation.{k}", "unknown field; known: every"))
+        every = ev.get("every", 1)
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            probs.append(Problem(f, "evaluation.every", f"expected an integer >= 1, got {every!r}"))
+    if "data_root" in raw:
+        dr = raw["data_root"]
+        if not isinstance(dr, str) or not dr:
+            probs.append(Problem(f, "data_root", f"expected a path string, got {type_name(dr)}"))
+        elif enabled is True:
+            text, missing = expand_vars(dr)
+            if missing:
+                probs.append(Problem(f, "data_root", f"environment variable(s) {', '.join(missing)} not set (in {dr!r})"))
+            else:
+                root = (path.parent / text).resolve()
+                if not root.is_dir():
+                    probs.append(Problem(f, "data_root", f"folder not found: {root}"))
+    return probs
+
+
+def build_manifest(raw: dict, path: Path) -> Manifest:
+    """Turn a validated mapping into a :class:`Manifest` (no checks beyond :func:`validate`)."""
+    data_root: Path | None = None
+    dr = raw.get("data_root")
+    if isinstance(dr, str):
+        text, missing = expand_vars(dr)
+        if not missing:
+            data_root = (path.parent / text).resolve()
+    elif dr is None:
+        data_root = path.parent.resolve()
+    return Manifest(
+        path=path,
+        name=str(raw.get("name")),
+        adapter=str(raw.get("adapter")),
+        enabled=bool(raw.get("enabled", True)),
+        data_root=data_root,
+        metric_depth=str(raw.get("metric_depth", "dataset")),
+        sync_tolerance_s=float(raw.get("sync_tolerance_s", 0.02)),
+        evaluation_every=int((raw.get("evaluation") or {}).get("every", 1)),
+        encounters=raw.get("encounters"),
+        raw=raw,
+    )

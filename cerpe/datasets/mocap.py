@@ -1,0 +1,313 @@
+"""``mocap`` adapter: per-robot image folders with motion-capture (or any) ground truth.
+
+This is also the layout ``cerpe synth`` writes. Manifest ``encounters`` entries::
+
+    - name: lab-s0                     # unique in the manifest
+      sync: stamp                      # stamp (nearest within sync_tolerance_s) | index
+      window_s: [0.0, 5.0]             # optional; relative to robot 0's first stamp (negative: from its end)
+      overlap: lab-s0/overlap.npy      # optional [T0, N, N]; T0 = robot 0's image count before any window
+      robots:
+        - id: r0
+          images: lab-s0/r0/rgb        # folder of <stamp>.png|jpg, or a "stamp path" list file
+          image_stamp_units: s         # s | ms | us | ns (names/lines of the image list)
+          trajectory: lab-s0/r0/groundtruth.txt   # optional (no ground truth without it)
+          trajectory_format: tum       # tum | euroc | csv
+          gt_tolerance_s: 0.02         # nearest pose within this; else NaN ground truth (counted)
+          interpolate: false           # true: SLERP between samples <= interpolate_max_gap_s apart
+          interpolate_max_gap_s: 0.1
+          intrinsics: lab-s0/r0/camera.yaml
+          T_body_cam: identity         # camera pose in the body frame: T_world_cam = T_world_body @ T_body_cam
+          depth: lab-s0/r0/depth       # optional folder, same stems as the images
+          depth_units_per_m: 1000
+          window_s: [0.0, 8.0]         # optional per-robot window (relative to this robot's stamps)
+
+Paths are relative to the manifest's ``data_root``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
+from .formats import (STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
+                      parse_transform, read_intrinsics, read_trajectory)
+from .manifest import Manifest, ManifestError, Problem, is_number, type_name
+from .report import LoadReport
+from .sync import poses_at, synchronise, window_mask
+
+ENCOUNTER_FIELDS = ("name", "sync", "window_s", "overlap", "robots", "meta")
+ROBOT_FIELDS = (
+    "id", "images", "image_stamp_units", "trajectory", "trajectory_format", "gt_tolerance_s", "interpolate",
+    "interpolate_max_gap_s", "intrinsics", "T_body_cam", "depth", "depth_units_per_m", "window_s",
+)
+SYNC_MODES = ("stamp", "index")
+
+
+def _check_window(v: Any, f: str, field: str) -> list[Problem]:
+    if v is None:
+        return []
+    if not (isinstance(v, list) and len(v) == 2 and all(x is None or is_number(x) for x in v)):
+        return [Problem(f, field, f"expected [start_s, end_s] (numbers or null), got {v!r}")]
+    a, b = v
+    if a is not None and b is not None and (float(a) >= 0) == (float(b) >= 0) and float(b) <= float(a):
+        return [Problem(f, field, f"end {b} must be after start {a}")]
+    return []
+
+
+def validate_encounters(m: Manifest) -> list[Problem]:
+    """Structure of a mocap ``encounters`` list (types, required fields, unique names); no file access."""
+    f = str(m.path)
+    encs = m.encounters
+    if not isinstance(encs, list) or not encs:
+        return [Problem(f, "encounters", f"expected a non-empty list of encounters, got {type_name(encs)}")]
+    probs: list[Problem] = []
+    names: set[str] = set()
+    for e, enc in enumerate(encs):
+        fe = f"encounters[{e}]"
+        if not isinstance(enc, dict):
+            probs.append(Problem(f, fe, f"expected a mapping, got {type_name(enc)}"))
+            continue
+        for k in enc:
+            if k not in ENCOUNTER_FIELDS:
+                probs.append(Problem(f, f"{fe}.{k}", f"unknown field; known: {', '.join(ENCOUNTER_FIELDS)}"))
+        name = enc.get("name")
+        if not isinstance(name, str) or not name:
+            probs.append(Problem(f, f"{fe}.name", f"required: a non-empty string, got {type_name(name)}"))
+        elif name in names:
+            probs.append(Problem(f, f"{fe}.name", f"duplicate encounter name {name!r}"))
+        else:
+            names.add(name)
+        if enc.get("sync", "stamp") not in SYNC_MODES:
+            probs.append(Problem(f, f"{fe}.sync", f"expected one of {', '.join(SYNC_MODES)}, got {enc.get('sync')!r}"))
+        probs += _check_window(enc.get("window_s"), f, f"{fe}.window_s")
+        if "overlap" in enc and not isinstance(enc["overlap"], str):
+            probs.append(Problem(f, f"{fe}.overlap", f"expected a path to a .npy file, got {type_name(enc['overlap'])}"))
+        robots = enc.get("robots")
+        if not isinstance(robots, list) or len(robots) < 2:
+            n = len(robots) if isinstance(robots, list) else type_name(robots)
+            probs.append(Problem(f, f"{fe}.robots", f"expected a list of at least 2 robots, got {n}"))
+            continue
+        ids: set[str] = set()
+        for r, rob in enumerate(robots):
+            fr = f"{fe}.robots[{r}]"
+            if not isinstance(rob, dict):
+                probs.append(Problem(f, fr, f"expected a mapping, got {type_name(rob)}"))
+                continue
+            for k in rob:
+                if k not in ROBOT_FIELDS:
+                    probs.append(Problem(f, f"{fr}.{k}", f"unknown field; known: {', '.join(ROBOT_FIELDS)}"))
+            rid = rob.get("id")
+            if not isinstance(rid, str) or not rid:
+                probs.append(Problem(f, f"{fr}.id", f"required: a non-empty string, got {type_name(rid)}"))
+            elif rid in ids:
+                probs.append(Problem(f, f"{fr}.id", f"duplicate robot id {rid!r} in this encounter"))
+            else:
+                ids.add(rid)
+            for k in ("images", "intrinsics"):
+                if not isinstance(rob.get(k), str) or not rob.get(k):
+                    probs.append(Problem(f, f"{fr}.{k}", f"required: a path string, got {type_name(rob.get(k))}"))
+            for k in ("trajectory", "depth"):
+                if k in rob and not isinstance(rob[k], str):
+                    probs.append(Problem(f, f"{fr}.{k}", f"expected a path string, got {type_name(rob[k])}"))
+            if rob.get("trajectory_format", "tum") not in TRAJECTORY_FORMATS:
+                probs.append(Problem(f, f"{fr}.trajectory_format",
+                                     f"expected one of {', '.join(TRAJECTORY_FORMATS)}, got {rob.get('trajectory_format')!r}"))
+            if rob.get("image_stamp_units", "s") not in STAMP_UNITS:
+                probs.append(Problem(f, f"{fr}.image_stamp_units",
+                                     f"expected one of {', '.join(STAMP_UNITS)}, got {rob.get('image_stamp_units')!r}"))
+            for k in ("gt_tolerance_s", "interpolate_max_gap_s", "depth_units_per_m"):
+                if k in rob and (not is_number(rob[k]) or float(rob[k]) <= 0):
+                    probs.append(Problem(f, f"{fr}.{k}", f"expected a positive number, got {rob[k]!r}"))
+            if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
+                probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
+            tb = rob.get("T_body_cam", "identity")
+            if not (tb == "identity" or isinstance(tb, (list, str))):
+                probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
+            elif isinstance(tb, list):
+                try:
+                    parse_transform(tb, f"{fr}.T_body_cam", f)
+                except ManifestError as exc:
+                    probs += exc.problems
+            probs += _check_window(rob.get("window_s"), f, f"{fr}.window_s")
+    return probs
+
+
+@dataclass
+class _RobotData:
+    """One robot's files read, before synchronisation."""
+
+    rid: str
+    stamps_s: np.ndarray
+    images: list[Path]
+    orig_idx: np.ndarray  # index into the full image list (before windows)
+    n_total: int  # images in the full list
+    intrinsics: CameraIntrinsics
+    T_body_cam: np.ndarray
+    traj: Trajectory | None
+    depth: list[Path | None] | None
+    depth_units_per_m: float
+    gt_tol_s: float
+    interpolate: bool
+    max_gap_s: float
+
+
+def _read_robot(m: Manifest, rob: dict, fr: str, enc_name: str, report: LoadReport) -> _RobotData | None:
+    probs: list[Problem] = []
+    rid = rob["id"]
+
+    def attempt(fn, *a):
+        try:
+            return fn(*a)
+        except ManifestError as exc:
+            probs.extend(exc.problems)
+            return None
+
+    listed = attempt(list_images, m.resolve(rob["images"]), f"{fr}.images", rob.get("image_stamp_units", "s"))
+    intr = attempt(read_intrinsics, m.resolve(rob["intrinsics"]), f"{fr}.intrinsics")
+    T_bc = attempt(parse_transform, rob.get("T_body_cam", "identity"), f"{fr}.T_body_cam", str(m.path), m.resolve)
+    traj = None
+    if rob.get("trajectory"):
+        traj = attempt(read_trajectory, m.resolve(rob["trajectory"]), rob.get("trajectory_format", "tum"), f"{fr}.trajectory")
+    depth_dir = m.resolve(rob["depth"]) if rob.get("depth") else None
+    if depth_dir is not None and not depth_dir.is_dir():
+        probs.append(Problem(str(depth_dir), f"{fr}.depth", "depth folder not found"))
+    if listed is not None:
+        missing = [p for p in listed[1] if not p.is_file()]
+        for p in missing[:5]:
+            probs.append(Problem(str(p), f"{fr}.images", "image file not found"))
+        if len(missing) > 5:
+            probs.append(Problem(str(m.resolve(rob["images"])), f"{fr}.images", f"... and {len(missing) - 5} more missing image files"))
+    if probs or listed is None or intr is None or T_bc is None:
+        report.extend(probs)
+        return None
+    stamps, images = listed
+    orig = np.arange(len(stamps))
+    keep = window_mask(stamps, rob.get("window_s"))
+    if not keep.any():
+        report.add(Problem(str(m.path), f"{fr}.window_s", f"no image of robot {rid} inside the window {rob.get('window_s')}"))
+        return None
+    stamps, orig = stamps[keep], orig[keep]
+    images = [images[k] for k in orig]
+    if traj is not None and traj.n_nan_rows:
+        report.count(enc_name, f"{rid}: trajectory rows with NaN skipped", traj.n_nan_rows)
+    depth = None
+    if depth_dir is not None:
+        depth = find_depth_files(depth_dir, [p.stem for p in images])
+        report.count(enc_name, f"{rid}: frames without a depth file", sum(d is None for d in depth))
+    return _RobotData(
+        rid=rid, stamps_s=stamps, images=images, orig_idx=orig, n_total=len(listed[0]), intrinsics=intr, T_body_cam=T_bc, traj=traj,
+        depth=depth, depth_units_per_m=float(rob.get("depth_units_per_m", 1.0)),
+        gt_tol_s=float(rob.get("gt_tolerance_s", 0.02)), interpolate=bool(rob.get("interpolate", False)),
+        max_gap_s=float(rob.get("interpolate_max_gap_s", 0.1)),
+    )
+
+
+def _load_overlap(m: Manifest, enc: dict, fe: str, n_ref_frames: int, n_robots: int,
+                  ref_rows: np.ndarray, report: LoadReport) -> np.ndarray | None:
+    path = m.resolve(enc["overlap"])
+    f, field = str(path), f"{fe}.overlap"
+    if not path.is_file():
+        report.add(Problem(f, field, "overlap file not found"))
+        return None
+    try:
+        ov = np.load(path, allow_pickle=False)
+    except Exception as exc:  # truncated or not a .npy
+        report.add(Problem(f, field, f"cannot read .npy: {exc}"))
+        return None
+    if ov.shape != (n_ref_frames, n_robots, n_robots):
+        report.add(Problem(f, field, f"shape {ov.shape}, expected ({n_ref_frames}, {n_robots}, {n_robots}) "
+                                     "= (robot 0's image count before windows, robots, robots)"))
+        return None
+    ov = ov.astype(np.float64)
+    fin = ov[np.isfinite(ov)]
+    if fin.size and (fin.min() < -1e-6 or fin.max() > 1 + 1e-6):
+        report.add(Problem(f, field, f"overlap ratios must lie in [0, 1], found [{fin.min():.3g}, {fin.max():.3g}]"))
+        return None
+    return ov[ref_rows]
+
+
+def load_encounter(m: Manifest, e: int, enc: dict, report: LoadReport) -> Encounter | None:
+    """Read, window and synchronise one encounter; None (with problems in ``report``) on failure."""
+    fe = f"encounters[{e}]"
+    name = enc["name"]
+    datas = [_read_robot(m, rob, f"{fe}.robots[{r}]", name, report) for r, rob in enumerate(enc["robots"])]
+    if any(d is None for d in datas):
+        return None
+    if enc.get("window_s") is not None:
+        ref = datas[0].stamps_s
+        keep0 = window_mask(ref, enc["window_s"])
+        if not keep0.any():
+            report.add(Problem(str(m.path), f"{fe}.window_s", f"no image of robot {datas[0].rid} inside the window"))
+            return None
+        lo, hi = ref[keep0][0], ref[keep0][-1]
+        for d in datas:
+            k = (d.stamps_s >= lo - m.sync_tolerance_s) & (d.stamps_s <= hi + m.sync_tolerance_s)
+            d.stamps_s, d.orig_idx = d.stamps_s[k], d.orig_idx[k]
+            d.images = [p for p, kk in zip(d.images, k) if kk]
+            if d.depth is not None:
+                d.depth = [p for p, kk in zip(d.depth, k) if kk]
+    mode = enc.get("sync", "stamp")
+    idx, res, dropped = synchronise([d.stamps_s for d in datas], m.sync_tolerance_s, mode)
+    T = len(idx[0])
+    if T == 0:
+        report.add(Problem(str(m.path), f"{fe}.robots", f"no common steps: no frames of the robots lie within "
+                                                         f"sync_tolerance_s={m.sync_tolerance_s} of each other"))
+        return None
+    report.count(name, "reference frames without partner frames within sync_tolerance_s (dropped)"
+                 if mode == "stamp" else "frames beyond the shortest robot (dropped)", dropped)
+    report.sync[name] = {}
+    streams = []
+    for d, ix, r in zip(datas, idx, res):
+        stamps = d.stamps_s[ix]
+        if d.traj is not None:
+            T_wb = poses_at(stamps, d.traj.stamps_s, d.traj.T_world_body, d.gt_tol_s, d.interpolate, d.max_gap_s)
+        else:
+            T_wb = np.full((T, 4, 4), np.nan)
+        T_wc = T_wb @ d.T_body_cam
+        n_nan = int(np.sum(~np.all(np.isfinite(T_wc), axis=(1, 2))))
+        report.count(name, f"{d.rid}: frames without ground-truth pose", n_nan)
+        report.sync[name][d.rid] = {"max_abs_s": float(np.max(np.abs(r))) if len(r) else 0.0,
+                                    "mean_abs_s": float(np.mean(np.abs(r))) if len(r) else 0.0, "mode": mode}
+        try:
+            streams.append(RobotStream(
+                robot_id=d.rid, intrinsics=d.intrinsics, stamps_s=stamps, images=[d.images[k] for k in ix],
+                T_world_cam=T_wc, depth=[d.depth[k] for k in ix] if d.depth is not None else None,
+                depth_units_per_m=d.depth_units_per_m, frame_ids=[d.images[k].stem for k in ix],
+            ))
+        except SceneError as exc:
+            report.add(Problem(str(m.path), f"{fe}.robots", str(exc)))
+            return None
+    overlap = None
+    if enc.get("overlap"):
+        overlap = _load_overlap(m, enc, fe, datas[0].n_total, len(datas), datas[0].orig_idx[idx[0]], report)
+        if overlap is None:
+            return None
+    try:
+        return Encounter(name=name, robots=streams, overlap=overlap,
+                         meta={"sync": mode, "manifest": str(m.path), **(enc.get("meta") or {})})
+    except SceneError as exc:
+        report.add(Problem(str(m.path), fe, str(exc)))
+        return None
+
+
+class MocapAdapter:
+    """Image folders + trajectories (TUM / EuRoC / CSV) + camera.yaml per robot."""
+
+    name = "mocap"
+    top_level_fields: tuple[str, ...] = ()
+
+    def validate(self, manifest: Manifest) -> list[Problem]:
+        return validate_encounters(manifest)
+
+    def load(self, manifest: Manifest, report: LoadReport) -> Setting:
+        encounters = []
+        for e, enc in enumerate(manifest.encounters):
+            got = load_encounter(manifest, e, enc, report)
+            if got is not None:
+                encounters.append(got)
+        report.raise_if_problems()
+        return Setting(name=manifest.name, encounters=encounters, metric_depth=manifest.metric_depth,
+                       meta={"manifest": str(manifest.path), "adapter": self.name})

@@ -1,0 +1,115 @@
+"""Summaries and deep checks of a loaded :class:`~cerpe.scene.Setting` (used by ``cerpe check``).
+
+:func:`summarise` is pure (ground truth and stamps only); :func:`verify_setting`
+decodes image and depth files and compares sizes with the intrinsics.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..scene import SceneError, Setting
+from .manifest import Problem
+
+OVERLAP_THRESHOLD = 0.2
+
+
+def summarise(setting: Setting) -> dict:
+    """Counts and ground-truth statistics of a setting.
+
+    Returns a dict with ``encounters``, ``robots`` (distinct ids), ``frames``
+    (robot-frames), ``steps``, ``pairs`` (ordered pairs x evaluated steps),
+    ``pairs_with_gt``, ``sync_max_abs_s``, ``overlap_mean``,
+    ``overlap_frac_ge_0_2`` (NaN without ground-truth overlap),
+    ``view_angle_min_deg`` / ``view_angle_max_deg`` (NaN without ground truth)
+    and ``per_encounter`` rows.
+    """
+    every = int(setting.meta.get("evaluation_every", 1))
+    rows = []
+    ids: set[str] = set()
+    angles_all: list[float] = []
+    overlaps_all: list[float] = []
+    for enc in setting.encounters:
+        ids.update(enc.robot_ids)
+        steps = range(0, enc.n_steps, every)
+        pairs = enc.ordered_pairs()
+        angles = [enc.gt_viewing_angle(t, i, j) for t in steps for i, j in pairs]
+        angles = [a for a in angles if np.isfinite(a)]
+        ov = []
+        if enc.overlap is not None:
+            ov = [enc.overlap[t, i, j] for t in steps for i, j in pairs]
+            ov = [v for v in ov if np.isfinite(v)]
+        angles_all += angles
+        overlaps_all += ov
+        rows.append({
+            "encounter": enc.name, "robots": ",".join(enc.robot_ids), "steps": enc.n_steps,
+            "pairs": len(steps) * len(pairs), "pairs_with_gt": len(angles),
+            "overlap_mean": float(np.mean(ov)) if ov else float("nan"),
+            "view_angle_max_deg": float(np.degrees(max(angles))) if angles else float("nan"),
+        })
+    sync = setting.meta.get("load_report", {}).get("sync", {})
+    res = [r["max_abs_s"] for enc in sync.values() for r in enc.values() if r.get("mode", "stamp") == "stamp"]
+    return {
+        "setting": setting.name,
+        "encounters": len(setting.encounters),
+        "robots": len(ids),
+        "frames": int(sum(enc.n_steps * len(enc.robots) for enc in setting.encounters)),
+        "steps": int(sum(enc.n_steps for enc in setting.encounters)),
+        "pairs": int(sum(r["pairs"] for r in rows)),
+        "pairs_with_gt": int(sum(r["pairs_with_gt"] for r in rows)),
+        "sync_max_abs_s": float(max(res)) if res else float("nan"),
+        "overlap_mean": float(np.mean(overlaps_all)) if overlaps_all else float("nan"),
+        "overlap_frac_ge_0_2": float(np.mean(np.array(overlaps_all) >= OVERLAP_THRESHOLD)) if overlaps_all else float("nan"),
+        "view_angle_min_deg": float(np.degrees(min(angles_all))) if angles_all else float("nan"),
+        "view_angle_max_deg": float(np.degrees(max(angles_all))) if angles_all else float("nan"),
+        "per_encounter": rows,
+    }
+
+
+def _frames_to_check(n: int, max_frames: int | None) -> list[int]:
+    if max_frames is None or max_frames >= n:
+        return list(range(n))
+    return sorted(set(np.linspace(0, n - 1, max(1, max_frames)).round().astype(int).tolist()))
+
+
+def verify_setting(setting: Setting, max_frames: int | None = None, progress: bool = True) -> list[Problem]:
+    """Decode images and depth maps; check sizes against the intrinsics and each other.
+
+    Args:
+        setting: a loaded setting.
+        max_frames: check at most this many frames per robot and encounter
+            (evenly spaced); None checks every frame.
+        progress: show a tqdm bar.
+
+    Returns:
+        every problem found (file, field ``<encounter>/<robot>/<frame>``, message).
+    """
+    probs: list[Problem] = []
+    jobs = [(enc, rob, t) for enc in setting.encounters for rob in enc.robots
+            for t in _frames_to_check(len(rob), max_frames)]
+    for enc, rob, t in tqdm(jobs, desc=f"check {setting.name}", unit="frame", disable=not progress, leave=False):
+        ref = rob.images[t]
+        file = str(ref) if isinstance(ref, (str, Path)) else "<in memory>"
+        where = f"{enc.name}/{rob.robot_id}/{rob.frame_ids[t]}"
+        try:
+            img = rob.image(t)
+        except SceneError as exc:
+            probs.append(Problem(file, where, str(exc)))
+            continue
+        h, w = img.shape[:2]
+        K = rob.intrinsics
+        if (w, h) != (K.width, K.height):
+            probs.append(Problem(file, where, f"image is {w}x{h} but the intrinsics say {K.width}x{K.height}"))
+        if rob.depth is not None and rob.depth[t] is not None:
+            dref = rob.depth[t]
+            dfile = str(dref) if isinstance(dref, (str, Path)) else "<depth callable>"
+            try:
+                d = rob.depth_m(t)
+            except SceneError as exc:
+                probs.append(Problem(dfile, where, str(exc)))
+                continue
+            if d is not None and d.shape != (h, w):
+                probs.append(Problem(dfile, where, f"depth is {d.shape[1]}x{d.shape[0]} but the image is {w}x{h}"))
+    return probs
