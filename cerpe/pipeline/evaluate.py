@@ -1,0 +1,276 @@
+"""The paper's metrics (Section IV) over run folders written by ``cerpe run``.
+
+Usage: ``cerpe eval RUNDIR [RUNDIR ...] [--by encounter|setting] [--csv OUT.csv]``
+
+Per ordered pair ``(i, j)`` and evaluated step (every ``evaluation.every``-th
+step of the manifest), with ``T_hat`` the estimate of ``T_ij = T_cj_ci`` and ``T``
+the ground truth:
+
+* ``e_pos_m = ||t_hat - t||`` (predicted, metric translation; only for methods
+  that claim metric scale, NaN for the scale-free baselines),
+* ``e_pos_gt_scale_m = ||t_hat ||t||/||t_hat|| - t||`` (ground-truth scale),
+* ``e_rot_rad = 4 arcsin(0.5 min(||q_hat - q||, ||q_hat + q||))``,
+* success: the method produced an estimate for the frame. A frame without an
+  estimate (including every frame before the first anchor) is a failure: it
+  counts in ``success_pct`` and is excluded from the error means.
+
+Frames without ground truth cannot be evaluated and are left out (counted in
+``n_no_gt``). Run folders of one (setting, method) with different configuration
+fingerprints are never aggregated together.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..errors import CerpeError
+from ..geometry import e_pos, e_rot_quat, gt_scale_translation
+
+log = logging.getLogger(__name__)
+
+POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",
+                      *(f"est_{c}" for c in POSE), *(f"gt_{c}" for c in POSE))
+SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames")
+
+
+class EvalError(CerpeError, ValueError):
+    """Unusable run folder (unfinished, corrupt, mixed configurations)."""
+
+
+@dataclass
+class Run:
+    """One run folder, loaded.
+
+    Attributes:
+        path: the folder.
+        meta: ``run.json``.
+        steps: all encounters' ``steps.csv`` rows, concatenated.
+        robots: all encounters' ``robots.csv`` rows, concatenated.
+    """
+
+    path: Path
+    meta: dict
+    steps: pd.DataFrame
+    robots: pd.DataFrame
+
+    @property
+    def method(self) -> str:
+        return self.meta["method"]
+
+    @property
+    def setting(self) -> str:
+        return self.meta["setting"]
+
+    @property
+    def fingerprint(self) -> str:
+        return self.meta["fingerprint"]
+
+    @property
+    def metric_scale(self) -> bool:
+        return bool(self.meta.get("metric_scale", False))
+
+    @property
+    def every(self) -> int:
+        return int(self.meta.get("config", {}).get("evaluation_every", 1))
+
+
+def _read_csv(path: Path, required: Sequence[str] = ()) -> pd.DataFrame:
+    try:
+        df = pd.read_csv(path)
+    except FileNotFoundError:
+        raise EvalError(f"missing results file: {path}") from None
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise EvalError(f"corrupt or half-written results file {path}: {exc}") from None
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise EvalError(f"{path}: missing columns {missing} (half-written or from another version?)")
+    return df
+
+
+def load_run(path: Path | str, allow_partial: bool = False) -> Run:
+    """Load a run folder; every encounter of its configuration must be finished.
+
+    Raises :class:`EvalError` naming the file for a missing/corrupt ``run.json``,
+    an unfinished encounter (unless ``allow_partial``), an encounter finished
+    under another fingerprint, or a corrupt CSV.
+    """
+    from .run import RunError, read_json
+
+    path = Path(path)
+    try:
+        meta = read_json(path / "run.json", "run.json")
+    except RunError as exc:
+        raise EvalError(str(exc)) from None
+    for k in ("method", "setting", "fingerprint", "config"):
+        if k not in meta:
+            raise EvalError(f"{path / 'run.json'}: missing field {k!r}")
+    steps, robots = [], []
+    for enc in meta["config"].get("encounters", []):
+        done = path / enc / "DONE.json"
+        if not done.exists():
+            if allow_partial:
+                continue
+            raise EvalError(f"{path}: encounter {enc!r} is not finished (no DONE.json); "
+                            f"rerun `cerpe run` with the same arguments to resume")
+        try:
+            d = read_json(done, "DONE.json")
+        except RunError as exc:
+            raise EvalError(str(exc)) from None
+        if d.get("fingerprint") != meta["fingerprint"]:
+            raise EvalError(f"{done}: encounter finished under configuration {d.get('fingerprint')}, "
+                            f"run.json says {meta['fingerprint']}: refusing to mix configurations")
+        s = _read_csv(path / enc / "steps.csv", REQUIRED_STEP_COLS)
+        if "n_pair_rows" in d and len(s) != int(d["n_pair_rows"]):
+            raise EvalError(f"{path / enc / 'steps.csv'}: {len(s)} rows, DONE.json says {d['n_pair_rows']}")
+        steps.append(s)
+        robots.append(_read_csv(path / enc / "robots.csv", ("encounter", "step", "robot")))
+    if not steps:
+        raise EvalError(f"{path}: no finished encounter")
+    sdf = pd.concat(steps, ignore_index=True)
+    sdf["encounter"] = sdf["encounter"].astype(str)
+    rdf = pd.concat(robots, ignore_index=True)
+    rdf["encounter"] = rdf["encounter"].astype(str)
+    return Run(path, meta, sdf, rdf)
+
+
+def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.DataFrame:
+    """Per-(pair, step) errors of the evaluated frames.
+
+    Args:
+        steps: rows of ``steps.csv`` (est_* and gt_* pose columns, NaN when absent).
+        metric_scale: whether the method's translation is metric (else ``e_pos_m`` is NaN).
+        every: evaluate every ``every``-th step (``step % every == 0``).
+
+    Returns:
+        The evaluated rows (with ground truth) plus columns ``success`` (bool),
+        ``e_pos_m``, ``e_pos_gt_scale_m``, ``e_rot_rad`` (NaN where no estimate).
+    """
+    df = steps[steps["step"].astype(int) % int(every) == 0].copy()
+    gt = df[[f"gt_{c}" for c in POSE]].to_numpy(float)
+    has_gt = np.all(np.isfinite(gt), axis=1)
+    df = df[has_gt].copy()
+    gt = gt[has_gt]
+    est = df[[f"est_{c}" for c in POSE]].to_numpy(float)
+    ok = np.all(np.isfinite(est), axis=1) & (df["source"].astype(str) != "none").to_numpy()
+    df["success"] = ok
+    n = len(df)
+    e_p = np.full(n, np.nan)
+    e_pg = np.full(n, np.nan)
+    e_r = np.full(n, np.nan)
+    if ok.any():
+        t_hat, q_hat = est[ok, :3], est[ok, 3:]
+        t, q = gt[ok, :3], gt[ok, 3:]
+        if metric_scale:
+            e_p[ok] = e_pos(t_hat, t)
+        e_pg[ok] = e_pos(gt_scale_translation(t_hat, t), t)
+        e_r[ok] = e_rot_quat(q_hat, q)
+    df["e_pos_m"] = e_p
+    df["e_pos_gt_scale_m"] = e_pg
+    df["e_rot_rad"] = e_r
+    return df
+
+
+def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
+    """Means of the errors over successful frames and the success rate, grouped by ``by``."""
+    g = frames.groupby(list(by), sort=True, dropna=False)
+    out = pd.DataFrame({
+        "e_pos_m": g["e_pos_m"].mean(),
+        "e_pos_gt_scale_m": g["e_pos_gt_scale_m"].mean(),
+        "e_rot_rad": g["e_rot_rad"].mean(),
+        "e_rot_median_rad": g["e_rot_rad"].median(),
+        "success_pct": 100.0 * g["success"].mean(),
+        "n_frames": g["success"].size(),
+        "n_success": g["success"].sum(),
+    })
+    return out.reset_index()
+
+
+def check_consistent(runs: Iterable[Run]) -> None:
+    """Refuse runs that must not share a table.
+
+    * one (setting, method) with two fingerprints (two configurations);
+    * the cerpe methods run under different profiles or seeds, or settings
+      evaluated with different ``evaluation.every`` across methods.
+    """
+    runs = list(runs)
+    seen: dict[tuple[str, str], Run] = {}
+    for r in runs:
+        key = (r.setting, r.method)
+        if key in seen and seen[key].fingerprint != r.fingerprint:
+            raise EvalError(f"refusing to aggregate mixed configurations for setting {r.setting!r}, method "
+                            f"{r.method!r}: {seen[key].path} ({seen[key].fingerprint}) vs {r.path} "
+                            f"({r.fingerprint})")
+        seen[key] = r
+    profiles = {r.meta.get("profile") for r in runs if r.metric_scale}
+    if len(profiles) > 1:
+        raise EvalError(f"refusing to aggregate CERPE runs of different profiles {sorted(map(str, profiles))}")
+    seeds = {int(r.meta.get("seed", 0)) for r in runs}
+    if len(seeds) > 1:
+        raise EvalError(f"refusing to aggregate runs with different seeds {sorted(seeds)}")
+    every: dict[str, set[int]] = {}
+    for r in runs:
+        every.setdefault(r.setting, set()).add(r.every)
+    bad = {s: v for s, v in every.items() if len(v) > 1}
+    if bad:
+        raise EvalError(f"refusing to aggregate: evaluation.every differs within settings {bad}")
+
+
+def evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Load run folders, check they may be aggregated, compute frame errors.
+
+    Returns:
+        ``(frames, runs_table)``: all evaluated frames of all runs with ``setting``
+        and ``method`` columns; one row per run folder (path, fingerprint, label).
+    """
+    runs = [load_run(p, allow_partial=allow_partial) for p in paths]
+    # the same folder twice would double-count frames
+    uniq = {r.path.resolve(): r for r in runs}
+    runs = list(uniq.values())
+    check_consistent(runs)
+    frames = []
+    for r in runs:
+        f = frame_errors(r.steps, r.metric_scale, r.every)
+        f.insert(0, "method", r.method)
+        f.insert(0, "setting", r.setting)
+        f["metric_scale"] = r.metric_scale
+        frames.append(f)
+    table = pd.DataFrame([{"setting": r.setting, "method": r.method, "path": str(r.path),
+                           "fingerprint": r.fingerprint, "label": r.meta.get("label", r.method),
+                           "metric_scale": r.metric_scale} for r in runs])
+    return pd.concat(frames, ignore_index=True), table
+
+
+def evaluate(paths: Sequence[Path | str], by: str = "setting") -> pd.DataFrame:
+    """Summary table per setting (``by='setting'``) or per encounter (``by='encounter'``)."""
+    frames, _ = evaluate_runs(paths)
+    keys = ["setting", "method"] + (["encounter"] if by == "encounter" else [])
+    return summarise(frames, keys)
+
+
+# --------------------------------------------------------------------------- CLI
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rundirs", nargs="+", type=Path, help="run folders written by `cerpe run`")
+    p.add_argument("--by", choices=("setting", "encounter"), default="setting",
+                   help="aggregate per setting (Table I) or per encounter")
+    p.add_argument("--csv", type=Path, default=None, help="also write the summary to this CSV file")
+
+
+def main(args: argparse.Namespace) -> int:
+    from .run import atomic_write_text
+
+    table = evaluate(args.rundirs, by=args.by)
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print("Errors are means over frames with an estimate; frames without one count as failures "
+          "(success_pct). e_pos_m is NaN for methods without metric scale.")
+    if args.csv:
+        atomic_write_text(args.csv, table.to_csv(index=False))
+        print(f"written: {args.csv}")
+    return 0

