@@ -1,0 +1,178 @@
+"""Offline geometry backbone: known-answer two/three-view geometry on a ray-cast textured room,
+degenerate inputs (pure rotation, blank, black, tiny, wrong channels, unrelated images)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cerpe import geometry as G
+from cerpe.protocols import View
+from cerpe.scene import CameraIntrinsics
+
+W, H = 320, 240
+K = CameraIntrinsics(fx=260.0, fy=260.0, cx=159.5, cy=119.5, width=W, height=H)
+
+
+def _texture(seed: int, size: int = 768) -> np.ndarray:
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    tex = (rng.random((size // 8, size // 8)) * 255).astype(np.uint8)
+    tex = cv2.resize(tex, (size, size), interpolation=cv2.INTER_CUBIC)
+    for _ in range(500):
+        x, y = rng.integers(0, size, 2)
+        r = int(rng.integers(3, 25))
+        c = int(rng.integers(0, 256))
+        if rng.random() < 0.5:
+            cv2.circle(tex, (int(x), int(y)), r, c, -1)
+        else:
+            cv2.rectangle(tex, (int(x), int(y)), (int(x) + r, int(y) + 2 * r), c, -1)
+    return tex
+
+
+class Room:
+    """Four textured planes (floor, back and side walls) ray-cast exactly: image + metric depth."""
+
+    def __init__(self, seed: int = 0) -> None:
+        # plane: normal n, offset o (n.X = o), in-plane axes a, b (metres -> texture px), texture
+        self.planes = [
+            (np.array([0, 1.0, 0]), 1.5, np.array([1.0, 0, 0]), np.array([0, 0, 1.0])),   # floor y=1.5
+            (np.array([0, 0, 1.0]), 9.0, np.array([1.0, 0, 0]), np.array([0, 1.0, 0])),   # back wall z=9
+            (np.array([1.0, 0, 0]), -4.0, np.array([0, 0, 1.0]), np.array([0, 1.0, 0])),  # left wall x=-4
+            (np.array([1.0, 0, 0]), 4.0, np.array([0, 0, 1.0]), np.array([0, 1.0, 0])),   # right wall x=4
+            (np.array([0, 1.0, 0]), -2.5, np.array([1.0, 0, 0]), np.array([0, 0, 1.0])),  # ceiling
+        ]
+        self.tex = [_texture(seed * 10 + i) for i in range(len(self.planes))]
+
+    def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        import cv2
+
+        u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], -1)
+        d = rays @ T_world_cam[:3, :3].T
+        c = T_world_cam[:3, 3]
+        best = np.full((H, W), np.inf)
+        img = np.zeros((H, W), np.float32)
+        for (n, o, a, b), tex in zip(self.planes, self.tex):
+            den = d @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (o - n @ c) / den
+            ok = np.isfinite(t) & (t > 1e-6) & (t < best)
+            X = c + t[..., None] * d
+            mx = ((X @ a) * 60.0 % tex.shape[1]).astype(np.float32)
+            my = ((X @ b) * 60.0 % tex.shape[0]).astype(np.float32)
+            val = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).astype(np.float32)
+            img = np.where(ok, val, img)
+            best = np.where(ok, t, best)
+        depth = np.where(np.isfinite(best), best, 0.0).astype(np.float32)  # rays have z=1: t is the depth
+        rgb = np.repeat(np.clip(img, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+        return rgb, depth
+
+
+def pose(t=(0, 0, 0), rot_deg=(0, 0, 0)) -> np.ndarray:
+    R = G.so3_exp(np.radians(np.asarray(rot_deg, float)))
+    return G.make_se3(R, np.asarray(t, float))
+
+
+@pytest.fixture(scope="module")
+def room() -> Room:
+    return Room(0)
+
+
+@pytest.fixture(scope="module")
+def backbone():
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+
+    return OfflineGeometryBackbone()
+
+
+def _view(room: Room, key, T_world_cam) -> View:
+    return View(key, room.render(T_world_cam)[0], K)
+
+
+def test_two_and_three_views_match_ground_truth(room, backbone):
+    Tw = [pose((0, 0, 0), (0, 2, 0)), pose((0.4, 0.05, 0.3), (1, -3, 0)), pose((-0.3, 0, 0.6), (0, 6, 1))]
+    views = [_view(room, ("r", i), T) for i, T in enumerate(Tw)]
+    out = backbone.infer(views)
+    assert out.valid.all(), out.reasons
+    assert np.allclose(out.T_frame_cam[0], np.eye(4))
+    scales = []
+    for s in (1, 2):
+        T_gt = G.se3_inverse(Tw[0]) @ Tw[s]  # cam s in cam 0 (the pass frame)
+        assert G.rotation_angle(out.T_frame_cam[s][:3, :3].T @ T_gt[:3, :3]) < np.radians(0.3)
+        t_est, t_gt = out.T_frame_cam[s][:3, 3], T_gt[:3, 3]
+        assert np.degrees(np.arccos(t_est @ t_gt / np.linalg.norm(t_est) / np.linalg.norm(t_gt))) < 4.0
+        scales.append(np.linalg.norm(t_gt) / np.linalg.norm(t_est))
+    assert abs(scales[0] / scales[1] - 1) < 0.05  # one consistent scale across the pass
+    # sparse depth agrees with the true depth up to that scale
+    for s in (0, 1, 2):
+        true = room.render(Tw[s])[1]
+        D = out.depth[s]
+        m = D > 0
+        assert m.sum() > 50 and np.all(out.depth_conf[s][m] > 0)
+        ratio = true[m] / D[m]
+        assert abs(np.median(ratio) / scales[0] - 1) < 0.05
+        assert np.all(np.isfinite(D)) and D.dtype == np.float32 and D.shape == (H, W)
+
+
+def test_memory_reuse_no_re_encoding(room):
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.xfeat import XFeatEncoder
+
+    bb = OfflineGeometryBackbone(encoder=XFeatEncoder())
+    Tw = [pose((0.1 * i, 0, 0.15 * i)) for i in range(4)]
+    views = [_view(room, ("r", i), T) for i, T in enumerate(Tw)]
+    bb.infer([views[2], views[1], views[0]])
+    n = bb.encoder.n_encoded
+    out = bb.infer([views[3], views[2], views[1], views[0]])
+    assert bb.encoder.n_encoded == n + 1  # only the new current view is encoded
+    assert bb.n_match_cached >= 1  # keyframe-keyframe matches reused
+    assert out.valid.all(), out.reasons
+
+
+def test_pure_rotation_is_no_parallax(room, backbone):
+    v0 = _view(room, ("rot", 0), pose((0.2, 0, 0.5), (0, 0, 0)))
+    v1 = _view(room, ("rot", 1), pose((0.2, 0, 0.5), (0, 4, 1)))
+    out = backbone.infer([v0, v1])
+    assert not out.valid[1] and out.reasons[1] == "no-parallax"
+    assert np.all(np.isnan(out.T_frame_cam[1]))
+    assert not np.any(out.depth[1])
+
+
+def test_unrelated_images_fail_matching(room, backbone):
+    other = Room(7)
+    v0 = _view(room, ("a", 0), pose())
+    v1 = View(("b", 0), other.render(pose((1.0, 0, 0), (0, 40, 0)))[0], K)
+    out = backbone.infer([v0, v1])
+    assert not out.valid[1] and out.reasons[1] in ("few-matches", "few-inliers")
+    assert np.all(np.isfinite(out.T_frame_cam[out.valid]))
+
+
+@pytest.mark.parametrize("value", [0, 128, 255])
+def test_blank_and_black_images(room, backbone, value):
+    blank = View(("blank", value), np.full((H, W, 3), value, np.uint8), K)
+    good = _view(room, ("g", value), pose())
+    for views, bad in (([blank, good], 1), ([good, blank], 1)):
+        out = backbone.infer(views)
+        assert not out.valid[1] and out.reasons[1] == "low-texture"
+        assert all(np.all(np.isfinite(d)) for d in out.depth)
+
+
+def test_single_view_and_input_errors(room, backbone):
+    from cerpe.backbones.offline import OfflineBackboneError
+    from cerpe.backbones.xfeat import ImageInputError
+    from cerpe.protocols import BackboneError
+
+    out = backbone.infer([_view(room, ("s", 0), pose())])
+    assert out.valid.tolist() == [True] and not out.depth[0].any()
+    img = room.render(pose())[0]
+    with pytest.raises(OfflineBackboneError, match="no intrinsics"):
+        backbone.infer([View(("s", 1), img, None)])
+    with pytest.raises(ImageInputError, match="smaller than"):
+        backbone.infer([View(("s", 2), img[:16, :16], K)])
+    with pytest.raises(ImageInputError, match="HxWx3"):
+        backbone.infer([View(("s", 3), img[..., :1], K)])
+    with pytest.raises(BackboneError, match="uint8"):
+        backbone.infer([View(("s", 4), img.astype(np.float32), K)])
+    with pytest.raises(OfflineBackboneError):
+        backbone.infer([])
