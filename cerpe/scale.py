@@ -1,0 +1,146 @@
+"""Metric scale of a joint backbone pass (paper Eq. scale, METHOD.md step 4).
+
+    s = (1/K) * sum_k median_p ( Dstar_k(p) / D_k(p) )
+
+``Dstar_k`` is the metric depth reference of keyframe k (sensor, dataset or a
+metric-depth network) and ``D_k`` the backbone's up-to-scale depth of the same
+frame from the current pass. Multiplying the pass's translations by ``s`` makes
+them metres.
+
+Robustness (the paper leaves these open):
+
+* A pixel is valid when both depths are finite and > 0 and, if given, its backbone
+  confidence is > 0. Invalid pixels are ignored, never divided by.
+* A keyframe with fewer than ``min_pixels`` valid pixels (or without a reference at
+  all) is skipped and reported; the mean runs over the remaining keyframes.
+* No usable keyframe: ``scale`` is NaN with the reasons; the caller decides what to
+  do (the algorithm falls back to its last valid scale).
+* The metric map may have another resolution than the backbone's depth (sensors
+  and networks rarely use the backbone's input size). It is resampled to the
+  backbone depth's shape with nearest neighbour on pixel centres (no
+  interpolation: averaging a 0 = unknown pixel with a valid one would invent depth).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from .errors import CerpeError
+
+DEFAULT_MIN_PIXELS = 100
+
+
+class ScaleError(CerpeError, ValueError):
+    """Malformed depth input (wrong dimensionality, mismatched lists)."""
+
+
+@dataclass
+class ScaleEstimate:
+    """Result of :func:`recover_scale`.
+
+    Attributes:
+        scale: metres per backbone unit; NaN when no keyframe was usable.
+        medians: ``[K]`` per-keyframe median ratio, NaN for skipped keyframes.
+        n_valid_pixels: ``[K]`` valid pixel count per keyframe.
+        n_used: number of keyframes averaged.
+        skipped: ``(index, reason)`` per skipped keyframe; reasons are
+            ``no-metric-depth``, ``no-backbone-depth``, ``too-few-pixels``.
+        reason: why ``scale`` is NaN (``""`` when it is not).
+    """
+
+    scale: float
+    medians: np.ndarray
+    n_valid_pixels: np.ndarray
+    n_used: int
+    skipped: list[tuple[int, str]] = field(default_factory=list)
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return bool(np.isfinite(self.scale) and self.scale > 0)
+
+
+def resize_nearest(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resample of a 2-D array to ``shape`` on pixel centres.
+
+    Output pixel ``(r, c)`` takes input pixel ``(floor((r + 0.5) * H_in / H_out),
+    floor((c + 0.5) * W_in / W_out))``; identity when shapes agree.
+    """
+    if a.shape == tuple(shape):
+        return a
+    h_in, w_in = a.shape
+    h, w = shape
+    rows = np.minimum(((np.arange(h) + 0.5) * h_in / h).astype(np.int64), h_in - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * w_in / w).astype(np.int64), w_in - 1)
+    return a[rows[:, None], cols[None, :]]
+
+
+def _as_2d(a: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ScaleError(f"{name}: expected a non-empty 2-D depth map, got shape {arr.shape}")
+    return arr
+
+
+def recover_scale(
+    metric_depths_m: Sequence[np.ndarray | None],
+    backbone_depths: Sequence[np.ndarray | None],
+    confidences: Sequence[np.ndarray | None] | None = None,
+    min_pixels: int = DEFAULT_MIN_PIXELS,
+) -> ScaleEstimate:
+    """Mean over keyframes of the per-keyframe median ratio ``Dstar / D``.
+
+    Args:
+        metric_depths_m: ``K`` metric references ``[H*,W*]`` in metres (0 / NaN =
+            unknown), None where a keyframe has none.
+        backbone_depths: ``K`` backbone depths ``[H,W]`` (any positive unit), None
+            where the backbone gave none (e.g. an invalid view).
+        confidences: optional ``K`` maps ``[H,W]`` (>= 0); pixels with confidence 0
+            are invalid.
+        min_pixels: keyframes with fewer valid pixels are skipped.
+
+    Raises:
+        ScaleError: list lengths differ, a map is not 2-D, or a confidence map's
+            shape differs from its backbone depth's.
+    """
+    K = len(backbone_depths)
+    if len(metric_depths_m) != K:
+        raise ScaleError(f"recover_scale: {len(metric_depths_m)} metric depths for {K} backbone depths")
+    if confidences is not None and len(confidences) != K:
+        raise ScaleError(f"recover_scale: {len(confidences)} confidence maps for {K} backbone depths")
+    if min_pixels < 1:
+        raise ScaleError(f"recover_scale: min_pixels must be >= 1, got {min_pixels}")
+    medians = np.full(K, np.nan)
+    counts = np.zeros(K, dtype=np.int64)
+    skipped: list[tuple[int, str]] = []
+    for k in range(K):
+        if backbone_depths[k] is None:
+            skipped.append((k, "no-backbone-depth"))
+            continue
+        D = _as_2d(backbone_depths[k], f"backbone_depths[{k}]")
+        if metric_depths_m[k] is None:
+            skipped.append((k, "no-metric-depth"))
+            continue
+        Dstar = resize_nearest(_as_2d(metric_depths_m[k], f"metric_depths_m[{k}]"), D.shape)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(D) & (D > 0) & np.isfinite(Dstar) & (Dstar > 0)
+        if confidences is not None and confidences[k] is not None:
+            C = _as_2d(confidences[k], f"confidences[{k}]")
+            if C.shape != D.shape:
+                raise ScaleError(f"confidences[{k}]: shape {C.shape} differs from backbone_depths[{k}] {D.shape}")
+            with np.errstate(invalid="ignore"):
+                valid &= np.isfinite(C) & (C > 0)
+        counts[k] = int(valid.sum())
+        if counts[k] < min_pixels:
+            skipped.append((k, "too-few-pixels"))
+            continue
+        medians[k] = float(np.median(Dstar[valid] / D[valid]))
+    used = np.isfinite(medians)
+    n_used = int(used.sum())
+    if n_used == 0:
+        reason = "no keyframes" if K == 0 else "no keyframe with enough valid pixels: " + ", ".join(
+            f"#{k} {r}" for k, r in skipped)
+        return ScaleEstimate(float("nan"), medians, counts, 0, skipped, reason)
+    return ScaleEstimate(float(np.mean(medians[used])), medians, counts, n_used, skipped)
