@@ -1,0 +1,133 @@
+"""XFeat encoder (weights, cache, errors) and the SALAD-style descriptor (size, invariances, gate safety)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cerpe.protocols import DescriptorEncoder, View
+from test_backbone_offline import K, Room, pose
+
+
+@pytest.fixture(scope="module")
+def room() -> Room:
+    return Room(1)
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    from cerpe.backbones.xfeat import XFeatEncoder
+
+    return XFeatEncoder()
+
+
+@pytest.fixture(scope="module")
+def descriptor(encoder, room, tmp_path_factory):
+    """Descriptor with centres fitted on this test's own renders (independent of the shipped file)."""
+    from cerpe.backbones.descriptor import XFeatSaladDescriptor, fit_centres
+
+    maps = [encoder.encode_image(room.render(pose((0.5 * i, 0, 0.3 * i), (0, 25 * i, 0)))[0]).dense for i in range(4)]
+    path = tmp_path_factory.mktemp("centres") / "c.npz"
+    np.savez(path, **fit_centres(maps, num_clusters=16, seed=0))
+    return XFeatSaladDescriptor({"centres": str(path), "thresholds": {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}},
+                                encoder=encoder)
+
+
+def test_features_shapes_and_cache(encoder, room):
+    img = room.render(pose())[0]
+    n0 = encoder.n_encoded
+    f = encoder.encode(View(("x", 0), img, K))
+    assert f.keypoints.shape[1] == 2 and f.descriptors.shape == (f.n, 64) and f.n > 200
+    assert np.allclose(np.linalg.norm(f.descriptors, axis=1), 1, atol=1e-4)
+    assert np.all(np.diff(f.scores) <= 1e-7)
+    assert f.dense.shape == (64, 240 // 32 * 32 // 8, 320 // 8)
+    assert (f.keypoints[:, 0] < 320).all() and (f.keypoints[:, 1] < 240).all()
+    assert encoder.encode(View(("x", 0), img, K)) is f and encoder.n_encoded == n0 + 1
+    # same key, other pixels (a JPEG-decoded copy): encoded anew, never a stale cache hit
+    g = encoder.encode(View(("x", 0), np.ascontiguousarray(img[:, ::-1]), K))
+    assert g is not f and encoder.n_encoded == n0 + 2
+
+
+def test_truncated_or_missing_weights(tmp_path):
+    from cerpe.backbones.xfeat import XFeatEncoder, XFeatError, default_weights_path
+
+    bad = tmp_path / "xfeat.pt"
+    bad.write_bytes(default_weights_path().read_bytes()[:5000])
+    with pytest.raises(XFeatError, match="xfeat.pt"):
+        XFeatEncoder({"weights": str(bad)})
+    with pytest.raises(XFeatError, match="not found"):
+        XFeatEncoder({"weights": str(tmp_path / "none.pt")})
+
+
+def test_descriptor_protocol_size_and_unit_norm(descriptor, room):
+    from cerpe.messages import DescriptorMessage, decode
+
+    assert isinstance(descriptor, DescriptorEncoder)
+    d = descriptor.describe(View(("d", 0), room.render(pose())[0], K))
+    assert d.shape == (descriptor.dim,) == (16 * 64 + 64,) and d.dtype == np.float32
+    assert abs(np.linalg.norm(d) - 1) < 1e-5
+    wb = descriptor.wire_bytes()
+    for dt in ("fp32", "fp16", "int8"):
+        frame = DescriptorMessage(0, 0, d, dt).encode()
+        assert len(frame) == wb[dt]
+        assert float(decode(frame).descriptor @ d) > 0.999
+    assert set(descriptor.last_timings_s) == {"encode", "descriptor"}
+
+
+def test_descriptor_ranks_overlap(descriptor, room):
+    base = descriptor.describe(View(("o", 0), room.render(pose((0, 0, 0), (0, 0, 0)))[0], K))
+    near = descriptor.describe(View(("o", 1), room.render(pose((0.2, 0, 0.2), (0, 4, 0)))[0], K))
+    away = descriptor.describe(View(("o", 2), room.render(pose((0, 0, 0), (0, 180, 0)))[0], K))
+    other = descriptor.describe(View(("o", 3), Room(9).render(pose((0, 0, 0), (0, 60, 0)))[0], K))
+    assert base @ near > base @ away
+    assert base @ near > base @ other
+
+
+@pytest.mark.parametrize("value", [0, 255])
+def test_blank_images_cannot_open_gate(descriptor, room, value):
+    tau = descriptor.thresholds["tau"]
+    a = descriptor.describe(View(("blank", value), np.full((240, 320, 3), value, np.uint8), K))
+    b = descriptor.describe(View(("blank2", value), np.full((240, 320, 3), value, np.uint8), K))
+    good = descriptor.describe(View(("g", 0), room.render(pose())[0], K))
+    assert abs(np.linalg.norm(a) - 1) < 1e-5 and np.all(np.isfinite(a))
+    assert a @ b < tau and a @ good < tau
+    assert descriptor.flags(("blank", value)) == {"low-texture"}
+    assert descriptor.flags(("g", 0)) == set()
+
+
+def test_descriptor_rejects_malformed_images(descriptor):
+    from cerpe.backbones.xfeat import ImageInputError
+
+    for img, msg in ((np.zeros((20, 20, 3), np.uint8), "smaller"), (np.zeros((64, 64, 4), np.uint8), "HxWx3"),
+                     (np.zeros((64, 64), np.uint8), "HxWx3"), (np.zeros((64, 64, 3), np.float64), "uint8")):
+        with pytest.raises(ImageInputError, match=msg):
+            descriptor.describe(View(("bad", msg), img, K))
+
+
+def test_centres_file_errors(tmp_path):
+    from cerpe.backbones.descriptor import DescriptorError, load_centres
+
+    with pytest.raises(DescriptorError, match="not found"):
+        load_centres(tmp_path / "missing.npz")
+    (tmp_path / "trunc.npz").write_bytes(b"PK\x03\x04garbage")
+    with pytest.raises(DescriptorError, match="trunc.npz"):
+        load_centres(tmp_path / "trunc.npz")
+    np.savez(tmp_path / "nomean.npz", centres=np.ones((4, 64)))
+    with pytest.raises(DescriptorError, match="'mean'"):
+        load_centres(tmp_path / "nomean.npz")
+    np.savez(tmp_path / "nan.npz", centres=np.full((4, 64), np.nan), mean=np.zeros(64))
+    with pytest.raises(DescriptorError, match="finite"):
+        load_centres(tmp_path / "nan.npz")
+
+
+def test_fit_centres_recovers_clusters():
+    from cerpe.backbones.descriptor import fit_centres
+
+    rng = np.random.default_rng(0)
+    true = rng.standard_normal((5, 64))
+    true /= np.linalg.norm(true, axis=1, keepdims=True)
+    pts = np.repeat(true, 200, axis=0) + 0.05 * rng.standard_normal((1000, 64))
+    out = fit_centres([pts.T.reshape(64, 10, 100)], num_clusters=5, seed=1)
+    best = np.max(out["centres"] @ true.T, axis=0)
+    assert np.all(best > 0.99)
