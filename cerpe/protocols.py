@@ -60,6 +60,8 @@ class BackboneOutput:
         intrinsics: ``S`` intrinsics (estimated or passed through), None if unknown.
         reasons: per-view reason when not valid (``""`` when valid).
         timings_s: stage name -> seconds spent in this pass.
+        extra: other per-pass figures a backbone reports (e.g. peak VRAM bytes),
+            name -> number; may be empty.
     """
 
     T_frame_cam: np.ndarray
@@ -69,6 +71,7 @@ class BackboneOutput:
     intrinsics: list[CameraIntrinsics | None] = field(default_factory=list)
     reasons: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
+    extra: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         S = len(self.valid)
