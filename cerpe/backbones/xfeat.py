@@ -106,6 +106,9 @@ class XFeatEncoder:
         cache_size: encoded images kept (LRU by ``View.key``).
         min_size: smallest accepted image side in pixels.
         num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
+        subpixel: refine keypoints by a 1-D parabola fit of the keypoint heatmap in x and y
+            (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly
+            biases two-view translation directions at 640x480).
     """
 
     default_conf: dict[str, Any] = {
@@ -115,6 +118,7 @@ class XFeatEncoder:
         "cache_size": 64,
         "min_size": 32,
         "num_threads": None,
+        "subpixel": True,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
@@ -202,7 +206,10 @@ class XFeatEncoder:
             scores, idx = torch.topk(scores, k=k, dim=-1, largest=True, sorted=True)
             pos = torch.stack([torch.gather(pos[..., 0], -1, idx), torch.gather(pos[..., 1], -1, idx)], -1)
             desc = F.normalize(m.interpolator(dense_n, pos, H=Hr, W=Wr), dim=-1)
-            kp = pos.float() * torch.tensor([rw, rh]).view(1, 1, 2)
+            kp = pos.float()
+            if self.conf["subpixel"]:
+                kp = kp + _quadratic_offsets(heat[0, 0], pos[0])[None]
+            kp = kp * torch.tensor([rw, rh]).view(1, 1, 2)
             keep = scores[0] > 0
         self.n_encoded += 1
         return XFeatFeatures(
@@ -213,6 +220,28 @@ class XFeatEncoder:
             reliability=rel[0, 0].numpy().astype(np.float32),
             image_hw=(int(image.shape[0]), int(image.shape[1])),
         )
+
+
+def _quadratic_offsets(heat: "torch.Tensor", pos: "torch.Tensor") -> "torch.Tensor":
+    """Sub-pixel offsets ``[N,2]`` in [-0.5, 0.5] from a parabola through each peak and its neighbours.
+
+    Args:
+        heat: ``[H,W]`` keypoint heatmap; pos: ``[N,2]`` integer (x, y) peaks (-1 rows = padding).
+    """
+    import torch
+
+    H, W = heat.shape
+    x = pos[:, 0].clamp(1, W - 2)
+    y = pos[:, 1].clamp(1, H - 2)
+    c = heat[y, x]
+    out = []
+    for lo, hi in ((heat[y, x - 1], heat[y, x + 1]), (heat[y - 1, x], heat[y + 1, x])):
+        den = lo - 2 * c + hi
+        off = torch.where(den < -1e-12, 0.5 * (lo - hi) / den, torch.zeros_like(den))
+        out.append(off.clamp(-0.5, 0.5))
+    off = torch.stack(out, -1)
+    interior = (pos[:, 0] >= 1) & (pos[:, 0] <= W - 2) & (pos[:, 1] >= 1) & (pos[:, 1] <= H - 2)
+    return torch.where(interior[:, None], off, torch.zeros_like(off))
 
 
 _SHARED: dict[tuple, XFeatEncoder] = {}
