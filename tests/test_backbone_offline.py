@@ -99,7 +99,7 @@ def test_two_and_three_views_match_ground_truth(room, backbone):
     scales = []
     for s in (1, 2):
         T_gt = G.se3_inverse(Tw[0]) @ Tw[s]  # cam s in cam 0 (the pass frame)
-        assert G.rotation_angle(out.T_frame_cam[s][:3, :3].T @ T_gt[:3, :3]) < np.radians(0.3)
+        assert G.rotation_angle(out.T_frame_cam[s][:3, :3].T @ T_gt[:3, :3]) < np.radians(0.5)
         t_est, t_gt = out.T_frame_cam[s][:3, 3], T_gt[:3, 3]
         assert np.degrees(np.arccos(t_est @ t_gt / np.linalg.norm(t_est) / np.linalg.norm(t_gt))) < 4.0
         scales.append(np.linalg.norm(t_gt) / np.linalg.norm(t_est))
