@@ -1,0 +1,124 @@
+#!/usr/bin/env python
+"""Calibrate the offline descriptor's thresholds tau (gate), tau_m and tau_k (memory).
+
+On a synthetic evaluation suite with ground-truth overlap (Encounter.overlap [T,N,N]):
+
+* tau: over all ordered cross-robot pairs (t, i, j), the score s = cos(d_i^t, d_j^t)
+  (descriptors quantised as fp16, as on the wire) against the label
+  "overlap ratio >= 0.2"; prints the ROC AUC and picks the tau that maximises F1
+  (precision and recall at it printed too).
+* tau_m: the --q-m quantile (default 0.10) of the similarity of consecutive frames of
+  one robot: a frame less similar to the last keyframe than 90 % of consecutive
+  frames are to each other has moderately changed viewpoint.
+* tau_k: the --q-k quantile (default 0.01) of the same: a change larger than almost
+  any between consecutive frames is a large viewpoint change.
+
+Writes cerpe/data/xfeat_salad_thresholds.json (atomically) with the thresholds and the
+statistics; XFeatSaladDescriptor reads its defaults from it.
+
+    python scripts/calibrate_thresholds.py --manifest build/synth/<suite>/manifest.yaml
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+
+def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve (Mann-Whitney U with average ranks for ties)."""
+    from scipy.stats import rankdata
+
+    pos, neg = labels.sum(), (~labels).sum()
+    if pos == 0 or neg == 0:
+        return float("nan")
+    r = rankdata(scores)
+    return float((r[labels].sum() - pos * (pos + 1) / 2) / (pos * neg))
+
+
+def best_f1(scores: np.ndarray, labels: np.ndarray) -> dict[str, float]:
+    """Threshold maximising F1 of ``score >= tau``; midpoint between neighbouring scores."""
+    order = np.argsort(-scores)
+    s, y = scores[order], labels[order]
+    tp = np.cumsum(y)
+    fp = np.cumsum(~y)
+    prec = tp / (tp + fp)
+    rec = tp / max(y.sum(), 1)
+    f1 = np.where(prec + rec > 0, 2 * prec * rec / np.maximum(prec + rec, 1e-12), 0)
+    k = int(np.argmax(f1))
+    tau = float(0.5 * (s[k] + s[k + 1])) if k + 1 < len(s) else float(s[k])
+    pred = scores >= tau
+    tp_, fp_, fn_ = int((pred & labels).sum()), int((pred & ~labels).sum()), int((~pred & labels).sum())
+    return {"tau": tau, "f1": float(f1[k]), "precision": tp_ / max(tp_ + fp_, 1), "recall": tp_ / max(tp_ + fn_, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--manifest", required=True, nargs="+", help="suite manifest(s) with overlap ground truth")
+    ap.add_argument("--overlap", type=float, default=0.2, help="overlap ratio that counts as overlapping")
+    ap.add_argument("--q-m", type=float, default=0.10)
+    ap.add_argument("--q-k", type=float, default=0.01)
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "cerpe" / "data" /
+                                          "xfeat_salad_thresholds.json"))
+    ap.add_argument("--dry-run", action="store_true", help="print, do not write")
+    a = ap.parse_args(argv)
+
+    from cerpe.backbones.descriptor import XFeatSaladDescriptor
+    from cerpe.datasets import load_setting
+    from cerpe.protocols import View
+
+    desc = XFeatSaladDescriptor({"thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
+    cross_s, cross_y, consec = [], [], []
+    for mpath in a.manifest:
+        setting = load_setting(mpath)
+        for enc in setting.encounters:
+            if enc.overlap is None:
+                print(f"calibrate: {enc.name} has no overlap ground truth; skipped", file=sys.stderr)
+                continue
+            D = np.zeros((enc.n_steps, len(enc.robots), desc.dim), np.float32)
+            for i, r in enumerate(enc.robots):
+                for t in tqdm(range(enc.n_steps), desc=f"{enc.name}/{r.robot_id}", unit="img", leave=False):
+                    d = desc.describe(View((r.robot_id, t), r.image(t), r.intrinsics))
+                    D[t, i] = d.astype(np.float16).astype(np.float32)  # the wire precision
+                    D[t, i] /= np.linalg.norm(D[t, i])
+                consec.extend(np.sum(D[1:, i] * D[:-1, i], axis=1).tolist())
+            N = len(enc.robots)
+            for t in range(enc.n_steps):
+                for i in range(N):
+                    for j in range(N):
+                        if i != j and np.isfinite(enc.overlap[t, i, j]):
+                            cross_s.append(float(D[t, i] @ D[t, j]))
+                            cross_y.append(bool(enc.overlap[t, i, j] >= a.overlap))
+    s, y, c = np.asarray(cross_s), np.asarray(cross_y, bool), np.asarray(consec)
+    if len(s) == 0 or y.all() or (~y).all():
+        print("calibrate: need overlapping and non-overlapping cross-robot pairs", file=sys.stderr)
+        return 2
+    auc = roc_auc(s, y)
+    f1 = best_f1(s, y)
+    tau_m = float(np.quantile(c, a.q_m))
+    tau_k = float(min(np.quantile(c, a.q_k), tau_m))
+    result = {
+        "thresholds": {"tau": round(f1["tau"], 4), "tau_m": round(tau_m, 4), "tau_k": round(tau_k, 4)},
+        "gate": {"roc_auc": auc, **f1, "n_pairs": int(len(s)), "n_overlapping": int(y.sum()),
+                 "overlap_threshold": a.overlap},
+        "consecutive": {"n": int(len(c)), "q_m": a.q_m, "q_k": a.q_k, "median": float(np.median(c))},
+        "manifests": a.manifest, "descriptor_dim": desc.dim, "descriptor_conf": {
+            k: v for k, v in desc.conf.items() if k not in ("thresholds", "xfeat")},
+    }
+    print(json.dumps(result, indent=2))
+    if not a.dry_run:
+        dst = Path(a.out)
+        tmp = dst.with_name(dst.name + ".tmp")
+        tmp.write_text(json.dumps(result, indent=2) + "\n")
+        os.replace(tmp, dst)
+        print(f"wrote {dst}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+#!/usr/bin/env python
+"""Fit the k-means centres of the offline descriptor and ship them in cerpe/data/.
+
+The offline descriptor (cerpe.backbones.descriptor.XFeatSaladDescriptor) needs no
+training, only cluster centres of L2-normalised dense XFeat features and their
+mean. Fit them on images that the evaluation never sees:
+
+    # a fitting suite rendered with seeds disjoint from the evaluation suites
+    python scripts/fit_descriptor.py --manifest build/synth-fit/<suite>/manifest.yaml
+    # or any folder of images
+    python scripts/fit_descriptor.py --images 'some/dir/*.png'
+
+Writes cerpe/data/xfeat_salad_centres.npz (atomically) with fields centres [m,64],
+mean [64] and provenance (source, n_images, seed, num_clusters).
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+
+def _images_from_manifest(path: str, every: int, limit: int):
+    from cerpe.datasets import load_setting
+
+    setting = load_setting(path)
+    n = 0
+    for enc in setting.encounters:
+        for r in enc.robots:
+            for t in range(0, len(r), every):
+                if n >= limit:
+                    return
+                n += 1
+                yield f"{enc.name}/{r.robot_id}/{t}", r.image(t)
+
+
+def _images_from_glob(pattern: str, limit: int):
+    from cerpe.scene import load_rgb
+
+    for p in sorted(glob.glob(pattern))[:limit]:
+        yield p, load_rgb(p, what=p)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--manifest", help="manifest of a fitting suite (seeds disjoint from evaluation)")
+    src.add_argument("--images", help="glob of image files")
+    ap.add_argument("--every", type=int, default=5, help="use every n-th frame of each robot (manifest)")
+    ap.add_argument("--limit", type=int, default=200, help="at most this many images")
+    ap.add_argument("--clusters", type=int, default=64)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--source-note", default="", help="free text stored as provenance")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "cerpe" / "data" / "xfeat_salad_centres.npz"))
+    a = ap.parse_args(argv)
+
+    from cerpe.backbones.descriptor import fit_centres
+    from cerpe.backbones.xfeat import XFeatEncoder
+
+    enc = XFeatEncoder()
+    it = _images_from_manifest(a.manifest, a.every, a.limit) if a.manifest else _images_from_glob(a.images, a.limit)
+    maps = [enc.encode_image(img, what=name).dense for name, img in tqdm(it, desc="XFeat", unit="img")]
+    if not maps:
+        print("fit_descriptor: no images found", file=sys.stderr)
+        return 2
+    out = fit_centres(maps, num_clusters=a.clusters, seed=a.seed)
+    source = a.manifest or a.images
+    dst = Path(a.out)
+    tmp = dst.with_name(dst.stem + ".tmp.npz")
+    np.savez(tmp, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),
+             n_images=np.array(len(maps)), seed=np.array(a.seed), num_clusters=np.array(a.clusters))
+    os.replace(tmp, dst)
+    print(f"fit_descriptor: {len(maps)} images -> {a.clusters} centres, wrote {dst} ({dst.stat().st_size} B)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
