@@ -216,29 +216,29 @@ def _file_digest(path: Path) -> str:
 
 
 # --------------------------------------------------------------------------- method construction
-def method_config(method: str, profile: str, seed: int) -> dict:
-    """The parameters a method runs with (goes into run.json and the fingerprint)."""
+StepSource = Callable[[Any], Iterator[StepResult]]
+
+
+def prepare_method(method: str, profile: str, seed: int) -> tuple[dict, StepSource]:
+    """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
+
+    Raises :class:`MethodUnavailable` for ``nope`` / ``co-visnet``.
+    """
     if method in UNAVAILABLE:
         raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
     if method in BASELINE_METHODS:
-        from ..baselines import build_baseline
-
-        bl = build_baseline(method)
-        return {"baseline": dict(bl.conf), "jpeg_quality": 90}
+        steps, conf = _baseline_steps(method, seed)
+        return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
     if method in CERPE_METHODS:
-        from ..algorithm import CerpeConfig
-
-        cfg = CerpeConfig()
-        if hasattr(cfg, "propagate"):
-            cfg = _replace(cfg, propagate=(method == "cerpe"))
-        return {"cerpe": _as_dict(cfg), "preset": profile}
+        return _cerpe_steps(method, profile, seed)
     raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
 
 
-def _replace(cfg: Any, **kw: Any) -> Any:
-    import dataclasses
-
-    return dataclasses.replace(cfg, **kw) if dataclasses.is_dataclass(cfg) else cfg
+def _conf_of(obj: Any) -> Any:
+    conf = getattr(obj, "conf", None)
+    if conf is None:
+        conf = getattr(obj, "config", None)
+    return _as_dict(conf) if conf is not None else type(obj).__name__
 
 
 def _as_dict(cfg: Any) -> dict:
@@ -249,25 +249,30 @@ def _as_dict(cfg: Any) -> dict:
     return {"repr": repr(cfg)}
 
 
-StepSource = Callable[[Any], Iterator[StepResult]]
+def _cerpe_steps(method: str, profile: str, seed: int) -> tuple[dict, StepSource]:
+    """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
+    import dataclasses
 
-
-def _cerpe_steps(method: str, profile: str, seed: int) -> StepSource:
-    """Algorithm 1 over an encounter: the plug-ins of ``profile`` and the method's config."""
     from .. import algorithm
-    from ..backbones import build
+    from ..backbones.build import build_plugins
 
-    cfg = algorithm.CerpeConfig()
-    cfg = _replace(cfg, propagate=(method == "cerpe"))
-    plugins = build.build(profile) if hasattr(build, "build") else build.build_plugins(profile)
+    plugins = build_plugins(profile)
+    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"))
+    cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
+    conf = {
+        "cerpe": _as_dict(cfg), "preset": profile,
+        "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
+                    "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__)},
+    }
 
     def steps(encounter: Any) -> Iterator[StepResult]:
-        yield from algorithm.run_encounter(encounter, config=cfg, plugins=plugins, seed=seed)
+        yield from algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
+                                           config=cfg, seed=seed)
 
-    return steps
+    return conf, steps
 
 
-def _baseline_steps(method: str, seed: int) -> StepSource:
+def _baseline_steps(method: str, seed: int) -> tuple[StepSource, dict]:
     """Per-pair, per-frame baseline: each unordered pair once, the reverse direction is its inverse.
 
     The baseline sees both raw images at every step, i.e. every robot always
@@ -312,7 +317,7 @@ def _baseline_steps(method: str, seed: int) -> StepSource:
             ]
             yield StepResult(step=t, pairs=[pairs[p] for p in encounter.ordered_pairs()], robots=recs)
 
-    return steps
+    return steps, dict(bl.conf)
 
 
 # --------------------------------------------------------------------------- encounter -> files
@@ -403,7 +408,10 @@ def _load_setting(manifest: Path) -> Any:
 
 def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
     """``evaluation.every`` of a setting (from its meta, else the manifest YAML), default 1."""
-    ev = (getattr(setting, "meta", {}) or {}).get("evaluation")
+    meta = getattr(setting, "meta", {}) or {}
+    if "evaluation_every" in meta:
+        return int(meta["evaluation_every"])
+    ev = meta.get("evaluation")
     if ev is None and manifest is not None:
         import yaml
 
@@ -434,7 +442,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     out = Path(out)
     setting = setting if setting is not None else _load_setting(manifest)
     every = evaluation_every(setting, manifest)
-    mconf = method_config(method, profile, seed)
+    mconf, steps = prepare_method(method, profile, seed)
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),
@@ -462,7 +470,6 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
         "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
         "profile": config["profile"], "setting": setting.name, "command": " ".join(sys.argv),
     })
-    steps = _cerpe_steps(method, profile, seed) if method in CERPE_METHODS else _baseline_steps(method, seed)
     from tqdm import tqdm
 
     todo = []

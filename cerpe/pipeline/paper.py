@@ -1,0 +1,569 @@
+"""Build every table and figure of the paper (what ``make paper`` runs).
+
+Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture]``
+
+1. every manifest in ``datasets_manifest/``: enabled ones are loaded (synthetic
+   settings are generated on demand with the chosen suite); disabled ones are
+   listed in Table I as "not supplied" with the manifest to fill;
+2. every method runs on every enabled setting (``cerpe run``; cached in
+   ``build/runs/<setting>/<method>/`` and resumed; a run of another
+   configuration is replaced);
+3. the notebooks run with papermill into ``build/notebooks/`` and write
+   ``tables/`` and ``figures/``. When the inputs' fingerprint (run
+   fingerprints, notebooks, evaluation/plotting code, parameters) is unchanged
+   and every output exists, the notebooks are not executed again.
+
+``--profile`` selects the backbone preset (``default`` = ``offline``, runs here;
+``paper`` = VGGT + SALAD/DINOv2 + Metric3Dv2 with user-supplied weights).
+``--suite fixture`` is the tiny suite the tests use; it writes to
+``build/fixture/{runs,figures,tables}`` and never touches the paper outputs.
+
+The notebooks call the functions below (:func:`context`, :func:`main_results`,
+:func:`qualitative_data`, :func:`communication_data`) and :mod:`cerpe.plotting`.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..errors import CerpeError
+from .evaluate import EvalError, evaluate_runs, summarise
+from .run import (BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE, atomic_write_json,
+                  atomic_write_text, run_method)
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[2]
+TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe")
+RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "sift-ransac", "aliked-lightglue")
+# The paper's own systems figures (Section IV, RTX 4080 laptop, VGGT/SALAD): never our measurements.
+PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2": 438, "ms_3": 780}
+NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime")
+# outputs each notebook must leave (stems; figures as .png and .pdf)
+EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
+EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime")
+PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
+SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
+
+
+class PaperError(CerpeError, ValueError):
+    """The paper build cannot proceed (no manifests folder, unknown profile, failed notebook)."""
+
+
+@dataclass
+class SettingEntry:
+    """One column group of Table I.
+
+    ``status`` is ``ok``, ``not supplied`` (disabled manifest), ``skipped`` (a
+    real dataset in the fixture profile) or ``error`` (with ``detail``).
+    """
+
+    name: str
+    manifest: Path
+    status: str
+    detail: str = ""
+    run_manifest: Path | None = None
+    world: str = ""
+    setting: Any = None
+
+
+@dataclass
+class PaperContext:
+    profile: str
+    suite: str
+    preset: str
+    runs_root: Path
+    figures_dir: Path
+    tables_dir: Path
+    notebooks_dir: Path
+    settings: list[SettingEntry] = field(default_factory=list)
+    run_dirs: dict[tuple[str, str], Path] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def ok_settings(self) -> list[SettingEntry]:
+        return [s for s in self.settings if s.status == "ok"]
+
+
+def _layout(profile: str, preset: str, root: Path) -> dict[str, Path]:
+    if profile == "fixture":
+        base = root / "build" / "fixture"
+        return {"runs": base / "runs" / preset, "figures": base / "figures", "tables": base / "tables",
+                "notebooks": base / "notebooks", "manifests": base / "manifests"}
+    if profile == "paper-default":
+        runs = root / "build" / "runs" if preset == "offline" else root / "build" / f"runs-{preset}"
+        return {"runs": runs, "figures": root / "figures", "tables": root / "tables",
+                "notebooks": root / "build" / "notebooks", "manifests": root / "build" / "manifests" / profile}
+    raise PaperError(f"unknown notebook profile {profile!r}; use 'fixture' or 'paper-default'")
+
+
+def _derived_manifest(man: Any, suite: str, out_dir: Path) -> Path:
+    """A synthetic manifest with its suite replaced, paths made absolute (original untouched)."""
+    import yaml
+
+    raw = dict(man.raw)
+    if raw.get("suite", "paper-default") == suite:
+        return Path(man.path)
+    raw["suite"] = suite
+    if raw.get("cache_dir"):
+        raw["cache_dir"] = str(man.resolve(raw["cache_dir"]))
+    if man.data_root is not None:
+        raw["data_root"] = str(man.data_root)
+    out = out_dir / f"{man.name}.yaml"
+    atomic_write_text(out, yaml.safe_dump(raw, sort_keys=False))
+    return out
+
+
+def discover_settings(profile: str, suite: str, manifests_dir: Path, derived_dir: Path,
+                      load: bool = True) -> list[SettingEntry]:
+    """Every manifest as a Table I column group, synthetic ones first; loads enabled settings."""
+    from ..datasets import ManifestError, find_manifests, load_setting
+
+    if not manifests_dir.is_dir():
+        raise PaperError(f"manifest folder not found: {manifests_dir}")
+    entries = []
+    for man in find_manifests(manifests_dir):
+        world = str(man.raw.get("world", "")) if man.adapter == "synthetic" else ""
+        e = SettingEntry(man.name, Path(man.path), "ok", world=world)
+        if not man.enabled:
+            e.status, e.detail = "not supplied", f"fill {man.path.relative_to(ROOT) if man.path.is_relative_to(ROOT) else man.path} and set enabled: true"
+        elif man.adapter != "synthetic" and suite == "fixture":
+            e.status, e.detail = "skipped", "real datasets are not run in the fixture suite"
+        else:
+            e.run_manifest = _derived_manifest(man, suite, derived_dir) if man.adapter == "synthetic" else Path(man.path)
+            if load:
+                try:
+                    e.setting = load_setting(e.run_manifest)
+                except ManifestError as exc:
+                    e.status, e.detail = "error", str(exc)
+        entries.append(e)
+    key = lambda e: (0, SYNTHETIC_ORDER.index(e.world)) if e.world in SYNTHETIC_ORDER else (1, 0)
+    return sorted(entries, key=key)
+
+
+def run_is_current(out: Path, manifest: Path, method: str, preset: str) -> bool:
+    """Cheap check that a cached run folder is finished and matches the current code and manifest.
+
+    Compares ``run.json``'s code hash, manifest digest and preset and requires a
+    ``DONE.json`` with the run's fingerprint for every encounter; builds no model.
+    """
+    from .run import _file_digest, code_hash, read_json, RunError
+
+    try:
+        meta = read_json(out / "run.json", "run.json")
+        cfg = meta["config"]
+        if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != _file_digest(manifest):
+            return False
+        if method in CERPE_METHODS and cfg.get("profile") != preset:
+            return False
+        return all(read_json(out / enc / "DONE.json", "DONE.json").get("fingerprint") == meta["fingerprint"]
+                   for enc in cfg.get("encounters", []))
+    except (RunError, KeyError, OSError):
+        return False
+
+
+def _ensure_loaded(e: SettingEntry) -> bool:
+    from ..datasets import ManifestError, load_setting
+
+    if e.setting is None and e.status == "ok":
+        try:
+            e.setting = load_setting(e.run_manifest)
+        except ManifestError as exc:
+            e.status, e.detail = "error", str(exc)
+    return e.status == "ok"
+
+
+def context(profile: str = "fixture", preset: str = "offline", build: bool = True,
+            methods: Sequence[str] = RUN_METHODS, root: Path | None = None, progress: bool = True,
+            validate: bool = False) -> PaperContext:
+    """Locate (and with ``build``, create or resume) every run of a notebook profile.
+
+    ``fixture``: the synthetic fixture suite, runs cached in ``build/fixture/runs``
+    (built when missing, reused when current). ``paper-default``: the paper suite
+    in ``build/runs`` (what ``cerpe paper`` builds). ``validate`` loads every
+    enabled setting even when its runs are cached (surfaces data errors).
+    """
+    root = Path(root or ROOT)
+    preset = PRESETS.get(preset, preset)
+    lay = _layout(profile, preset, root)
+    suite = "fixture" if profile == "fixture" else "paper-default"
+    ctx = PaperContext(profile, suite, preset, lay["runs"], lay["figures"], lay["tables"], lay["notebooks"])
+    ctx.settings = discover_settings(profile, suite, root / "datasets_manifest", lay["manifests"], load=validate)
+    for e in ctx.settings:
+        if e.status != "ok":
+            continue
+        for m in methods:
+            out = ctx.runs_root / e.name / m
+            ctx.run_dirs[(e.name, m)] = out
+            if not build or run_is_current(out, e.run_manifest, m, preset):
+                continue
+            try:
+                if not _ensure_loaded(e):
+                    break
+                run_method(e.run_manifest, m, out, profile=preset, overwrite=True, progress=progress,
+                           setting=e.setting)
+            except CerpeError as exc:
+                msg = f"{e.name}/{m}: {exc}"
+                log.error(msg)
+                ctx.errors.append(msg)
+                ctx.run_dirs.pop((e.name, m))
+        if e.status != "ok":
+            log.error("setting %s: %s", e.name, e.detail)
+            ctx.errors.append(f"{e.name}: {e.detail}")
+            for m in methods:
+                ctx.run_dirs.pop((e.name, m), None)
+    return ctx
+
+
+def frames(ctx: PaperContext, setting: str | None = None) -> pd.DataFrame:
+    """Evaluated frames (``evaluate.frame_errors``) of every run of ``ctx`` (or one setting)."""
+    dirs = [p for (s, m), p in ctx.run_dirs.items() if setting is None or s == setting]
+    if not dirs:
+        raise EvalError(f"no finished runs for {setting or 'any setting'} under {ctx.runs_root}")
+    f, _ = evaluate_runs(dirs)
+    return f
+
+
+# --------------------------------------------------------------------------- Table I
+def main_results(ctx: PaperContext) -> pd.DataFrame:
+    """Table I, long form: one row per (setting, method) with the paper's metrics.
+
+    Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
+    n_frames, status``. ``status`` is ``ok``, ``not available offline``,
+    ``not supplied`` or ``error``; metrics are NaN unless ``ok``.
+    """
+    ok = [p for p in ctx.run_dirs.values() if (p / "run.json").exists()]
+    summ = pd.DataFrame()
+    if ok:
+        f, _ = evaluate_runs(ok)
+        summ = summarise(f, ["setting", "method"]).set_index(["setting", "method"])
+    rows = []
+    for e in ctx.settings:
+        for m in TABLE_METHODS:
+            row = {"setting": e.name, "method": m, "e_pos_m": np.nan, "e_pos_gt_scale_m": np.nan,
+                   "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0}
+            if e.status != "ok":
+                row["status"] = f"{e.status}: {e.detail}" if e.detail else e.status
+            elif m in UNAVAILABLE:
+                row["status"] = "not available offline"
+            elif (e.name, m) in summ.index:
+                s = summ.loc[(e.name, m)]
+                row.update({k: float(s[k]) for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct")})
+                row["n_frames"] = int(s["n_frames"])
+                row["status"] = "ok"
+            else:
+                row["status"] = "error: run missing (see log)"
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _fmt(v: float, nd: int = 3) -> str:
+    return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def _cells(r: pd.Series) -> tuple[str, str, str]:
+    st = str(r["status"])
+    if st == "not available offline":
+        return "n/a", "n/a", "n/a"
+    if st.startswith("not supplied"):
+        return "not supplied", "", ""
+    if st.startswith("skipped"):
+        return "skipped", "", ""
+    if st != "ok":
+        return "error", "", ""
+    if r["method"] in CERPE_METHODS:
+        pos = f"{_fmt(r['e_pos_m'], 2)} / {_fmt(r['e_pos_gt_scale_m'], 2)}†"
+    else:
+        pos = f"{_fmt(r['e_pos_gt_scale_m'], 2)}†"
+    return pos, _fmt(r["e_rot_rad"]), _fmt(r["success_pct"], 1)
+
+
+CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with an estimate; "
+           "a frame without an estimate counts as a failure in Succ.). † translation with ground-truth "
+           "scale; CERPE rows show predicted / GT-scale. The SuperGlue row of the paper is replaced by "
+           "ALIKED+LightGlue (SuperPoint/SuperGlue weights exist nowhere offline). NOPE and Co-VisNet: "
+           "not available offline (no code/weights). CERPE here uses the offline backbone preset "
+           "(XFeat + SALAD-style descriptor + multi-view geometry), not VGGT.")
+
+
+def main_results_markdown(df: pd.DataFrame) -> str:
+    """Table I in Markdown: settings as column groups (e_pos, e_rot, Succ. each)."""
+    settings = list(dict.fromkeys(df["setting"]))
+    head = "| Method | " + " | ".join(f"{s}: e_pos (m) | {s}: e_rot (rad) | {s}: Succ. (%)" for s in settings) + " |"
+    sep = "|---|" + "---|" * (3 * len(settings))
+    lines = [head, sep]
+    for m in TABLE_METHODS:
+        cells = []
+        for s in settings:
+            r = df[(df["setting"] == s) & (df["method"] == m)]
+            cells += list(_cells(r.iloc[0])) if len(r) else ["", "", ""]
+        lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
+    notes = [f"- {s}: {df[df['setting'] == s]['status'].iloc[0]}" for s in settings
+             if not df[df["setting"] == s]["status"].iloc[0] in ("ok", "not available offline")
+             and not (df[df["setting"] == s]["status"] == "ok").any()]
+    return "\n".join(lines) + "\n\n" + CAPTION + "\n" + ("\n".join(notes) + "\n" if notes else "")
+
+
+def main_results_latex(df: pd.DataFrame) -> str:
+    """Table I in LaTeX (booktabs), the paper's layout."""
+    settings = list(dict.fromkeys(df["setting"]))
+    esc = lambda s: str(s).replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")
+    cols = "l" + "ccc" * len(settings)
+    out = [r"\begin{table*}[t]", r"\centering",
+           r"\caption{" + esc(CAPTION).replace("†", r"$^{\dagger}$") + r"}", r"\label{tab:main_results}",
+           r"\resizebox{\textwidth}{!}{%", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+           "Method & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{esc(s)}}}" for s in settings) + r" \\",
+           " ".join(rf"\cmidrule(lr){{{2 + 3 * k}-{4 + 3 * k}}}" for k in range(len(settings))),
+           " & " + " & ".join([r"$e_{\mathrm{pos}}$ (m) $\downarrow$ & $e_{\mathrm{rot}}$ (rad) $\downarrow$ & Succ. (\%) $\uparrow$"] * len(settings)) + r" \\",
+           r"\midrule"]
+    for m in TABLE_METHODS:
+        cells = []
+        for s in settings:
+            r = df[(df["setting"] == s) & (df["method"] == m)]
+            cells += [esc(c).replace("†", r"$^{\dagger}$") for c in (_cells(r.iloc[0]) if len(r) else ("", "", ""))]
+        if m == "cerpe-wo-em":
+            out.append(r"\midrule")
+        out.append(esc(METHOD_LABELS[m]) + " & " + " & ".join(cells) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}%", "}", r"\end{table*}"]
+    return "\n".join(out) + "\n"
+
+
+def write_main_results(df: pd.DataFrame, tables_dir: Path) -> list[Path]:
+    """``main_results.csv`` (long form), ``.md`` and ``.tex`` (paper layout), atomically."""
+    tables_dir = Path(tables_dir)
+    paths = [tables_dir / n for n in EXPECTED_TABLES]
+    atomic_write_text(paths[0], df.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(paths[1], main_results_markdown(df))
+    atomic_write_text(paths[2], main_results_latex(df))
+    return paths
+
+
+# --------------------------------------------------------------------------- figure data
+def qualitative_data(ctx: PaperContext, setting: str, encounter: str | None = None,
+                     methods: Sequence[str] = ("cerpe", "cerpe-wo-em", "aliked-lightglue", "sift-ransac")) -> dict:
+    """Inputs of :func:`cerpe.plotting.qualitative_figure` for one encounter of a setting.
+
+    Picks the encounter with the most steps that have both overlapping and
+    non-overlapping moments (first encounter otherwise), its first ordered pair,
+    and one overlapping and one non-overlapping image pair.
+    """
+    entry = next((e for e in ctx.settings if e.name == setting and e.status == "ok"), None)
+    if entry is None:
+        raise PaperError(f"setting {setting!r} has no data in this profile")
+    if not _ensure_loaded(entry):
+        raise PaperError(f"setting {setting!r}: {entry.detail}")
+    encs = {e.name: e for e in entry.setting.encounters}
+    if encounter is None:
+        def mixed(e: Any) -> float:
+            if e.overlap is None:
+                return 0.0
+            ov = e.overlap[:, 0, 1] > 0.05
+            return float(ov.any() and (~ov).any()) * e.n_steps
+        encounter = max(encs.values(), key=mixed).name
+    enc = encs[encounter]
+    i, j = 0, 1
+    ego, other = enc.robots[i].robot_id, enc.robots[j].robot_id
+    rel = {}
+    for m in methods:
+        p = ctx.run_dirs.get((setting, m))
+        if p is None:
+            continue
+        f = pd.read_csv(p / encounter / "steps.csv")
+        rel[m] = f[(f["ego"] == ego) & (f["other"] == other)].sort_values("step").reset_index(drop=True)
+    traj = {r.robot_id: r.T_world_cam[:, :3, 3] for r in enc.robots}
+    overlap = enc.overlap[:, i, j] if enc.overlap is not None else None
+    imgs = []
+    if overlap is not None:
+        ov_steps = np.flatnonzero(overlap > 0.05)
+        no_steps = np.flatnonzero(overlap <= 0.05)
+        if len(ov_steps):
+            t = int(ov_steps[np.argmax(overlap[ov_steps])])
+            imgs.append((f"overlap {overlap[t]:.2f}, step {t}", enc.robots[i].image(t), enc.robots[j].image(t)))
+        if len(no_steps):
+            t = int(no_steps[len(no_steps) // 2])
+            imgs.append((f"no overlap, step {t}", enc.robots[i].image(t), enc.robots[j].image(t)))
+    else:
+        t = enc.n_steps // 2
+        imgs.append((f"step {t}", enc.robots[i].image(t), enc.robots[j].image(t)))
+    return {"traj_world": traj, "overlap": overlap, "rel": rel, "ego": ego, "other": other, "images": imgs,
+            "title": f"{setting} / {encounter}"}
+
+
+def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
+    """Inputs of :func:`cerpe.plotting.communication_figure` plus a summary table.
+
+    * bytes per robot and step: descriptor + pose messages only; CERPE as run
+      (descriptors + gated image requests/replies); "always send images"
+      (descriptor + pose + one JPEG reply to every other robot, every step, the
+      per-frame baselines' requirement), from the same images' JPEG sizes.
+    * gate activations of the first pair of the encounter with the most openings.
+    * per-stage latency (seconds per robot and step) for 2- and 3-robot encounters.
+    """
+    robots, steps = [], []
+    for (s, m), p in ctx.run_dirs.items():
+        if m != method:
+            continue
+        for enc_dir in sorted(d for d in p.iterdir() if (d / "DONE.json").exists()):
+            r = pd.read_csv(enc_dir / "robots.csv")
+            st = pd.read_csv(enc_dir / "steps.csv")
+            n = st["ego"].nunique()
+            r["setting"], r["n_robots"] = s, n
+            st["setting"], st["n_robots"] = s, n
+            robots.append(r)
+            steps.append(st)
+    if not robots:
+        raise PaperError(f"no finished {method} runs under {ctx.runs_root}")
+    R = pd.concat(robots, ignore_index=True)
+    S = pd.concat(steps, ignore_index=True)
+    desc = (R["bytes_descriptor"] + R["bytes_pose"]).mean()
+    gated = R["bytes_total"].mean()
+    # an image reply as CERPE sent it, else the baselines' JPEG of the same frames
+    replies = R.loc[R["bytes_reply"] > 0]
+    pair_reply = S.loc[S["bytes_pair"] > 0, "bytes_pair"]
+    img = float(pair_reply.mean()) if len(pair_reply) else float("nan")
+    if not np.isfinite(img):
+        for (s, m), p in ctx.run_dirs.items():
+            if m in BASELINE_METHODS:
+                b = pd.concat(pd.read_csv(d / "steps.csv") for d in p.iterdir() if (d / "DONE.json").exists())
+                img = float(b["bytes_pair"].mean())
+                break
+    always = desc + img * (S.groupby(["setting", "encounter"])["n_robots"].first().mean() - 1)
+    bytes_table = pd.DataFrame({
+        "scheme": ["descriptor + pose only", f"{METHOD_LABELS[method]} (gated images)", "always send images"],
+        "bytes_per_robot_step": [desc, gated, always],
+    })
+    opens = S.groupby(["setting", "encounter", "ego", "other"])["gate_open"].sum()
+    key = opens.idxmax()
+    gate = S[(S["setting"] == key[0]) & (S["encounter"] == key[1]) & (S["ego"] == key[2]) & (S["other"] == key[3])]
+    gate = gate[["step", "gate_score", "gate_open", "overlap_gt"]].sort_values("step").reset_index(drop=True)
+    gate.attrs["label"] = f"gate of {key[2]} about {key[3]} ({key[0]}/{key[1]})"
+    run_meta = json.loads((ctx.run_dirs[(key[0], method)] / "run.json").read_text())
+    tau = run_meta.get("config", {}).get("method_config", {}).get("cerpe", {}).get("tau")
+    if tau is not None:
+        gate.attrs["tau"] = float(tau)
+    stage_cols = [c for c in R.columns if c.startswith("t_") and c.endswith("_s")]
+    lat = R.melt(id_vars=["n_robots"], value_vars=stage_cols, var_name="stage", value_name="seconds")
+    lat["stage"] = lat["stage"].str[2:-2]
+    lat = lat.groupby(["n_robots", "stage"], as_index=False)["seconds"].mean()
+    summary = pd.DataFrame({
+        "quantity": ["descriptor+pose message bytes / robot / step", "CERPE bytes / robot / step",
+                     "always-send-images bytes / robot / step", "gate open rate (pairs)",
+                     "image replies sent / robot / step"]
+                    + [f"latency per robot-step, {n} robots (ms)" for n in sorted(lat["n_robots"].unique())],
+        "this run": [desc, gated, always, float(S["gate_open"].mean()), float((R["bytes_reply"] > 0).mean())]
+                    + [1000 * lat[lat["n_robots"] == n]["seconds"].sum() for n in sorted(lat["n_robots"].unique())],
+    })
+    paper_col = {0: PAPER_NUMBERS["descriptor_kb"] * 1000, 2: np.nan}
+    summary["paper (RTX 4080 laptop, VGGT)"] = [paper_col.get(k, np.nan) for k in range(len(summary))]
+    for k, q in enumerate(summary["quantity"]):
+        if q.endswith("2 robots (ms)"):
+            summary.loc[k, "paper (RTX 4080 laptop, VGGT)"] = PAPER_NUMBERS["ms_2"]
+        if q.endswith("3 robots (ms)"):
+            summary.loc[k, "paper (RTX 4080 laptop, VGGT)"] = PAPER_NUMBERS["ms_3"]
+    del replies
+    return {"bytes_table": bytes_table, "gate": gate, "latency": lat, "summary": summary,
+            "paper": PAPER_NUMBERS, "image_bytes": img}
+
+
+# --------------------------------------------------------------------------- notebooks
+def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
+    h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
+    for key in sorted(ctx.run_dirs):
+        p = ctx.run_dirs[key]
+        h.update(str(key).encode())
+        for f in sorted(p.glob("*/DONE.json")) + [p / "run.json"]:
+            if f.exists():
+                h.update(f.read_bytes())
+    for e in ctx.settings:
+        h.update(f"{e.name}:{e.status}:{e.detail}".encode())
+    code = [ROOT / "cerpe" / "plotting.py", ROOT / "cerpe" / "pipeline" / "evaluate.py",
+            ROOT / "cerpe" / "pipeline" / "paper.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
+    for f in code:
+        if f.exists():
+            h.update(f.read_bytes())
+    return h.hexdigest()[:20]
+
+
+def expected_outputs(ctx: PaperContext) -> list[Path]:
+    out = [ctx.tables_dir / t for t in EXPECTED_TABLES]
+    for stem in EXPECTED_FIGURES:
+        out += [ctx.figures_dir / f"{stem}.png", ctx.figures_dir / f"{stem}.pdf"]
+    for e in ctx.ok_settings:
+        out += [ctx.figures_dir / f"qualitative_{e.name}.png"]
+    return out
+
+
+def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
+    """Execute the notebooks with papermill unless inputs and outputs are unchanged. Returns True if run."""
+    params = {"PROFILE": ctx.profile, "PRESET": ctx.preset}
+    fp = _inputs_fingerprint(ctx, params)
+    stamp = ctx.notebooks_dir / "inputs.json"
+    if not force and stamp.exists() and all(p.exists() for p in expected_outputs(ctx)):
+        try:
+            if json.loads(stamp.read_text()).get("fingerprint") == fp:
+                log.info("notebooks: inputs unchanged and outputs present; not executed again")
+                return False
+        except json.JSONDecodeError:
+            pass
+    import papermill as pm
+
+    ctx.notebooks_dir.mkdir(parents=True, exist_ok=True)
+    for nb in NOTEBOOKS:
+        src = ROOT / "notebooks" / f"{nb}.ipynb"
+        dst = ctx.notebooks_dir / f"{nb}.ipynb"
+        t0 = time.perf_counter()
+        try:
+            pm.execute_notebook(str(src), str(dst), parameters=params, cwd=str(ROOT / "notebooks"),
+                                progress_bar=False, kernel_name="python3")
+        except Exception as exc:  # papermill wraps the cell error; name the notebook
+            raise PaperError(f"notebook {src.name} failed (executed copy: {dst}): {str(exc).splitlines()[0][:300]}") from None
+        log.info("notebook %s: %.1f s", nb, time.perf_counter() - t0)
+    atomic_write_json(stamp, {"fingerprint": fp, "params": params})
+    return True
+
+
+def build_paper(profile_preset: str = "default", suite: str = "paper-default", force_notebooks: bool = False,
+                progress: bool = True) -> PaperContext:
+    nb_profile = "fixture" if suite == "fixture" else "paper-default"
+    ctx = context(nb_profile, preset=PRESETS.get(profile_preset, profile_preset), build=True, progress=progress,
+                  validate=True)
+    run_notebooks(ctx, force=force_notebooks)
+    return ctx
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--profile", default="default", choices=sorted(PRESETS),
+                   help="backbone preset: default/offline (runs here) or paper (needs user weights)")
+    p.add_argument("--suite", default="paper-default", choices=("paper-default", "fixture"),
+                   help="synthetic suite size; fixture writes to build/fixture/ only")
+    p.add_argument("--force-notebooks", action="store_true", help="execute the notebooks even if nothing changed")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def main(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    ctx = build_paper(args.profile, args.suite, args.force_notebooks, progress=not args.no_progress)
+    print(f"tables:    {ctx.tables_dir}")
+    print(f"figures:   {ctx.figures_dir}")
+    print(f"notebooks: {ctx.notebooks_dir}")
+    print(f"runs:      {ctx.runs_root}")
+    for e in ctx.settings:
+        print(f"  setting {e.name}: {e.status}{' (' + e.detail + ')' if e.detail else ''}")
+    for m, why in UNAVAILABLE.items():
+        print(f"  method {m}: not available offline ({why})")
+    print(f"done in {time.perf_counter() - t0:.1f} s")
+    if ctx.errors or any(e.status == "error" for e in ctx.settings):
+        for msg in ctx.errors:
+            print(f"cerpe paper: error: {msg}", file=sys.stderr)
+        return 1
+    return 0
