@@ -670,18 +670,22 @@ class Team:
                     nb = ch.send(a.robot_id, "request", frame, b.robot_id)
                     a.cur.bytes_sent["request"] += nb
                     pair_bytes[(a.robot_id, b.robot_id)] += nb
-        for b in A:
+        requests: list[tuple[RobotAgent, str, ImageRequest]] = []
+        for b in A:  # all requests are read before any reply is sent (one inbox per robot)
             d = ch.receive(b.robot_id)
             for what in d.degradations:
                 b._degrade(what)
             for _, msg in d.messages:
                 if isinstance(msg, ImageRequest):
                     r = self._sender(b, msg.sender)
-                    reply = b.image_reply(msg) if r is not None else None
-                    if reply is not None:
-                        nb = ch.send(b.robot_id, "reply", reply.encode(), r)
-                        b.cur.bytes_sent["reply"] += nb
-                        pair_bytes[(r, b.robot_id)] += nb
+                    if r is not None:
+                        requests.append((b, r, msg))
+        for b, r, msg in requests:
+            reply = b.image_reply(msg)
+            if reply is not None:
+                nb = ch.send(b.robot_id, "reply", reply.encode(), r)
+                b.cur.bytes_sent["reply"] += nb
+                pair_bytes[(r, b.robot_id)] += nb
         for a in A:
             d = ch.receive(a.robot_id)
             for what in d.degradations:

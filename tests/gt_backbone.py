@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, field
-from typing import Hashable, Sequence
+from typing import Callable, Hashable, Sequence
 
 import numpy as np
 
@@ -153,15 +153,19 @@ class GTBackbone:
         rot_noise_rad, trans_noise: per-view Gaussian noise on the returned poses
             (radians; metres before scaling).
         invalid_keys: views reported as not placed.
+        invalid: optional ``(current_key, view_key) -> bool``; True reports the view
+            as not placed in a pass whose first (current) view is ``current_key``.
     """
 
     def __init__(self, world: World, unit_range: tuple[float, float] = (0.2, 5.0), rot_noise_rad: float = 0.0,
-                 trans_noise: float = 0.0, invalid_keys: Sequence[Hashable] = (), seed: int = 0) -> None:
+                 trans_noise: float = 0.0, invalid_keys: Sequence[Hashable] = (),
+                 invalid: Callable[[Hashable, Hashable], bool] | None = None, seed: int = 0) -> None:
         self.world = world
         self.unit_range = unit_range
         self.rot_noise_rad = rot_noise_rad
         self.trans_noise = trans_noise
         self.invalid_keys = set(invalid_keys)
+        self.invalid = invalid
         self.rng = np.random.default_rng(seed)
         self.calls: list[list[Hashable]] = []
 
@@ -177,7 +181,7 @@ class GTBackbone:
             D = self.world.depth(v.key) * unit
             depth.append(D.astype(np.float32))
             conf.append((D > 0).astype(np.float32))
-            if v.key in self.invalid_keys:
+            if v.key in self.invalid_keys or (self.invalid is not None and self.invalid(views[0].key, v.key)):
                 reasons.append("test double: marked invalid")
                 continue
             Ts = T_frame_world @ self.world.pose(v.key)
