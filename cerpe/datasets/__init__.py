@@ -48,7 +48,7 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
     if not isinstance(raw, dict):
         raise ManifestError(problems)
     manifest = build_manifest(raw, path)
-    if adapter is not None and not problems:
+    if adapter is not None:
         problems.extend(adapter.validate(manifest))
     if problems:
         raise ManifestError(problems)

@@ -147,7 +147,7 @@ def read_intrinsics(path: Path, field: str) -> CameraIntrinsics:
     Non-zero distortion raises: every consumer assumes undistorted pinhole images.
     """
     f = str(path)
-    doc = read_yaml(path, "camera intrinsics")
+    doc = read_yaml(path, "camera intrinsics", field)
     if not isinstance(doc, dict):
         raise ManifestError([Problem(f, field, f"expected a YAML mapping with width, height, fx, fy, cx, cy; got {type_name(doc)}")])
     if "intrinsics" in doc and "resolution" in doc:  # EuRoC sensor.yaml
@@ -195,7 +195,7 @@ def parse_transform(value: Any, field: str, manifest_file: str, resolve=None) ->
     if isinstance(value, str):
         path = resolve(value) if resolve else Path(value)
         src = str(path)
-        doc = read_yaml(path, "extrinsic")
+        doc = read_yaml(path, "extrinsic", field)
         data = None
         if isinstance(doc, dict):
             for key in ("T_BS", "T_body_cam"):
@@ -218,9 +218,9 @@ def parse_transform(value: Any, field: str, manifest_file: str, resolve=None) ->
     if arr is None:
         raise ManifestError([Problem(src, field, f"expected 'identity' or a 4x4 list of finite numbers, got {value!r}")])
     try:
-        return check_se3(arr, field, atol=1e-4)
+        return check_se3(arr, "T", atol=1e-4)
     except GeometryError as exc:
-        raise ManifestError([Problem(src, field, f"not a rigid transform: {exc}")]) from None
+        raise ManifestError([Problem(src, field, f"not a rigid transform ({str(exc).removeprefix('T: ')})")]) from None
 
 
 def parse_stamp(text: str, units: str) -> float:

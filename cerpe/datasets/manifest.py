@@ -134,19 +134,19 @@ def is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
 
 
-def read_yaml(path: Path, what: str = "manifest") -> Any:
-    """``yaml.safe_load`` a file, turning every failure into a :class:`ManifestError`."""
+def read_yaml(path: Path, what: str = "manifest", field: str = "") -> Any:
+    """``yaml.safe_load`` a file, turning every failure into a :class:`ManifestError` (naming ``field``)."""
     if not path.is_file():
-        raise ManifestError(f"{what} file not found", file=str(path))
+        raise ManifestError(f"{what} file not found", file=str(path), field=field)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise ManifestError(f"cannot read {what}: {exc}", file=str(path)) from None
+        raise ManifestError(f"cannot read {what}: {exc}", file=str(path), field=field) from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else ""
+        where = f"{field} line {mark.line + 1}".strip() if mark is not None else field
         raise ManifestError(f"not valid YAML: {getattr(exc, 'problem', exc)}", file=str(path), field=where) from None
 
 
@@ -211,7 +211,7 @@ def validate(raw: Any, path: Path, adapter_fields: Iterable[str] | None = ()) ->
 
 
 def build_manifest(raw: dict, path: Path) -> Manifest:
-    """Turn a validated mapping into a :class:`Manifest` (no checks beyond :func:`validate`)."""
+    """Turn a mapping into a :class:`Manifest`; never raises (invalid values get defaults, see :func:`validate`)."""
     data_root: Path | None = None
     dr = raw.get("data_root")
     if isinstance(dr, str):
@@ -220,15 +220,19 @@ def build_manifest(raw: dict, path: Path) -> Manifest:
             data_root = (path.parent / text).resolve()
     elif dr is None:
         data_root = path.parent.resolve()
+    ev = raw.get("evaluation")
+    every = ev.get("every", 1) if isinstance(ev, dict) else 1
+    tol = raw.get("sync_tolerance_s", 0.02)
     return Manifest(
         path=path,
         name=str(raw.get("name")),
         adapter=str(raw.get("adapter")),
-        enabled=bool(raw.get("enabled", True)),
+        enabled=raw.get("enabled", True) is True,
         data_root=data_root,
         metric_depth=str(raw.get("metric_depth", "dataset")),
-        sync_tolerance_s=float(raw.get("sync_tolerance_s", 0.02)),
-        evaluation_every=int((raw.get("evaluation") or {}).get("every", 1)),
+        # invalid values were reported by validate(); defaults keep adapter checks running
+        sync_tolerance_s=float(tol) if is_number(tol) and float(tol) > 0 else 0.02,
+        evaluation_every=int(every) if isinstance(every, int) and not isinstance(every, bool) and every >= 1 else 1,
         encounters=raw.get("encounters"),
         raw=raw,
     )

@@ -62,7 +62,8 @@ def validate_encounters(m: Manifest) -> list[Problem]:
     f = str(m.path)
     encs = m.encounters
     if not isinstance(encs, list) or not encs:
-        return [Problem(f, "encounters", f"expected a non-empty list of encounters, got {type_name(encs)}")]
+        got = "an empty list" if isinstance(encs, list) else type_name(encs)
+        return [Problem(f, "encounters", f"expected a non-empty list of encounters, got {got}")]
     probs: list[Problem] = []
     names: set[str] = set()
     for e, enc in enumerate(encs):
