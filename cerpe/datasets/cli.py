@@ -36,8 +36,9 @@ def _fmt(v: float, spec: str = ".3f", unit: str = "") -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:{spec}}{unit}"
 
 
-def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, out=sys.stdout) -> list[str]:
-    """Check one manifest, print its summary to ``out``; returns the problems as lines."""
+def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, out=None) -> list[str]:
+    """Check one manifest, print its summary to ``out`` (stdout); returns the problems as lines."""
+    out = out if out is not None else sys.stdout
     try:
         manifest = load_manifest(path)
     except ManifestError as exc:
