@@ -23,6 +23,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
+import pickle
 import zipfile
 from pathlib import Path
 from typing import Any, Mapping
@@ -185,12 +186,12 @@ def load_checkpoint(path: Path, what: str) -> dict[str, Any]:
         try:
             obj = torch.load(path, map_location="cpu", weights_only=True, mmap=_looks_like_zip(path))
         except Exception as exc:
-            if "weights_only" not in str(exc) and "Unsupported global" not in str(exc):
+            if "Unsupported global" not in str(exc):  # only a Lightning/pickled object, not a bad file
                 raise
             logger.warning("%s: not loadable with weights_only=True (%s); using the full unpickler",
                            path, type(exc).__name__)
             obj = torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
         raise PaperModelError(f"{path}: {what} weight file is truncated or corrupt ({exc}); "
                               f"download it again") from None
     if not isinstance(obj, dict):
