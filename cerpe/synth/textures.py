@@ -1,0 +1,583 @@
+"""Seeded procedural textures, evaluated per pixel in surface (world) units.
+
+Every material is a function ``shade(inp: ShadeInput) -> [N,3] float albedo in [0,1]``
+of the hit points of one material kind. Texture coordinates are metres on the
+surface (``u`` along a face, ``v`` up on vertical faces), so texture density is
+constant on surfaces whatever the distance.
+
+Noise is band-limited value noise: a few fixed ``256x256`` tiles of Gaussian-
+filtered white noise sampled bilinearly (``cv2.remap``, wrapping) at several
+octaves, each octave rotated and offset by a hash of the face seed so that no two
+faces (and no two octaves) share a period. Octaves finer than the pixel's
+footprint on the surface are faded out (a cheap mip-map), which keeps far
+surfaces from aliasing into flickering noise that no detector could match.
+
+Everything here is deterministic in its inputs; there is no global random state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+TILE = 256
+N_TILES = 4
+# fixed per-octave rotations (radians): octaves never share lattice axes
+_OCT_ANGLES = (0.0, 0.61, 1.37, 2.19, 0.93, 2.71, 1.83)
+
+# material kinds (index into SHADERS)
+GROUND, FACADE, ROOF, CAR, POSTER, WALL, FLOOR, CEILING, WOOD, BOOKS, CARDBOARD, ROBOT, PLAIN = range(13)
+KIND_NAMES = ("ground", "facade", "roof", "car", "poster", "wall", "floor", "ceiling", "wood", "books",
+              "cardboard", "robot", "plain")
+
+
+# --------------------------------------------------------------------------- hashing and noise
+def hash_u32(*keys) -> np.ndarray:
+    """Vectorised integer hash (murmur3 finaliser) of any number of int keys/arrays."""
+    h = np.uint32(0x9E3779B9)
+    h = np.full(np.broadcast(*[np.asarray(k) for k in keys]).shape, h, dtype=np.uint32)
+    with np.errstate(over="ignore"):
+        for k in keys:
+            k = np.asarray(k).astype(np.int64).astype(np.uint64).astype(np.uint32)
+            h = h ^ (k * np.uint32(0xCC9E2D51))
+            h = (h << np.uint32(13)) | (h >> np.uint32(19))
+            h = h * np.uint32(5) + np.uint32(0xE6546B64)
+        h ^= h >> np.uint32(16)
+        h *= np.uint32(0x85EBCA6B)
+        h ^= h >> np.uint32(13)
+        h *= np.uint32(0xC2B2AE35)
+        h ^= h >> np.uint32(16)
+    return h
+
+
+def hash_unit(*keys) -> np.ndarray:
+    """Hash to floats uniform in ``[0, 1)``."""
+    return hash_u32(*keys).astype(np.float64) / 4294967296.0
+
+
+@lru_cache(maxsize=None)
+def _tile(i: int) -> np.ndarray:
+    """Band-limited noise tile ``[TILE,TILE] float32``, zero mean, unit std, wrapping."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(1000 + i)
+    t = gaussian_filter(rng.standard_normal((TILE, TILE)), sigma=1.1, mode="wrap")
+    t = (t - t.mean()) / t.std()
+    return t.astype(np.float32)
+
+
+def _remap(tile: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear wrap-around lookup of ``tile`` at float texel coords (any length)."""
+    n = x.shape[0]
+    if n == 0:
+        return np.zeros(0, np.float32)
+    w = 1024
+    m = -(-n // w) * w
+    X = np.zeros(m, np.float32)
+    Y = np.zeros(m, np.float32)
+    # reduce in float64 first: float32 maps lose sub-texel precision far from the origin
+    X[:n] = np.mod(x, TILE)
+    Y[:n] = np.mod(y, TILE)
+    out = cv2.remap(tile, X.reshape(-1, w), Y.reshape(-1, w), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out.ravel()[:n]
+
+
+def noise(x: np.ndarray, y: np.ndarray, texel_m: float, key, octave: int = 0) -> np.ndarray:
+    """One octave of value noise (zero mean, ~unit std) with texel size ``texel_m``.
+
+    ``key`` (int or per-point int array) decorrelates faces: it picks the tile
+    and the offset; the octave index picks the rotation.
+    """
+    a = _OCT_ANGLES[octave % len(_OCT_ANGLES)]
+    ca, sa = np.cos(a), np.sin(a)
+    ox = hash_unit(key, octave, 1) * TILE
+    oy = hash_unit(key, octave, 2) * TILE
+    xs = (ca * x - sa * y) / texel_m + ox
+    ys = (sa * x + ca * y) / texel_m + oy
+    return _remap(_tile(octave % N_TILES), xs, ys)
+
+
+def fbm(x: np.ndarray, y: np.ndarray, foot: np.ndarray, texel_m: float, octaves: int, key,
+        gain: float = 0.55) -> np.ndarray:
+    """Multi-octave noise with footprint fading (finer octaves vanish when smaller than a pixel).
+
+    Returns roughly zero-mean values with std <= 1 (less where detail is faded).
+    """
+    out = np.zeros(x.shape[0], np.float32)
+    amp, tot, tex = 1.0, 0.0, texel_m
+    for k in range(octaves):
+        w = np.clip(tex / np.maximum(foot, 1e-6) - 0.5, 0.0, 1.0).astype(np.float32)
+        if np.any(w > 0):
+            out += (amp * w) * noise(x, y, tex, key, k)
+        tot += amp
+        amp *= gain
+        tex *= 0.5
+    return out / np.float32(np.sqrt(tot))
+
+
+def coverage(signed_dist: np.ndarray, foot: np.ndarray) -> np.ndarray:
+    """Anti-aliased inside-ness of an edge: 1 deep inside (``d>0``), 0 outside, linear over a pixel."""
+    return np.clip(0.5 + signed_dist / np.maximum(foot, 1e-6), 0.0, 1.0)
+
+
+def box_cov(a: np.ndarray, b: np.ndarray, a0, a1, b0, b1, foot) -> np.ndarray:
+    """Anti-aliased coverage of the axis-aligned rectangle ``[a0,a1]x[b0,b1]``."""
+    d = np.minimum(np.minimum(a - a0, a1 - a), np.minimum(b - b0, b1 - b))
+    return coverage(d, foot)
+
+
+def mix(c0: np.ndarray, c1, w: np.ndarray) -> np.ndarray:
+    """Blend colours ``c0 [N,3]`` and ``c1 [N,3] or [3]`` with weight ``w [N]`` on c1."""
+    w = w[:, None]
+    return c0 * (1.0 - w) + np.asarray(c1) * w
+
+
+def palette(h: np.ndarray, sat: float = 0.7, val: float = 0.85) -> np.ndarray:
+    """Hash in [0,1) -> saturated RGB ``[N,3]`` (hue wheel)."""
+    hue = h * 6.0
+    r = np.clip(np.abs(hue - 3.0) - 1.0, 0, 1)
+    g = np.clip(2.0 - np.abs(hue - 2.0), 0, 1)
+    b = np.clip(2.0 - np.abs(hue - 4.0), 0, 1)
+    rgb = np.stack([r, g, b], 1)
+    val = np.asarray(val, float)
+    return (val[:, None] if val.ndim == 1 else val) * (1.0 - sat + sat * rgb)
+
+
+# --------------------------------------------------------------------------- shader input
+@dataclass
+class ShadeContext:
+    """World-level information shaders need beyond a face.
+
+    Attributes:
+        roads: ``[R,6]`` rows ``(axis, centre_m, half_width_m, start_m, end_m, lanes_per_dir)``;
+            axis 0 = road along world x, 1 = along world y (cad worlds only).
+        outdoor: sky, sun and haze (True) or a closed, evenly lit room (False).
+        light_dir: unit vector towards the light (world, z up).
+    """
+
+    roads: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    outdoor: bool = True
+    light_dir: tuple[float, float, float] = (-0.45, -0.6, 0.66)
+
+
+@dataclass
+class ShadeInput:
+    """Hit points of one material kind. All arrays have length ``N``.
+
+    ``u, v`` surface metres; ``lu, lv`` face extents (m); ``xw`` world points ``[N,3]``;
+    ``foot`` pixel footprint on the surface (m); ``seed`` per-face int; ``color``
+    per-face base colour ``[N,3]``; ``prm`` per-face parameters ``[N,4]``.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    lu: np.ndarray
+    lv: np.ndarray
+    xw: np.ndarray
+    foot: np.ndarray
+    seed: np.ndarray
+    color: np.ndarray
+    prm: np.ndarray
+    ctx: ShadeContext
+
+
+def subset(s: ShadeInput, idx: np.ndarray) -> ShadeInput:
+    """The hit points ``idx`` of ``s`` (shaders evaluate costly layers only where needed)."""
+    return ShadeInput(s.u[idx], s.v[idx], s.lu[idx], s.lv[idx], s.xw[idx], s.foot[idx], s.seed[idx],
+                      s.color[idx], s.prm[idx], s.ctx)
+
+
+def layered(base: np.ndarray, weight: np.ndarray, s: ShadeInput, layer) -> np.ndarray:
+    """Blend ``layer(subset)`` over ``base`` where ``weight > 0``; ``layer`` sees only those points."""
+    idx = np.flatnonzero(weight > 0)
+    if idx.size:
+        base = base.copy()
+        base[idx] = mix(base[idx], layer(subset(s, idx), idx), weight[idx])
+    return base
+
+
+# --------------------------------------------------------------------------- outdoor materials
+def shade_ground(s: ShadeInput) -> np.ndarray:
+    """Streets: asphalt with grain and patches, lane markings, crosswalks, stop
+    lines, manholes; concrete sidewalk slabs elsewhere; kerbs at road edges."""
+    x, y = s.xw[:, 0], s.xw[:, 1]
+    n = x.shape[0]
+    n_in = np.zeros(n, np.int32)
+    kerb = np.zeros(n, bool)
+    for r in s.ctx.roads:
+        ax, c, hw, s0, s1 = int(r[0]), r[1], r[2], r[3], r[4]
+        along, lat = (x, y - c) if ax == 0 else (y, x - c)
+        span = (along > s0) & (along < s1)
+        n_in += (np.abs(lat) < hw) & span
+        kerb |= (np.abs(lat) < hw + 0.25) & span
+    road = n_in > 0
+    col = np.zeros((n, 3))
+    i_side = np.flatnonzero(~road)
+    if i_side.size:
+        q = subset(s, i_side)
+        col[i_side] = _sidewalk(q) * np.where(kerb[i_side], 1.15, 1.0)[:, None]
+    i_road = np.flatnonzero(road)
+    if i_road.size:
+        col[i_road] = _asphalt(subset(s, i_road), n_in[i_road])
+    return col
+
+
+def _sidewalk(s: ShadeInput) -> np.ndarray:
+    """Concrete: 1.5 m slabs with per-slab tone, joints, grime and fine grain."""
+    x, y, f = s.xw[:, 0], s.xw[:, 1], s.foot
+    sx, sy = np.floor(x / 1.5), np.floor(y / 1.5)
+    slab = 0.62 + 0.14 * (hash_unit(sx, sy, 7) - 0.5)
+    jx = np.minimum(x - sx * 1.5, (sx + 1) * 1.5 - x)
+    jy = np.minimum(y - sy * 1.5, (sy + 1) * 1.5 - y)
+    joint = 1.0 - 0.4 * (1.0 - coverage(np.minimum(jx, jy) - 0.015, f))
+    g = fbm(x, y, f, 0.04, 6, s.seed + 11)
+    stain = np.clip(fbm(x, y, f, 0.5, 3, s.seed + 12), 0, None)
+    return (slab * joint * (1.0 + 0.16 * g - 0.12 * stain))[:, None] * np.array([1.0, 0.98, 0.93])
+
+
+def _asphalt(s: ShadeInput, n_in: np.ndarray) -> np.ndarray:
+    """Asphalt with grain, repairs, manholes and paint (only outside crossings: ``n_in == 1``)."""
+    x, y, f, key = s.xw[:, 0], s.xw[:, 1], s.foot, s.seed
+    n = x.shape[0]
+    grain = fbm(x, y, f, 0.025, 5, key + 21)
+    patch = fbm(x, y, f, 1.2, 2, key + 23)
+    tone = 0.27 + 0.09 * grain + 0.05 * patch
+    asph = tone[:, None] * np.array([1.0, 1.0, 1.04])
+    # manholes and drains on a 13 m lattice
+    mx, my = np.floor(x / 13.0), np.floor(y / 13.0)
+    hx = (mx + 0.2 + 0.6 * hash_unit(mx, my, 3)) * 13.0
+    hy = (my + 0.2 + 0.6 * hash_unit(mx, my, 4)) * 13.0
+    rr = np.hypot(x - hx, y - hy)
+    man = coverage(0.35 - rr, f) * (hash_unit(mx, my, 5) < 0.6)
+    ring = np.cos(rr * 60.0) * 0.08
+    asph = mix(asph, (0.18 + ring)[:, None] * np.ones(3), man)
+    paint = np.zeros(n)
+    yellow = np.zeros(n)
+    single = n_in == 1
+    roads = s.ctx.roads
+    for r in roads:
+        ax, c, hw, s0, s1, lanes = int(r[0]), r[1], r[2], r[3], r[4], max(int(r[5]), 1)
+        along, lat = (x, y - c) if ax == 0 else (y, x - c)
+        on = np.flatnonzero(single & (np.abs(lat) < hw) & (along > s0) & (along < s1))
+        if not on.size:
+            continue
+        along, lat, fo = along[on], lat[on], f[on]
+        lane_w = hw / lanes
+        alat = np.abs(lat)
+        yellow[on] = coverage(0.06 - np.abs(alat - 0.12), fo)
+        p = coverage(0.08 - np.abs(alat - (hw - 0.35)), fo)
+        if lanes > 1:
+            dash = (along % 9.0) < 3.0
+            for k in range(1, lanes):
+                p = np.maximum(p, coverage(0.07 - np.abs(alat - k * lane_w), fo) * dash)
+        for r2 in roads:  # crosswalk and stop line before every road that crosses this one
+            if int(r2[0]) == ax or not (r2[3] - hw <= c <= r2[4] + hw):
+                continue
+            dd = np.abs(along - r2[1]) - r2[2]
+            zebra = (dd > 0.8) & (dd < 3.8) & (alat < hw - 0.5)
+            stripe = coverage(0.25 - np.abs(((lat + 100.0) % 1.0) - 0.5), fo)
+            p = np.maximum(p, zebra * stripe)
+            p = np.maximum(p, coverage(0.2 - np.abs(dd - 4.6), fo) * (alat < hw - 0.4))
+        paint[on] = p
+    wear = np.clip(0.85 + 0.3 * fbm(x, y, f, 0.04, 3, key + 31), 0.3, 1.0)
+    asph = mix(asph, np.array([0.86, 0.86, 0.84]), paint * wear)
+    return mix(asph, np.array([0.85, 0.68, 0.15]), yellow * wear)
+
+
+def _window_glass(s: ShadeInput, wid: np.ndarray, cu: np.ndarray, cv: np.ndarray, ww, wh) -> np.ndarray:
+    """Per-window glass: sky reflections, curtains, blinds or a lit room (hash ``wid``)."""
+    h = hash_unit(wid, 1)
+    t = cv / wh
+    refl = (0.25 + 0.35 * t + 0.08 * hash_unit(wid, 2))[:, None] * np.array([0.75, 0.85, 1.0])
+    curtain_col = palette(hash_unit(wid, 3), 0.5, 0.75)
+    folds = 0.8 + 0.2 * np.sin(cu / ww * (8 + 10 * hash_unit(wid, 4)) * np.pi)
+    curtain = curtain_col * folds[:, None]
+    blinds = (0.55 + 0.25 * (np.sin(cv * 2 * np.pi / 0.05) > 0))[:, None] * np.array([0.95, 0.93, 0.88])
+    lit = np.array([0.95, 0.82, 0.5]) * (0.8 + 0.2 * t)[:, None]
+    out = np.where((h < 0.45)[:, None], refl, curtain)
+    out = np.where(((h >= 0.75) & (h < 0.9))[:, None], blinds, out)
+    out = np.where((h >= 0.9)[:, None], lit, out)
+    # half-drawn curtain over a reflection
+    half = (h < 0.45) & (hash_unit(wid, 5) < 0.4) & (cu < ww * (0.2 + 0.5 * hash_unit(wid, 6)))
+    return np.where(half[:, None], curtain, out)
+
+
+def shade_facade(s: ShadeInput) -> np.ndarray:
+    """Building facade: plaster or brick, a window grid with per-window variation
+    (frames, sills, glass/curtain/blind/lit), shop windows on the ground floor,
+    a cornice; ``prm = (floor_height_m, window_cell_m, style 0 plaster|1 brick, shop 0|1)``."""
+    u, v, f, key = s.u, s.v, s.foot, s.seed
+    floor_h, cell, style, shop = s.prm[:, 0], s.prm[:, 1], s.prm[:, 2], s.prm[:, 3]
+    base = s.color
+    g1 = fbm(u, v, f, 0.6, 3, key + 1)
+    g2 = fbm(u, v, f, 0.02, 5, key + 2)
+    plaster = base * (1.0 + 0.10 * g1 + 0.07 * g2)[:, None]
+    # streaks of grime running down from the top
+    streak = fbm(u * 6.0, v * 0.25, f * 6.0, 0.5, 2, key + 3)
+    plaster *= (1.0 - 0.06 * np.clip(streak, 0, None))[:, None]
+    bh, bw = 0.075, 0.24
+    row = np.floor(v / bh)
+    bu = u + (row % 2) * bw * 0.5
+    col_ = np.floor(bu / bw)
+    mort = np.minimum(np.minimum(v - row * bh, (row + 1) * bh - v), np.minimum(bu - col_ * bw, (col_ + 1) * bw - bu))
+    btone = 0.8 + 0.35 * hash_unit(row, col_, key)
+    brick = base * (btone * (1.0 + 0.06 * g2))[:, None]
+    brick = mix(brick, np.array([0.72, 0.7, 0.66]), 1.0 - coverage(mort - 0.008, f))
+    wall = np.where((style > 0.5)[:, None], brick, plaster)
+    # window grid, centred on the face, only whole cells
+    ncell = np.maximum(np.floor(s.lu / cell), 1.0)
+    margin = (s.lu - ncell * cell) * 0.5
+    uu = u - margin
+    ix = np.floor(uu / cell)
+    iy = np.floor(v / floor_h)
+    cu = uu - ix * cell
+    cv = v - iy * floor_h
+    n_floors = np.floor(s.lv / floor_h)
+    ok = (ix >= 0) & (ix < ncell) & (iy < n_floors - 0.5) & ~((iy == 0) & (shop > 0.5))
+    ww = cell * (0.45 + 0.15 * hash_unit(key, 9))
+    wh = floor_h * 0.5
+    x0 = (cell - ww) * 0.5
+    y0 = floor_h * 0.3
+    inwin = box_cov(cu, cv, x0, x0 + ww, y0, y0 + wh, f) * ok
+
+    def window(q: ShadeInput, i: np.ndarray) -> np.ndarray:
+        wid = hash_u32(q.seed, ix[i], iy[i]).astype(np.int64)
+        a, b, w_, h_ = cu[i] - x0[i], cv[i] - y0[i], ww[i], wh[i]
+        glass = _window_glass(q, wid, a, b, w_, h_)
+        frame_w = 0.07
+        inglass = box_cov(a, b, frame_w, w_ - frame_w, frame_w, h_ - frame_w, q.foot)
+        mull = coverage(0.025 - np.abs(a - w_ * 0.5), q.foot) * (hash_unit(q.seed, 8) < 0.6)
+        frame_col = np.where((hash_unit(q.seed, 10) < 0.5)[:, None], np.array([0.92, 0.92, 0.9]),
+                             np.array([0.25, 0.22, 0.2]))
+        return mix(frame_col, glass, inglass * (1.0 - mull))
+
+    out = layered(wall, inwin, s, window)
+    sill = box_cov(cu, cv, x0 - 0.08, x0 + ww + 0.08, y0 - 0.07, y0, f) * ok
+    out = mix(out, base * 0.7 + 0.2, sill)
+    # ground-floor shop fronts: big glass bays with mullions and a coloured fascia
+    bay = 1.6
+    isshop = ((shop > 0.5) & (v < floor_h)).astype(float)
+
+    def shopfront(q: ShadeInput, i: np.ndarray) -> np.ndarray:
+        su = np.mod(q.u, bay)
+        sid = hash_u32(q.seed, np.floor(q.u / bay), 77).astype(np.int64)
+        sglass = _window_glass(q, sid, su, q.v - 0.4, bay, 2.2)
+        sg = box_cov(su, q.v, 0.08, bay - 0.08, 0.4, 2.6, q.foot)
+        shopc = mix(np.array([0.2, 0.2, 0.22]) * np.ones_like(q.color), sglass, sg)
+        fascia = box_cov(q.u, q.v, -1.0, q.lu + 1.0, 2.75, floor_h[i] - 0.1, q.foot)
+        fcol = palette(hash_unit(q.seed, 12), 0.8, 0.7) * (
+            1.0 + 0.25 * (np.sin(q.u * 9.0 + 3 * hash_unit(q.seed, 13)) > 0.6))[:, None]
+        return mix(shopc, fcol, fascia)
+
+    out = layered(out, isshop, s, shopfront)
+    # cornice at the top, plinth at the bottom
+    out = mix(out, base * 0.6, coverage(0.35 - (s.lv - v), f))
+    out = mix(out, np.array([0.35, 0.34, 0.33]) * (1.0 + 0.1 * g2)[:, None], coverage(0.25 - v, f))
+    # ambient occlusion near the ground
+    return out * (1.0 - 0.3 * np.exp(-v / 0.6))[:, None]
+
+
+def shade_roof(s: ShadeInput) -> np.ndarray:
+    g = fbm(s.u, s.v, s.foot, 0.05, 5, s.seed + 40)
+    return s.color * (0.8 + 0.12 * g)[:, None]
+
+
+def shade_car(s: ShadeInput) -> np.ndarray:
+    """Vehicle box: tyres and wheel arches, paint, door seams, glass band, lights,
+    a number plate. ``prm = (face 0 side|1 front|2 back|3 top, 0, 0, 0)``."""
+    u, v, f = s.u, s.v, s.foot
+    face = s.prm[:, 0]
+    H, L = s.lv, s.lu
+    g = fbm(u, v, f, 0.03, 4, s.seed + 50)
+    paint = s.color * (1.0 + 0.05 * g + 0.15 * (v / np.maximum(H, 1e-3) - 0.5))[:, None]
+    out = paint
+    low = coverage(0.32 - v, f)
+    out = mix(out, np.array([0.08, 0.08, 0.09]), low)
+    side = face < 0.5
+    for wc in (0.9, -0.9):
+        cx = np.where(wc > 0, wc, L + wc)
+        r = np.hypot(u - cx, v - 0.34)
+        tyre = coverage(0.34 - r, f) * side
+        out = mix(out, np.array([0.05, 0.05, 0.05]), tyre)
+        rim = coverage(0.2 - r, f) * side
+        spokes = 0.55 + 0.2 * (np.sin(5 * np.arctan2(v - 0.34, u - cx)) > 0)
+        out = mix(out, spokes[:, None] * np.array([1, 1, 1.02]), rim)
+    seam = (coverage(0.012 - np.abs(u - L * 0.48), f) + coverage(0.012 - np.abs(u - L * 0.72), f)) * side * (v > 0.35) * (v < 0.95)
+    out = mix(out, paint * 0.3, np.clip(seam, 0, 1))
+    handle = (box_cov(u, v, L * 0.50, L * 0.50 + 0.18, 0.82, 0.86, f) + box_cov(u, v, L * 0.74, L * 0.74 + 0.18, 0.82, 0.86, f)) * side
+    out = mix(out, paint * 0.5, np.clip(handle, 0, 1))
+    gb0 = np.where(H > 2.2, H - 0.9, H - 0.62)
+    gl = box_cov(u, v, 0.25, L - 0.25, gb0, H - 0.08, f) * (face < 2.5)
+    t = (v - gb0) / 0.6
+    glass = (0.12 + 0.25 * t + 0.05 * g)[:, None] * np.array([0.7, 0.8, 0.95])
+    pillar = coverage(0.05 - np.abs(u - L * 0.5), f) * side
+    out = mix(out, glass, gl * (1 - pillar))
+    front = np.abs(face - 1) < 0.5
+    back = np.abs(face - 2) < 0.5
+    for lx in (0.15, -0.15):
+        x0 = np.where(lx > 0, 0.12, L - 0.42)
+        lamp = box_cov(u, v, x0, x0 + 0.3, 0.62, 0.76, f)
+        out = mix(out, np.array([0.95, 0.95, 0.85]), lamp * front)
+        out = mix(out, np.array([0.8, 0.08, 0.05]), lamp * back)
+    plate = box_cov(u, v, L * 0.5 - 0.26, L * 0.5 + 0.26, 0.42, 0.53, f) * (front | back)
+    chars = (hash_unit(s.seed, np.floor((u - L * 0.5) / 0.06), 5) < 0.7) & (np.abs(u - L * 0.5) < 0.22) & (np.abs(v - 0.475) < 0.035)
+    pc = np.where(chars[:, None], np.array([0.1, 0.1, 0.1]), np.array([0.92, 0.92, 0.85]))
+    out = mix(out, pc, plate)
+    return out
+
+
+def shade_poster(s: ShadeInput) -> np.ndarray:
+    """Posters, billboards, truck adverts: hashed colour blocks, a disc, a photo-
+    like noise panel and lines of 'text'. Each face seed is one design."""
+    a = s.u / np.maximum(s.lu, 1e-6)
+    b = 1.0 - s.v / np.maximum(s.lv, 1e-6)  # top-down
+    k = s.seed
+    f = s.foot / np.maximum(np.minimum(s.lu, s.lv), 1e-6)
+    out = palette(hash_unit(k, 1), 0.35, 0.95)
+    for j in range(3):
+        x0, y0 = hash_unit(k, j, 10) * 0.7, hash_unit(k, j, 11) * 0.6
+        out = mix(out, palette(hash_unit(k, j, 12), 0.8, 0.8), box_cov(a, b, x0, x0 + 0.15 + 0.3 * hash_unit(k, j, 13),
+                                                                        y0, y0 + 0.1 + 0.3 * hash_unit(k, j, 14), f))
+    cx, cy = 0.2 + 0.6 * hash_unit(k, 20), 0.2 + 0.35 * hash_unit(k, 21)
+    r = np.hypot(a - cx, (b - cy) * s.lv / np.maximum(s.lu, 1e-6))
+    out = mix(out, palette(hash_unit(k, 22), 0.9, 0.9), coverage(0.08 + 0.12 * hash_unit(k, 23) - r, f))
+    # photo panel: coloured noise
+    px0, py0 = hash_unit(k, 30) * 0.5, 0.05 + hash_unit(k, 31) * 0.3
+    inp = box_cov(a, b, px0, px0 + 0.45, py0, py0 + 0.3, f)
+    ph = fbm(s.u, s.v, s.foot, 0.05, 4, k + 33)
+    ph2 = fbm(s.u, s.v, s.foot, 0.12, 3, k + 34)
+    photo = np.clip(np.stack([0.5 + 0.35 * ph, 0.5 + 0.3 * ph2, 0.5 - 0.3 * ph], 1), 0, 1)
+    out = mix(out, photo, inp)
+    # text lines in the lower part
+    row = np.floor(b / 0.055)
+    word = np.floor(a / 0.09 + hash_unit(k, row) * 3)
+    letter = np.floor(a / 0.018)
+    txt = (b > 0.62) & (b < 0.95) & (a > 0.06) & (a < 0.94) & ((b / 0.055 - row) < 0.6)
+    txt &= (hash_unit(k, row, word) < 0.75) & (hash_unit(k, row, letter, 7) < 0.8)
+    out = np.where(txt[:, None], palette(hash_unit(k, 40), 0.3, 0.15) * np.ones_like(out), out)
+    border = 1.0 - box_cov(a, b, 0.02, 0.98, 0.02, 0.98, f)
+    out = mix(out, np.array([0.95, 0.95, 0.95]), border)
+    return out * (1.0 + 0.05 * fbm(s.u, s.v, s.foot, 0.02, 3, k + 50))[:, None]
+
+
+# --------------------------------------------------------------------------- indoor materials
+def shade_wall(s: ShadeInput) -> np.ndarray:
+    """Room wall: wallpaper (stripes, blotch pattern or painted plaster, per wall),
+    skirting board, sockets, scuffs. ``prm = (style 0|1|2, 0, 0, 0)``."""
+    u, v, f, k = s.u, s.v, s.foot, s.seed
+    style = s.prm[:, 0]
+    g = fbm(u, v, f, 0.015, 5, k + 1)
+    g2 = fbm(u, v, f, 0.25, 3, k + 2)
+    base = s.color * (1.0 + 0.06 * g + 0.08 * g2)[:, None]
+    stripes = base * (1.0 - 0.18 * (np.mod(u, 0.3) < 0.1) - 0.06 * (np.mod(u + 0.05, 0.3) < 0.02))[:, None]
+    blot = fbm(u, v, f, 0.04, 4, k + 3)
+    pattern = base * (1.0 - 0.22 * (blot > 0.35) + 0.1 * (blot < -0.5))[:, None]
+    out = np.where((style < 0.5)[:, None], stripes, np.where((style < 1.5)[:, None], pattern, base))
+    skirt = coverage(0.1 - v, f)
+    out = mix(out, np.array([0.9, 0.88, 0.84]) * (1 + 0.04 * g)[:, None], skirt)
+    out = mix(out, np.array([0.5, 0.48, 0.45]), coverage(0.006 - np.abs(v - 0.1), f))
+    # sockets every ~2.3 m with per-socket jitter
+    sc = np.floor(u / 2.3)
+    sx = sc * 2.3 + 0.5 + 1.2 * hash_unit(k, sc)
+    sock = box_cov(u, v, sx, sx + 0.08, 0.28, 0.36, f) * (hash_unit(k, sc, 2) < 0.7)
+    out = mix(out, np.array([0.95, 0.95, 0.93]), sock)
+    holes = (np.hypot(u - sx - 0.025, v - 0.32) < 0.008) | (np.hypot(u - sx - 0.055, v - 0.32) < 0.008)
+    out = np.where((holes & (sock > 0.5))[:, None], np.array([0.2, 0.2, 0.2]), out)
+    scuff = np.clip(fbm(u, v * 3, f, 0.08, 3, k + 4) - 0.8, 0, None) * (v < 0.6)
+    return out * (1.0 - 0.5 * scuff)[:, None]
+
+
+def shade_floor(s: ShadeInput) -> np.ndarray:
+    """Wooden plank floor: staggered planks with per-plank tone and grain."""
+    x, y, f, k = s.u, s.v, s.foot, s.seed
+    pw = 0.16
+    row = np.floor(y / pw)
+    plen = 1.2 + 0.8 * hash_unit(k, row, 1)
+    off = hash_unit(k, row, 2) * plen
+    pid = np.floor((x + off) / plen)
+    tone = 0.75 + 0.35 * hash_unit(k, row, pid)
+    grain = fbm((x + off) * 0.12, y, f * 0.5, 0.02, 4, k + 5)
+    knot = fbm(x, y, f, 0.06, 3, k + 6)
+    col = s.color * (tone * (1.0 + 0.12 * grain + 0.05 * knot))[:, None]
+    gap = np.minimum(np.minimum(y - row * pw, (row + 1) * pw - y), np.minimum(np.mod(x + off, plen), plen - np.mod(x + off, plen)))
+    return mix(col, col * 0.45, 1.0 - coverage(gap - 0.004, f))
+
+
+def shade_ceiling(s: ShadeInput) -> np.ndarray:
+    u, v, f = s.u, s.v, s.foot
+    g = fbm(u, v, f, 0.01, 4, s.seed + 7)
+    t = 0.6
+    d = np.minimum(np.minimum(np.mod(u, t), t - np.mod(u, t)), np.minimum(np.mod(v, t), t - np.mod(v, t)))
+    col = s.color * (1.0 + 0.08 * g)[:, None]
+    return mix(col, col * 0.6, 1.0 - coverage(d - 0.012, f))
+
+
+def shade_wood(s: ShadeInput) -> np.ndarray:
+    """Furniture wood: grain stretched along ``u``, rings, slight planks."""
+    u, v, f, k = s.u, s.v, s.foot, s.seed
+    grain = fbm(u * 0.1, v, f * 0.3, 0.012, 4, k + 3)
+    ring = np.sin((v + 0.05 * fbm(u, v, f, 0.15, 2, k + 4)) * 90.0)
+    return s.color * (1.0 + 0.14 * grain + 0.06 * ring)[:, None]
+
+
+def shade_books(s: ShadeInput) -> np.ndarray:
+    """Shelf front: boards every 0.38 m, rows of books of hashed width, height,
+    colour and label band; dark back panel above them."""
+    u, v, f, k = s.u, s.v, s.foot, s.seed
+    sh = 0.38
+    row = np.floor(v / sh)
+    rv = v - row * sh
+    bw = 0.028 + 0.02 * hash_unit(k, row, 1)
+    bi = np.floor(u / bw + hash_unit(k, row, 2) * 10)
+    bh = 0.2 + 0.13 * hash_unit(k, row, bi)
+    gapb = hash_unit(k, row, bi, 3) < 0.08
+    book = palette(hash_unit(k, row, bi, 4), 0.55, 0.35 + 0.5 * hash_unit(k, row, bi, 5))
+    lab = coverage(0.012 - np.abs(rv - bh * (0.55 + 0.3 * hash_unit(k, row, bi, 6))), f)
+    book = mix(book, np.array([0.9, 0.85, 0.6]), lab)
+    spine = np.abs((u / bw + hash_unit(k, row, 2) * 10) - bi - 0.5) * 2
+    book = book * (1.0 - 0.25 * spine ** 4)[:, None]
+    back = s.color * 0.35
+    out = np.where(((rv < bh) & ~gapb)[:, None], book, back * np.ones_like(book))
+    board = coverage(0.025 - rv, f) + coverage(0.025 - (sh - rv), f) * 0
+    out = mix(out, s.color * (1.0 + 0.1 * fbm(u * 0.1, v, f, 0.01, 3, k))[:, None], np.clip(board, 0, 1))
+    edge = coverage(0.03 - np.minimum(u, s.lu - u), f)
+    return mix(out, s.color, edge)
+
+
+def shade_cardboard(s: ShadeInput) -> np.ndarray:
+    """Cardboard box: corrugation, tape, a label with text bars and a barcode."""
+    u, v, f, k = s.u, s.v, s.foot, s.seed
+    g = fbm(u, v, f, 0.01, 4, k + 1)
+    col = s.color * (1.0 + 0.08 * g + 0.03 * np.sin(v * 400.0) * (f < 0.003))[:, None]
+    tape = coverage(0.025 - np.abs(u - s.lu * 0.5), f) * (v > s.lv - 0.12)
+    col = mix(col, np.array([0.75, 0.6, 0.35]), tape)
+    lx, ly = s.lu * (0.15 + 0.3 * hash_unit(k, 3)), s.lv * (0.2 + 0.3 * hash_unit(k, 4))
+    lw, lh = 0.12 + 0.08 * hash_unit(k, 5), 0.08 + 0.05 * hash_unit(k, 6)
+    lab = box_cov(u, v, lx, lx + lw, ly, ly + lh, f)
+    line = (np.mod(v - ly, 0.018) < 0.008) & (hash_unit(k, np.floor((v - ly) / 0.018), np.floor((u - lx) / 0.012)) < 0.7)
+    bar = (v - ly < lh * 0.35) & (hash_unit(k, np.floor((u - lx) / 0.004), 9) < 0.5)
+    ink = (line & (v - ly > lh * 0.4)) | bar
+    labc = np.where(ink[:, None], np.array([0.1, 0.1, 0.1]), np.array([0.95, 0.95, 0.92]))
+    col = mix(col, labc, lab)
+    arrow = (np.abs(u - (lx + lw + 0.06)) < 0.015) & (v > ly) & (v < ly + lh)
+    return np.where(arrow[:, None], np.array([0.15, 0.15, 0.15]), col)
+
+
+def shade_robot(s: ShadeInput) -> np.ndarray:
+    """Small robot chassis: dark plastic, a coloured band, a checker marker."""
+    u, v, f = s.u, s.v, s.foot
+    col = np.array([0.15, 0.15, 0.17]) * (1.0 + 0.1 * fbm(u, v, f, 0.01, 3, s.seed))[:, None]
+    band = coverage(0.02 - np.abs(v - s.lv * 0.6), f)
+    col = mix(col, s.color, band)
+    chk = ((np.floor(u / 0.03) + np.floor(v / 0.03)) % 2 == 0) & (np.abs(u - s.lu / 2) < 0.06) & (np.abs(v - s.lv * 0.3) < 0.03)
+    return np.where(chk[:, None], np.array([0.9, 0.9, 0.9]), col)
+
+
+def shade_plain(s: ShadeInput) -> np.ndarray:
+    return s.color * (1.0 + 0.12 * fbm(s.u, s.v, s.foot, 0.03, 4, s.seed))[:, None]
+
+
+SHADERS = (shade_ground, shade_facade, shade_roof, shade_car, shade_poster, shade_wall, shade_floor,
+           shade_ceiling, shade_wood, shade_books, shade_cardboard, shade_robot, shade_plain)

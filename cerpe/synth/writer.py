@@ -1,0 +1,341 @@
+"""Render planned encounters, in memory or to the mocap-style dataset layout.
+
+On disk (one *setting* folder per world; see docs/ARCHITECTURE.md "Dataset manifest")::
+
+    OUT/manifest.yaml                 adapter: mocap, metric_depth: sensor, all encounters
+    OUT/meta.json                     generator arguments (the cache key) and encounter names
+    OUT/<enc>/overlap.npy             [T,N,N] float32 ground-truth overlap (robot order of the manifest)
+    OUT/<enc>/meta.json               scenario, stamps, viewing angles [T,N,N] (radians), precheck flag
+    OUT/<enc>/<rid>/rgb/<stamp>.png   8-bit RGB
+    OUT/<enc>/<rid>/depth/<stamp>.png uint16 millimetres (depth_units_per_m: 1000); 0 = no surface,
+                                      and also 0 beyond 65.535 m (not representable: never clipped)
+    OUT/<enc>/<rid>/groundtruth.txt   TUM: stamp tx ty tz qx qy qz qw, camera-to-world (T_body_cam = identity)
+    OUT/<enc>/<rid>/camera.yaml       width height fx fy cx cy distortion
+
+Generation is cached: the same arguments find ``OUT/meta.json`` equal and render
+nothing; different arguments raise :class:`SynthError` unless ``force``. Work
+goes into ``.OUT.partial`` (finished encounters there are reused after an
+interruption) and is renamed to ``OUT`` at the end.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import se3_to_tq_xyzw
+from ..scene import Encounter, RobotStream
+from .errors import SynthError
+from .groundtruth import has_transition, overlap_matrix, viewing_angle_matrix
+from .renderer import render
+from .worlds import WORLDS, EncounterPlan, check_conf, plan_encounter
+
+log = logging.getLogger(__name__)
+
+SYNTH_VERSION = 1
+DEPTH_UNITS_PER_M = 1000
+
+#: defaults of every generator argument (``n_robots`` None = world default: 2 vehicles / 3 robots)
+DEFAULT_CONF: dict = {
+    "seed": 0,
+    "n_encounters": 1,
+    "n_robots": None,
+    "n_three": 0,          # cad-intersection: this many (last) encounters get 3 vehicles
+    "n_frames": 40,
+    "fps": 10.0,
+    "size": (640, 480),
+    "overlap_stride": 4,
+    "workers": 1,          # processes rendering encounters in parallel (not part of the cache key)
+}
+
+SETTING_OF_WORLD = {"cad-intersection": "synthetic-cad", "indoor-team": "synthetic-indoor"}
+
+#: named suites: setting name -> (world, generator arguments)
+SUITES: dict[str, dict[str, tuple[str, dict]]] = {
+    "fixture": {
+        "synthetic-cad": ("cad-intersection", {"seed": 0, "n_encounters": 1, "n_frames": 12, "fps": 3.0,
+                                               "size": (160, 120), "n_robots": 2}),
+        "synthetic-indoor": ("indoor-team", {"seed": 0, "n_encounters": 1, "n_frames": 12, "fps": 3.0,
+                                             "size": (160, 120), "n_robots": 3}),
+    },
+    "paper-default": {
+        "synthetic-cad": ("cad-intersection", {"seed": 0, "n_encounters": 8, "n_frames": 36, "fps": 10.0,
+                                               "size": (640, 480), "n_robots": 2, "n_three": 2, "workers": 2}),
+        "synthetic-indoor": ("indoor-team", {"seed": 0, "n_encounters": 4, "n_frames": 36, "fps": 10.0,
+                                             "size": (640, 480), "n_robots": 3, "workers": 2}),
+    },
+}
+
+
+def full_conf(world: str, conf: dict | None = None) -> dict:
+    """Defaults + ``conf``, validated; ``size`` as a ``(W, H)`` tuple of ints."""
+    unknown = set(conf or {}) - set(DEFAULT_CONF)
+    if unknown:
+        raise SynthError(f"unknown generator argument(s) {sorted(unknown)}; known: {sorted(DEFAULT_CONF)}")
+    c = {**DEFAULT_CONF, **(conf or {})}
+    if c["n_robots"] is None:
+        c["n_robots"] = 2 if world == "cad-intersection" else 3
+    try:
+        c["size"] = (int(c["size"][0]), int(c["size"][1]))
+    except (TypeError, ValueError, IndexError):
+        raise SynthError(f"size must be (width, height), got {c['size']!r}") from None
+    for k in ("seed", "n_encounters", "n_robots", "n_three", "n_frames", "overlap_stride", "workers"):
+        c[k] = int(c[k])
+    c["fps"] = float(c["fps"])
+    check_conf(world, c)
+    if c["n_encounters"] < 1:
+        raise SynthError(f"n_encounters {c['n_encounters']}: must be >= 1")
+    return c
+
+
+def encounter_name(world: str, seed: int, index: int) -> str:
+    if world == "cad-intersection":
+        return f"cad-l{index % 4}-s{seed}-e{index:02d}"
+    return f"indoor-s{seed}-e{index:02d}"
+
+
+def plan_for(world: str, conf: dict, index: int) -> EncounterPlan:
+    """The plan of encounter ``index`` of a suite with (full) ``conf``."""
+    n = conf["n_robots"]
+    if world == "cad-intersection" and index >= conf["n_encounters"] - conf["n_three"]:
+        n = max(n, 3)
+    plan = plan_encounter(world, conf["seed"], index, {"n_robots": n, "n_frames": conf["n_frames"],
+                                                       "fps": conf["fps"], "size": conf["size"]})
+    plan.name = encounter_name(world, conf["seed"], index)
+    return plan
+
+
+def iter_frames(plan: EncounterPlan):
+    """Yield ``(t, rgbs [N], depths [N])`` for every step (each robot's own body hidden)."""
+    for t in range(plan.n_steps):
+        outs = [render(plan.faces_at(t, viewer=k), plan.T_world_cam[k, t], plan.intrinsics, plan.ctx)
+                for k in range(len(plan.robot_ids))]
+        yield t, [o.rgb for o in outs], [o.depth_m for o in outs]
+
+
+def render_encounter(world: str, seed: int = 0, index: int = 0, conf: dict | None = None,
+                     progress: bool = False) -> Encounter:
+    """Render one encounter into memory as a :class:`cerpe.scene.Encounter`.
+
+    Images are ``[H,W,3] uint8`` arrays, depth ``[H,W] float32`` metres (exact
+    z-depth, 0 = no surface), ``overlap [T,N,N]``; ``meta`` has the plan, the
+    viewing angles ``[T,N,N]`` and ``transition`` (overlap crossed 0.3 and 0.05).
+    """
+    c = full_conf(world, {**(conf or {}), "seed": seed, "n_encounters": max(index + 1, (conf or {}).get("n_encounters", 1))})
+    plan = plan_for(world, c, index)
+    n, T = len(plan.robot_ids), plan.n_steps
+    rgbs = [[None] * T for _ in range(n)]
+    depths = [[None] * T for _ in range(n)]
+    ov = np.zeros((T, n, n))
+    frames = iter_frames(plan)
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, total=T, desc=plan.name, unit="step")
+    for t, rr, dd in frames:
+        for k in range(n):
+            rgbs[k][t], depths[k][t] = rr[k], dd[k]
+        ov[t] = overlap_matrix(dd, [plan.intrinsics] * n, list(plan.T_world_cam[:, t]), c["overlap_stride"])
+    robots = [RobotStream(robot_id=rid, intrinsics=plan.intrinsics, stamps_s=plan.stamps_s, images=rgbs[k],
+                          T_world_cam=plan.T_world_cam[k], depth=depths[k], depth_units_per_m=1.0,
+                          frame_ids=[f"{s:.6f}" for s in plan.stamps_s]) for k, rid in enumerate(plan.robot_ids)]
+    va = np.stack([viewing_angle_matrix(list(plan.T_world_cam[:, t])) for t in range(T)])
+    meta = {"world": world, "seed": seed, "index": index, "plan": plan.meta, "viewing_angle_rad": va,
+            "transition": has_transition(ov), "conf": c}
+    return Encounter(name=plan.name, robots=robots, overlap=ov, meta=meta)
+
+
+# --------------------------------------------------------------------------- files
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise SynthError(f"cannot encode PNG {path}")
+    _atomic_write(path, buf.tobytes())
+
+
+def depth_to_png_units(depth_m: np.ndarray, units_per_m: int = DEPTH_UNITS_PER_M) -> np.ndarray:
+    """Metres -> uint16 units; 0 stays 0 and values beyond the uint16 range become 0 (unknown)."""
+    d = np.rint(np.asarray(depth_m, np.float64) * units_per_m)
+    d[(d > 65535) | ~np.isfinite(d) | (d < 0)] = 0
+    return d.astype(np.uint16)
+
+
+def _camera_yaml(plan: EncounterPlan) -> str:
+    K = plan.intrinsics
+    return (f"# pinhole, no distortion (rendered by cerpe synth, {plan.world})\n"
+            f"width: {K.width}\nheight: {K.height}\nfx: {K.fx:.6f}\nfy: {K.fy:.6f}\ncx: {K.cx:.6f}\ncy: {K.cy:.6f}\n"
+            f"distortion: [0.0, 0.0, 0.0, 0.0, 0.0]\n")
+
+
+def _tum(stamps: np.ndarray, T_world_cam: np.ndarray) -> str:
+    lines = ["# timestamp tx ty tz qx qy qz qw  (camera-to-world, OpenCV camera axes)"]
+    for s, T in zip(stamps, T_world_cam):
+        t, q = se3_to_tq_xyzw(T)
+        lines.append(f"{s:.6f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
+    return "\n".join(lines) + "\n"
+
+
+def write_encounter(world: str, conf: dict, index: int, root: Path) -> tuple[str, int, bool]:
+    """Render encounter ``index`` into ``root/<name>/``; its ``meta.json`` is written last.
+
+    Returns ``(name, n_frames_rendered, overlap_transition)``.
+    """
+    plan = plan_for(world, conf, index)
+    enc = root / plan.name
+    if (enc / "meta.json").is_file():  # finished in an interrupted earlier run
+        meta = json.loads((enc / "meta.json").read_text())
+        return plan.name, 0, bool(meta.get("overlap_transition", False))
+    n, T = len(plan.robot_ids), plan.n_steps
+    for rid in plan.robot_ids:
+        (enc / rid / "rgb").mkdir(parents=True, exist_ok=True)
+        (enc / rid / "depth").mkdir(parents=True, exist_ok=True)
+    ov = np.zeros((T, n, n), np.float32)
+    for t, rr, dd in iter_frames(plan):
+        stamp = f"{plan.stamps_s[t]:.6f}"
+        for k, rid in enumerate(plan.robot_ids):
+            _write_png(enc / rid / "rgb" / f"{stamp}.png", rr[k][:, :, ::-1])
+            _write_png(enc / rid / "depth" / f"{stamp}.png", depth_to_png_units(dd[k]))
+        ov[t] = overlap_matrix(dd, [plan.intrinsics] * n, list(plan.T_world_cam[:, t]), conf["overlap_stride"])
+    for k, rid in enumerate(plan.robot_ids):
+        _atomic_write(enc / rid / "groundtruth.txt", _tum(plan.stamps_s, plan.T_world_cam[k]))
+        _atomic_write(enc / rid / "camera.yaml", _camera_yaml(plan))
+    with open(enc / "overlap.npy.tmp", "wb") as fh:
+        np.save(fh, ov)
+    os.replace(enc / "overlap.npy.tmp", enc / "overlap.npy")
+    va = np.stack([viewing_angle_matrix(list(plan.T_world_cam[:, t])) for t in range(T)])
+    trans = has_transition(ov)
+    if not trans:
+        log.warning("%s: overlap never crosses both 0.3 and 0.05 for any robot pair", plan.name)
+    meta = {"name": plan.name, "world": world, "seed": conf["seed"], "index": index, "robot_ids": plan.robot_ids,
+            "stamps_s": [round(float(s), 6) for s in plan.stamps_s], "plan": plan.meta,
+            "overlap_transition": bool(trans), "overlap_max": float(max(ov[:, i, j].max() for i in range(n) for j in range(n) if i != j)),
+            "viewing_angle_rad": np.round(va, 6).tolist(),
+            "depth_note": "depth PNG: uint16 millimetres, 0 = no surface or beyond 65.535 m"}
+    _atomic_write(enc / "meta.json", json.dumps(meta, indent=1))
+    return plan.name, n * T, bool(trans)
+
+
+def _manifest(setting: str, world: str, conf: dict, names: list[str], robots: dict[str, list[str]]) -> str:
+    import yaml
+
+    doc = {
+        "name": setting,
+        "adapter": "mocap",
+        "enabled": True,
+        "data_root": ".",
+        "metric_depth": "sensor",
+        "sync_tolerance_s": 0.02,
+        "evaluation": {"every": 1},
+        "encounters": [{
+            "name": e,
+            "overlap": f"{e}/overlap.npy",
+            "robots": [{
+                "id": r, "images": f"{e}/{r}/rgb", "trajectory": f"{e}/{r}/groundtruth.txt",
+                "trajectory_format": "tum", "intrinsics": f"{e}/{r}/camera.yaml", "T_body_cam": "identity",
+                "depth": f"{e}/{r}/depth", "depth_units_per_m": DEPTH_UNITS_PER_M, "interpolate": False,
+            } for r in robots[e]],
+        } for e in names],
+    }
+    head = f"# written by `cerpe synth {world}` (cerpe.synth v{SYNTH_VERSION}); see meta.json for the arguments\n"
+    return head + yaml.safe_dump(doc, sort_keys=False)
+
+
+def _cache_key(world: str, conf: dict) -> dict:
+    key = {k: v for k, v in conf.items() if k != "workers"}
+    key["size"] = list(key["size"])
+    return {"generator": "cerpe.synth", "version": SYNTH_VERSION, "world": world, "args": key}
+
+
+def _render_job(job: tuple) -> tuple[str, int, bool]:
+    world, conf, index, root = job
+    return write_encounter(world, conf, index, Path(root))
+
+
+def generate_suite(world: str, out_dir: str | Path, conf: dict | None = None, *, force: bool = False,
+                   progress: bool = True, setting: str | None = None) -> Path:
+    """Render ``conf["n_encounters"]`` encounters of ``world`` into ``out_dir``; return its manifest path.
+
+    Same arguments as an existing ``out_dir/meta.json`` -> nothing is rendered.
+    Different arguments -> :class:`SynthError` unless ``force`` (then it is replaced).
+    """
+    if world not in WORLDS:
+        raise SynthError(f"unknown world {world!r}; known worlds: {', '.join(WORLDS)}")
+    c = full_conf(world, conf)
+    out = Path(out_dir)
+    setting = setting or SETTING_OF_WORLD[world]
+    key = _cache_key(world, c)
+    if out.exists():
+        meta = out / "meta.json"
+        try:
+            old = json.loads(meta.read_text()) if meta.is_file() else None
+        except json.JSONDecodeError:
+            old = None
+        if old is not None and old.get("key") == key and (out / "manifest.yaml").is_file():
+            log.info("%s: up to date (same generator arguments); nothing rendered", out)
+            return out / "manifest.yaml"
+        if not force:
+            what = "was generated with different arguments" if old is not None else "exists and is not a cerpe synth output"
+            raise SynthError(f"{out} {what} ({meta}); use --force (force=True) to replace it, or another --out")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial")
+    if tmp.exists():
+        try:
+            same = json.loads((tmp / "key.json").read_text()) == key
+        except (OSError, json.JSONDecodeError):
+            same = False
+        if not same:
+            shutil.rmtree(tmp)
+    tmp.mkdir(parents=True, exist_ok=True)
+    _atomic_write(tmp / "key.json", json.dumps(key))
+    jobs = [(world, c, i, str(tmp)) for i in range(c["n_encounters"])]
+    total = sum((max(c["n_robots"], 3) if world == "cad-intersection" and i >= c["n_encounters"] - c["n_three"]
+                 else c["n_robots"]) * c["n_frames"] for i in range(c["n_encounters"]))
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=f"synth {setting}", unit="frame", disable=not progress)
+    results = []
+    if c["workers"] > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("fork").Pool(min(c["workers"], len(jobs))) as pool:
+            for r in pool.imap_unordered(_render_job, jobs):
+                results.append(r)
+                bar.update(r[1])
+    else:
+        for j in jobs:
+            results.append(_render_job(j))
+            bar.update(results[-1][1])
+    bar.close()
+    names = [encounter_name(world, c["seed"], i) for i in range(c["n_encounters"])]
+    robots = {e: json.loads((tmp / e / "meta.json").read_text())["robot_ids"] for e in names}
+    _atomic_write(tmp / "manifest.yaml", _manifest(setting, world, c, names, robots))
+    trans = {name: t for name, _, t in results}
+    _atomic_write(tmp / "meta.json", json.dumps({"key": key, "setting": setting, "encounters": names,
+                                                 "overlap_transition": trans}, indent=1))
+    (tmp / "key.json").unlink()
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    return out / "manifest.yaml"
+
+
+def generate_suites(name: str, out_root: str | Path, *, force: bool = False, progress: bool = True) -> dict[str, Path]:
+    """Render the named suite (``fixture`` | ``paper-default``): one setting folder per world
+    under ``out_root``; returns ``{setting_name: manifest_path}``."""
+    if name not in SUITES:
+        raise SynthError(f"unknown suite {name!r}; known suites: {', '.join(SUITES)}")
+    return {setting: generate_suite(world, Path(out_root) / setting, conf, force=force, progress=progress,
+                                    setting=setting)
+            for setting, (world, conf) in SUITES[name].items()}
