@@ -10,7 +10,8 @@ One call of :meth:`Team.step` is one synchronous round (``docs/ARCHITECTURE.md``
    :class:`~cerpe.messages.ImageRequest`, answered with a JPEG
    :class:`~cerpe.messages.ImageReply` (``gate`` stage);
 4. runs ONE joint backbone pass over ``[current] + memory (newest first) +
-   decoded collaborator images`` (``backbone``);
+   decoded collaborator images`` (``backbone``); view keys are ``(robot, step)``
+   for a robot's own frames and ``(robot, step, "jpeg")`` for a received image;
 5. recovers the metric scale from the memory keyframes' depth references
    (:func:`cerpe.scale.recover_scale`; the current frame only while the memory is
    empty) (``scale``);
@@ -373,7 +374,12 @@ class RobotAgent:
         return st.reply_cache
 
     def accept_reply(self, other: str, reply: ImageReply) -> View | None:
-        """Decode a collaborator's JPEG into a :class:`View` keyed ``(other, step)``."""
+        """Decode a collaborator's JPEG into a :class:`View` keyed ``(other, step, "jpeg")``.
+
+        The key differs from the owner's ``(other, step)`` because the pixels do
+        (JPEG): plug-ins shared by a simulated team may cache per key, and must not
+        mix the raw and the decoded image (nor hand one robot what only another has).
+        """
         st = self._state()
         if reply.step != st.step:
             self._degrade("msg:stale-reply")
@@ -391,7 +397,7 @@ class RobotAgent:
         K = None
         if fx > 0 and fy > 0 and np.all(np.isfinite(reply.intrinsics)):
             K = CameraIntrinsics(fx, fy, cx, cy, img.shape[1], img.shape[0])
-        view = View(key=(other, reply.step), image=img, intrinsics=K)
+        view = View(key=(other, reply.step, "jpeg"), image=img, intrinsics=K)
         st.collab_views[other] = view
         return view
 

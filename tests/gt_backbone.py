@@ -6,8 +6,9 @@ unknown scale factor (as a real up-to-scale backbone would), with optional
 noise; :class:`OverlapDescriptor` returns vectors whose cosine similarity between
 robots follows a prescribed schedule; :class:`SensorDepthDouble` returns the
 world's metric depth with optional bias, noise and outliers. Views are looked up
-by the ``(robot_id, step)`` key the algorithm gives them (collaborator images
-arrive JPEG-decoded, so pixels cannot identify them).
+by the key the algorithm gives them: ``(robot_id, step)`` for own frames,
+``(robot_id, step, "jpeg")`` for received images (they arrive JPEG-decoded, so
+pixels cannot identify them).
 """
 from __future__ import annotations
 
@@ -58,11 +59,11 @@ class World:
         return self.robot_ids.index(robot_id)
 
     def pose(self, key: Hashable) -> np.ndarray:
-        rid, t = key
+        rid, t = key[:2]  # own frames (robot, step); received JPEGs (robot, step, "jpeg")
         return self.T_world_cam[self.index(rid), int(t)]
 
     def depth(self, key: Hashable) -> np.ndarray:
-        rid, t = key
+        rid, t = key[:2]
         return self.depth_m[self.index(rid)][int(t)]
 
     def gt_T_cj_ci(self, t: int, i: int, j: int) -> np.ndarray:
@@ -228,7 +229,7 @@ class OverlapDescriptor:
     def describe(self, view: View) -> np.ndarray:
         if view.key in self.zero_keys:
             return np.zeros(self.dim, np.float32)
-        rid, t = view.key
+        rid, t = view.key[:2]
         return self.table[self.world.index(rid), int(t)].copy()
 
 

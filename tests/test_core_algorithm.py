@@ -85,7 +85,7 @@ def test_two_robots_exact_with_gt_backbone():
         for r in res.robots:
             keys = next(calls)
             other = "r1" if r.robot == "r0" else "r0"
-            collab = [(other, res.step)] if want[res.step] == "direct" else []
+            collab = [(other, res.step, "jpeg")] if want[res.step] == "direct" else []
             assert keys == [(r.robot, res.step)] + [(r.robot, s) for s in reversed(kf_steps[r.robot])] + collab
             if r.keyframe:
                 kf_steps[r.robot] = (kf_steps[r.robot] + [res.step])[-5:]
