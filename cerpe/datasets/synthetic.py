@@ -10,22 +10,23 @@ Manifest::
     metric_depth: mono-sim
     cache_dir: null                # optional; default $CERPE_CACHE/synth or <project>/build/synth
 
-The suite is rendered once into ``<cache>/<world>-<suite>-seed<N>/`` (written to a
-temporary folder and renamed, so an interrupted generation never looks
-finished) by ``cerpe.synth``; that folder holds a ``manifest.yaml`` in the mocap
-layout, which is then loaded unchanged by the ``mocap`` adapter. The setting
-keeps this manifest's ``name``, ``metric_depth`` and ``evaluation``.
+The world's generator arguments come from the suite preset of ``cerpe.synth``
+(``SUITES[suite]``) with ``seed`` replaced. The suite is rendered once into
+``<cache>/<suite>/<world>-seed<N>/`` by ``cerpe.synth.generate_suite`` (cached on
+its arguments; written to a ``.partial`` folder and renamed, so an interrupted
+generation never looks finished); that folder holds a ``manifest.yaml`` in the
+mocap layout, which is then loaded unchanged by the ``mocap`` adapter. The
+setting keeps this manifest's ``name``, ``metric_depth`` and ``evaluation``.
 """
 from __future__ import annotations
 
 import importlib
-import inspect
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
+from typing import Callable
 
+from ..errors import CerpeError
 from ..scene import Setting
 from .manifest import Manifest, ManifestError, Problem, type_name
 from .report import LoadReport
@@ -34,7 +35,6 @@ log = logging.getLogger("cerpe.datasets.synthetic")
 
 WORLDS: tuple[str, ...] = ("cad-intersection", "indoor-team")
 SUITES: tuple[str, ...] = ("fixture", "paper-default")
-GENERATED_MANIFEST = "manifest.yaml"
 
 
 def project_root() -> Path:
@@ -53,48 +53,43 @@ def cache_root(manifest: Manifest | None = None) -> Path:
     return project_root() / "build" / "synth"
 
 
-def _call_generator(world: str, suite: str, seed: int, out_dir: Path) -> None:
-    """Render one world's suite into ``out_dir`` with ``cerpe.synth`` (the only coupling to it)."""
+def _synth_api() -> tuple[Callable[..., Path], dict]:
+    """``(generate_suite, SUITES)`` from ``cerpe.synth`` (the only coupling to the generator)."""
     try:
-        synth = importlib.import_module("cerpe.synth")
+        mod = importlib.import_module("cerpe.synth")
+        if not hasattr(mod, "generate_suite"):
+            mod = importlib.import_module("cerpe.synth.writer")
     except ModuleNotFoundError as exc:
         raise ManifestError(f"the synthetic generator (cerpe.synth) is not available: {exc}", field="adapter") from None
-    gen = getattr(synth, "generate_suite", None)
-    if gen is None:
-        raise ManifestError("cerpe.synth has no generate_suite(world, out_dir, ...)", field="adapter")
-    params = inspect.signature(gen).parameters
-    kwargs: dict = {}
-    if "suite" in params:
-        kwargs["suite"] = suite
-    if "seed" in params:
-        kwargs["seed"] = seed
-    if "conf" in params and "suite" not in params:
-        preset = getattr(synth, "suite_conf", None)
-        kwargs["conf"] = preset(suite, world=world, seed=seed) if callable(preset) else {"suite": suite, "seed": seed}
-    gen(world, out_dir, **kwargs)
+    return mod.generate_suite, mod.SUITES
 
 
-def ensure_generated(world: str, suite: str, seed: int, root: Path) -> Path:
-    """The generated suite folder, rendering it first when absent; returns its manifest path."""
-    folder = root / f"{world}-{suite}-seed{seed}"
-    manifest = folder / GENERATED_MANIFEST
-    if manifest.is_file():
-        return manifest
-    root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=root))
+def suite_conf(suites: dict, suite: str, world: str, seed: int) -> dict:
+    """The generator arguments of ``world`` in the named suite preset, with ``seed`` replaced."""
+    for _setting, (w, conf) in suites.get(suite, {}).items():
+        if w == world:
+            return {**conf, "seed": seed}
+    raise ManifestError(f"cerpe.synth has no world {world!r} in suite {suite!r}", field="world")
+
+
+def ensure_generated(world: str, suite: str, seed: int, root: Path, progress: bool = True) -> Path:
+    """Render the suite into ``root/<suite>/<world>-seed<N>/`` unless already there; its manifest path.
+
+    ``cerpe.synth.generate_suite`` keys its cache on the generator arguments and
+    renders into a ``.partial`` folder renamed at the end, so an interrupted run
+    never looks finished; ``force`` lets a changed preset replace a stale folder.
+    """
+    generate_suite, suites = _synth_api()
+    conf = suite_conf(suites, suite, world, seed)
+    folder = root / suite / f"{world}-seed{seed}"
     try:
-        log.info("generating synthetic suite %s (world %s, seed %d) into %s", suite, world, seed, folder)
-        _call_generator(world, suite, seed, tmp)
-        if not (tmp / GENERATED_MANIFEST).is_file():
-            raise ManifestError(f"cerpe.synth wrote no {GENERATED_MANIFEST} into {tmp}", field="world")
-        if folder.exists():  # a concurrent run finished first; keep theirs
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            os.replace(tmp, folder)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return manifest
+        path = Path(generate_suite(world, folder, conf, force=True, progress=progress))
+    except CerpeError as exc:
+        raise ManifestError(f"cerpe.synth failed for world {world!r}, suite {suite!r}, seed {seed}: {exc}",
+                            field="world") from None
+    if not path.is_file():
+        raise ManifestError(f"cerpe.synth wrote no manifest ({path})", field="world")
+    return path
 
 
 class SyntheticAdapter:
