@@ -219,8 +219,11 @@ def _file_digest(path: Path) -> str:
 StepSource = Callable[[Any], Iterator[StepResult]]
 
 
-def prepare_method(method: str, profile: str, seed: int) -> tuple[dict, StepSource]:
+def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
+
+    ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
+    the cerpe methods; None keeps the preset's default.
 
     Raises :class:`MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
@@ -230,7 +233,7 @@ def prepare_method(method: str, profile: str, seed: int) -> tuple[dict, StepSour
         steps, conf = _baseline_steps(method, seed)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
     if method in CERPE_METHODS:
-        return _cerpe_steps(method, profile, seed)
+        return _cerpe_steps(method, profile, seed, metric_depth)
     raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
 
 
@@ -249,14 +252,14 @@ def _as_dict(cfg: Any) -> dict:
     return {"repr": repr(cfg)}
 
 
-def _cerpe_steps(method: str, profile: str, seed: int) -> tuple[dict, StepSource]:
+def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None) -> tuple[dict, StepSource]:
     """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
     import dataclasses
 
     from .. import algorithm
     from ..backbones.build import build_plugins
 
-    plugins = build_plugins(profile)
+    plugins = build_plugins(profile, depth=metric_depth)
     cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"))
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
@@ -442,7 +445,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     out = Path(out)
     setting = setting if setting is not None else _load_setting(manifest)
     every = evaluation_every(setting, manifest)
-    mconf, steps = prepare_method(method, profile, seed)
+    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None))
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),

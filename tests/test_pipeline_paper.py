@@ -1,0 +1,94 @@
+"""Table I assembly, Markdown/LaTeX layout, figure functions and the notebook skip logic."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cerpe import plotting
+from cerpe.pipeline import paper
+from cerpe.pipeline import run as rp
+
+from test_pipeline_run_eval import _fake_steps, _setting
+
+
+@pytest.fixture()
+def ctx(tmp_path, monkeypatch) -> paper.PaperContext:
+    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None: ({"fake": True}, _fake_steps()))
+    m = tmp_path / "toy.yaml"
+    m.write_text("name: toy\n")
+    s = _setting(n_steps=8)
+    c = paper.PaperContext("fixture", "fixture", "offline", tmp_path / "runs", tmp_path / "fig", tmp_path / "tab",
+                           tmp_path / "nb")
+    c.settings = [paper.SettingEntry("toy", m, "ok", run_manifest=m, setting=s),
+                  paper.SettingEntry("openmars", tmp_path / "openmars.yaml", "not supplied",
+                                     "fill datasets_manifest/openmars.yaml and set enabled: true")]
+    for meth in ("sift-ransac", "cerpe"):
+        c.run_dirs[("toy", meth)] = rp.run_method(m, meth, c.runs_root / "toy" / meth, setting=s, progress=False)
+    return c
+
+
+def test_main_results_table(ctx):
+    df = paper.main_results(ctx)
+    assert list(df.columns[:7]) == ["setting", "method", "e_pos_m", "e_pos_gt_scale_m", "e_rot_rad",
+                                    "success_pct", "n_frames"]
+    assert len(df) == 2 * len(paper.TABLE_METHODS)
+    row = df[(df.setting == "toy") & (df.method == "cerpe")].iloc[0]
+    assert row.status == "ok" and row.e_rot_rad == pytest.approx(0.1, abs=1e-6)
+    assert row.success_pct == pytest.approx(100 * 6 / 8) and row.n_frames == 2 * 2 * 8
+    assert np.isfinite(row.e_pos_m)  # metric method: predicted translation error reported
+    sift = df[(df.setting == "toy") & (df.method == "sift-ransac")].iloc[0]
+    assert np.isnan(sift.e_pos_m) and np.isfinite(sift.e_pos_gt_scale_m)
+    assert (df[df.method.isin(["nope", "co-visnet"]) & (df.setting == "toy")].status == "not available offline").all()
+    assert df[df.setting == "openmars"].status.str.startswith("not supplied").all()
+    # a method whose run is missing is flagged, never silently empty
+    assert df[(df.setting == "toy") & (df.method == "cerpe-wo-em")].status.iloc[0].startswith("error")
+
+
+def test_markdown_and_latex_layout(ctx, tmp_path):
+    df = paper.main_results(ctx)
+    paths = paper.write_main_results(df, ctx.tables_dir)
+    assert [p.name for p in paths] == ["main_results.csv", "main_results.md", "main_results.tex"]
+    md = paths[1].read_text()
+    assert "not supplied" in md and "n/a" in md and "SuperGlue stand-in (ALIKED+LightGlue)" in md
+    assert md.splitlines()[0].count("toy:") == 3
+    tex = paths[2].read_text()
+    for token in (r"\toprule", r"\midrule", r"\bottomrule", r"\multicolumn{3}{c}{toy}", r"\cmidrule(lr){2-4}",
+                  "SuperGlue"):
+        assert token in tex
+    back = pd.read_csv(paths[0])
+    assert len(back) == len(df)
+
+
+def test_figures_written(ctx):
+    frames = paper.frames(ctx)
+    fig = plotting.error_analysis_figure(frames, title="toy")
+    out = plotting.save_figure(fig, ctx.figures_dir / "error_analysis")
+    assert all(p.exists() and p.stat().st_size > 1000 for p in out)
+    data = paper.qualitative_data(ctx, "toy", methods=("cerpe", "sift-ransac"))
+    assert set(data["rel"]) == {"cerpe", "sift-ransac"} and len(data["images"]) >= 1
+    plotting.save_figure(plotting.qualitative_figure(**data), ctx.figures_dir / "qualitative_toy")
+    com = paper.communication_data(ctx)
+    assert com["bytes_table"]["bytes_per_robot_step"].iloc[0] == pytest.approx(100.0)  # descriptor bytes of the fake
+    plotting.save_figure(plotting.communication_figure(com["bytes_table"], com["gate"], com["latency"],
+                                                       paper=com["paper"]), ctx.figures_dir / "communication_runtime")
+    assert (ctx.figures_dir / "communication_runtime.pdf").exists()
+
+
+def test_notebook_fingerprint_changes_with_runs(ctx):
+    fp1 = paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+    assert fp1 == paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+    assert fp1 != paper._inputs_fingerprint(ctx, {"PROFILE": "paper-default"})
+    done = ctx.run_dirs[("toy", "cerpe")] / "enc0" / "DONE.json"
+    done.write_text(done.read_text().replace('"n_steps"', '"n_steps" ', 1))
+    assert fp1 != paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+
+
+def test_run_is_current(ctx):
+    out = ctx.run_dirs[("toy", "sift-ransac")]
+    man = ctx.settings[0].run_manifest
+    assert paper.run_is_current(out, man, "sift-ransac", "offline")
+    man.write_text("name: toy\n# edited\n")
+    assert not paper.run_is_current(out, man, "sift-ransac", "offline")
