@@ -45,6 +45,13 @@ the robot keeps going:
   the memory restarts from the current frame at the last ``X``.
 * ``pose:stale`` -- the other robot's pose message of this step is missing; its
   last received pose is used for propagation.
+* ``anchor:not-stored-pose-missing`` -- a direct estimate was made but the other
+  robot's pose of this step is missing, so it cannot serve as an anchor.
+* ``ego:older-keyframe`` -- the newest keyframe was not placed, an older one was;
+  ``ego:no-keyframe`` -- the memory is empty after the first step (blank frames).
+* ``depth:none`` -- the depth source had nothing for the current frame.
+* ``msg:stale-request`` / ``msg:stale-reply`` / ``msg:undecodable-jpeg`` /
+  ``msg:unknown-sender`` -- frames that decode but cannot be used.
 
 Malformed input to a public function (non-finite poses, empty memory, zero-size
 images, an image whose depth or intrinsics have another size, descriptors of the
