@@ -56,7 +56,10 @@ def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, 
     print(f"{path}: {s['setting']} ({manifest.adapter}, metric depth: {setting.metric_depth})", file=out)
     print(f"  encounters {s['encounters']}  robots {s['robots']}  frames {s['frames']}  steps {s['steps']}  "
           f"ordered pairs {s['pairs']} (with ground truth {s['pairs_with_gt']})", file=out)
-    print(f"  stamp residual (stamp sync) max {_fmt(s['sync_max_abs_s'] * 1e3, '.1f', ' ms')}", file=out)
+    line = f"  stamp residual (stamp sync) max {_fmt(s['sync_max_abs_s'] * 1e3, '.1f', ' ms')}"
+    if not math.isnan(s["index_sync_max_offset_s"]):
+        line += f"; stamp offset between index-synced robots max {s['index_sync_max_offset_s']:.3f} s"
+    print(line, file=out)
     print(f"  overlap: mean {_fmt(s['overlap_mean'])}, steps with overlap >= 0.2: "
           f"{_fmt(s['overlap_frac_ge_0_2'] * 100, '.1f', ' %')}", file=out)
     print(f"  viewing angle range {_fmt(s['view_angle_min_deg'], '.1f')} .. {_fmt(s['view_angle_max_deg'], '.1f', ' deg')}",

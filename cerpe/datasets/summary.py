@@ -21,7 +21,8 @@ def summarise(setting: Setting) -> dict:
 
     Returns a dict with ``encounters``, ``robots`` (distinct ids), ``frames``
     (robot-frames), ``steps``, ``pairs`` (ordered pairs x evaluated steps),
-    ``pairs_with_gt``, ``sync_max_abs_s``, ``overlap_mean``,
+    ``pairs_with_gt``, ``sync_max_abs_s`` (stamp sync residual),
+    ``index_sync_max_offset_s`` (stamp offset between index-synchronised robots), ``overlap_mean``,
     ``overlap_frac_ge_0_2`` (NaN without ground-truth overlap),
     ``view_angle_min_deg`` / ``view_angle_max_deg`` (NaN without ground truth)
     and ``per_encounter`` rows.
@@ -51,6 +52,7 @@ def summarise(setting: Setting) -> dict:
         })
     sync = setting.meta.get("load_report", {}).get("sync", {})
     res = [r["max_abs_s"] for enc in sync.values() for r in enc.values() if r.get("mode", "stamp") == "stamp"]
+    offs = [r["max_abs_s"] for enc in sync.values() for r in enc.values() if r.get("mode") == "index"]
     return {
         "setting": setting.name,
         "encounters": len(setting.encounters),
@@ -60,6 +62,7 @@ def summarise(setting: Setting) -> dict:
         "pairs": int(sum(r["pairs"] for r in rows)),
         "pairs_with_gt": int(sum(r["pairs_with_gt"] for r in rows)),
         "sync_max_abs_s": float(max(res)) if res else float("nan"),
+        "index_sync_max_offset_s": float(max(offs)) if offs else float("nan"),
         "overlap_mean": float(np.mean(overlaps_all)) if overlaps_all else float("nan"),
         "overlap_frac_ge_0_2": float(np.mean(np.array(overlaps_all) >= OVERLAP_THRESHOLD)) if overlaps_all else float("nan"),
         "view_angle_min_deg": float(np.degrees(min(angles_all))) if angles_all else float("nan"),
