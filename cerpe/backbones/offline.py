@@ -236,6 +236,8 @@ class OfflineGeometryBackbone:
 
     # ------------------------------------------------------------------ matching with cache
     def _match(self, ka: Hashable, fa: XFeatFeatures, kb: Hashable, fb: XFeatFeatures) -> np.ndarray:
+        # the pixel fingerprint keeps a collaborator's JPEG copy apart from the original with the same key
+        ka, kb = (ka, fa.fingerprint), (kb, fb.fingerprint)
         key = (ka, kb)
         m = self._matches.get(key)
         if m is not None:

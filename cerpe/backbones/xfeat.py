@@ -82,6 +82,8 @@ class XFeatFeatures:
             image (``h = (H//32)*32/8``); not normalised.
         reliability: ``[h,w] float32`` XFeat reliability heatmap in [0, 1].
         image_hw: ``(H, W)`` of the input image.
+        fingerprint: crc32 of the pixels (0 when not computed); caches keyed by
+            view key use it to tell a JPEG-decoded copy from the original.
     """
 
     keypoints: np.ndarray
@@ -90,6 +92,7 @@ class XFeatFeatures:
     dense: np.ndarray
     reliability: np.ndarray
     image_hw: tuple[int, int]
+    fingerprint: int = 0
 
     @property
     def n(self) -> int:
@@ -177,11 +180,13 @@ class XFeatEncoder:
         check_image(view.image, f"view {view.key!r}", int(self.conf["min_size"]))
         # The key alone is not enough: a collaborator's image arrives JPEG-decoded
         # under the same (robot, step) key as the sender's original pixels.
-        key = (view.key, zlib.crc32(np.ascontiguousarray(view.image).data))
+        crc = zlib.crc32(np.ascontiguousarray(view.image).data)
+        key = (view.key, crc)
         feats = self.cached(key)
         if feats is not None:
             return feats
         feats = self.encode_image(view.image, what=f"view {view.key!r}")
+        feats.fingerprint = crc
         self._store(key, feats)
         return feats
 
