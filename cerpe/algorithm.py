@@ -550,8 +550,10 @@ class RobotAgent:
                         return "direct", T, "", st.step
                     self._degrade("anchor:not-stored-pose-missing")
                     return "direct", T, "anchor-not-stored: pose message missing", st.step
-            elif not self.config.propagate:
-                return "none", None, "gate-closed", -1
+            else:  # closed; say why when there was no score at all (lost, blank, mismatched)
+                reason = st.gate_reason.get(other, "")
+                if not self.config.propagate:
+                    return "none", None, reason or "gate-closed", -1
             if not self.config.propagate:
                 return "none", None, reason, -1
             anchor = self.anchors.get(other)

@@ -175,6 +175,7 @@ def test_lossy_channel_run_completes_with_counted_degradations():
     assert all(np.isfinite(e[4]) and np.isfinite(e[5]) for e in est)
     missing_desc = [p for res in results for p in res.pairs if np.isnan(p.gate_score)]
     assert missing_desc and all(not p.gate_open for p in missing_desc)
+    assert all(p.reason.startswith("descriptor-missing") for p in missing_desc)
     # a stale pose of the other robot is used and flagged, never silently
     stale = [p for res in results for p in res.pairs if "stale-pose" in p.reason]
     assert degr["pose:stale"] == len(stale)
@@ -248,6 +249,7 @@ def test_blank_frame_closes_gate_and_is_counted():
     for p in results[7].pairs:
         assert not p.gate_open and np.isnan(p.gate_score)
         assert p.source == "propagated" and p.anchor_step == 6
+    assert [p.reason for p in results[7].pairs] == ["own-descriptor-degenerate", "other-descriptor-degenerate"]
     for res in results[8:]:
         assert all(p.source != "none" for p in res.pairs)
 
