@@ -1,7 +1,6 @@
 """Registry, entry points, example (KITTI-style) adapter, synthetic adapter caching, `cerpe check`, committed manifests."""
 from __future__ import annotations
 
-import importlib
 import shutil
 from pathlib import Path
 

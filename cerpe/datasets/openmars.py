@@ -221,8 +221,9 @@ class OpenMarsAdapter:
         encs = manifest.encounters
         if encs is None:
             return probs
-        if not isinstance(encs, list):
-            return probs + [Problem(f, "encounters", f"expected a list (or omit it for every scene), got {type_name(encs)}")]
+        if not isinstance(encs, list) or not encs:
+            got = "an empty list" if isinstance(encs, list) else type_name(encs)
+            return probs + [Problem(f, "encounters", f"expected a non-empty list (or omit it for every scene), got {got}")]
         names: set[str] = set()
         for e, enc in enumerate(encs):
             fe = f"encounters[{e}]"
