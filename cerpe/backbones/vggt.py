@@ -252,7 +252,7 @@ def build_vggt_model(checkpoint: str | Path | None = None) -> torch.nn.Module:
     if checkpoint:
         path = Path(checkpoint).expanduser()
         sd = load_checkpoint(path, "VGGT-1B")
-        sd = sd.get("state_dict", sd) if "state_dict" in sd else sd
+        sd = sd.get("state_dict", sd)
         sd = {k[len("model."):] if k.startswith("model.") else k: v for k, v in sd.items()}
         try:
             load_state_dict_strict(model, sd, path, "VGGT-1B")
