@@ -71,7 +71,7 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Hashable, Iterator, Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -251,7 +251,7 @@ class RobotAgent:
                  backbone: PoseBackbone, depth: MetricDepthSource) -> None:
         self.robot_id = str(robot_id)
         self.index = int(index)
-        self.config = config if config.tau is not None else config.resolved(getattr(descriptor, "thresholds", None))
+        self.config = config.resolved(getattr(descriptor, "thresholds", None))  # idempotent on concrete values
         self.descriptor = descriptor
         self.backbone = backbone
         self.depth = depth

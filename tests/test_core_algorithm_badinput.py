@@ -6,7 +6,7 @@ import pytest
 
 from cerpe.algorithm import AlgorithmError, CerpeConfig, RobotAgent, Team, direct_relative, ego_motion
 from cerpe.errors import CerpeError
-from cerpe.protocols import BackboneOutput, FrameContext
+from cerpe.protocols import FrameContext
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
 CFG = CerpeConfig(min_scale_pixels=20)
