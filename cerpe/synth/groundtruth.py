@@ -31,23 +31,39 @@ def backproject(depth_m: np.ndarray, K: CameraIntrinsics, stride: int = 1) -> tu
 
 
 def reproject_check(pts_ci: np.ndarray, T_cj_ci: np.ndarray, depth_j: np.ndarray, K_j: CameraIntrinsics,
-                    rel_tol: float = REL_TOL, abs_tol_m: float = ABS_TOL_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Move camera-i points into camera j and compare with j's depth at the nearest pixel.
+                    rel_tol: float = REL_TOL, abs_tol_m: float = ABS_TOL_M,
+                    bilinear: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Move camera-i points into camera j and compare with j's depth there.
+
+    ``bilinear=False`` reads j's depth at the nearest pixel; ``True`` interpolates
+    *inverse* depth bilinearly (exact on planes, since 1/z is affine in pixel
+    coordinates for a plane) and gives 0 where any of the 4 neighbours has no surface.
 
     Returns:
         visible ``[M] bool`` (inside j, in front, depth-consistent), ``z_j [M]`` the
-        points' depth in j, ``d_j [M]`` j's rendered depth at the projected pixel
+        points' depth in j, ``d_j [M]`` j's rendered depth at the projected point
         (0 where outside the image).
     """
     p = pts_ci @ T_cj_ci[:3, :3].T + T_cj_ci[:3, 3]
     z = p[:, 2]
     H, W = depth_j.shape
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.rint(K_j.fx * p[:, 0] / z + K_j.cx)
-        v = np.rint(K_j.fy * p[:, 1] / z + K_j.cy)
+        uf = K_j.fx * p[:, 0] / z + K_j.cx
+        vf = K_j.fy * p[:, 1] / z + K_j.cy
+    u, v = np.rint(uf), np.rint(vf)
     inside = (z > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     d = np.zeros(len(z))
-    d[inside] = depth_j[v[inside].astype(int), u[inside].astype(int)]
+    if not bilinear:
+        d[inside] = depth_j[v[inside].astype(int), u[inside].astype(int)]
+    else:
+        inside &= (uf >= 0) & (uf < W - 1) & (vf >= 0) & (vf < H - 1)
+        x0, y0 = np.floor(uf[inside]).astype(int), np.floor(vf[inside]).astype(int)
+        ax, ay = uf[inside] - x0, vf[inside] - y0
+        q = [depth_j[y0, x0], depth_j[y0, x0 + 1], depth_j[y0 + 1, x0], depth_j[y0 + 1, x0 + 1]]
+        ok = np.all([qq > 0 for qq in q], axis=0)
+        inv = [np.where(ok, 1.0 / np.where(ok, qq, 1.0), 0.0) for qq in q]
+        w = (inv[0] * (1 - ax) * (1 - ay) + inv[1] * ax * (1 - ay) + inv[2] * (1 - ax) * ay + inv[3] * ax * ay)
+        d[inside] = np.where(ok, 1.0 / np.where(ok, w, 1.0), 0.0)
     vis = inside & (d > 0) & (np.abs(z - d) <= abs_tol_m + rel_tol * z)
     return vis, z, d
 

@@ -173,7 +173,7 @@ def _route(node: np.ndarray, road_of: dict, d_in: np.ndarray, d_out: np.ndarray,
     if np.allclose(h0, -h1):
         raise SynthError("route: U-turns are not generated")
     X = node + off0 * _right(h0) + off1 * _right(h1)
-    left = np.cross(h0, h1) > 0
+    left = h0[0] * h1[1] - h0[1] * h1[0] > 0
     r = 10.0 if left else 5.0
     A, B = X - h0 * r, X + h1 * r
     centre = A + h1 * r
