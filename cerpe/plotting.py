@@ -105,12 +105,13 @@ def error_analysis_figure(frames: pd.DataFrame, overlap_bins: Sequence[float] = 
                 ax.set_xticks(range(len(cats)))
                 ax.set_xticklabels(labels)
     handles = [plt.Rectangle((0, 0), 1, 1, color=palette[l]) for l in order_labels]
-    fig.legend(handles, order_labels, loc="upper center", ncol=len(order_labels), frameon=False)
     if not df["overlap_gt"].notna().any():
         axes[0, 0].text(0.5, 0.5, "no ground-truth overlap in this setting", transform=axes[0, 0].transAxes,
                         ha="center")
-    fig.suptitle(title, y=1.02)
-    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.suptitle(title, y=0.995)
+    fig.legend(handles, order_labels, loc="upper center", ncol=len(order_labels), frameon=False,
+               bbox_to_anchor=(0.5, 0.965))
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
     return fig
 
 
@@ -125,7 +126,8 @@ def _plane_axes(P: np.ndarray) -> tuple[int, int]:
 def qualitative_figure(traj_world: Mapping[str, np.ndarray], overlap: np.ndarray | None,
                        rel: Mapping[str, pd.DataFrame], ego: str, other: str,
                        images: Sequence[tuple[str, np.ndarray, np.ndarray]] = (), title: str = "",
-                       overlap_threshold: float = 0.05):
+                       overlap_threshold: float = 0.05,
+                       metric_methods: Sequence[str] = ("cerpe", "cerpe-wo-em")):
     """Bird's-eye view of both trajectories + collaborator position in the ego frame + image pairs.
 
     Args:
@@ -164,9 +166,13 @@ def qualitative_figure(traj_world: Mapping[str, np.ndarray], overlap: np.ndarray
     ax_bev.set_ylabel(f"world {'xyz'[b]} (m)")
     ax_bev.legend(fontsize=8, loc="best")
     # left: collaborator's camera position in the ego camera frame (x right, z forward)
-    def cam_pos(df: pd.DataFrame, prefix: str) -> np.ndarray:
+    def cam_pos(df: pd.DataFrame, prefix: str, gt_scale: bool = False) -> np.ndarray:
+        from .geometry import gt_scale_translation
+
         cols = [f"{prefix}_{c}" for c in ("tx", "ty", "tz", "qx", "qy", "qz", "qw")]
         v = df[cols].to_numpy(float)
+        if gt_scale:  # scale-free methods: translation direction with the ground-truth norm
+            v[:, :3] = gt_scale_translation(v[:, :3], df[["gt_tx", "gt_ty", "gt_tz"]].to_numpy(float))
         ok = np.all(np.isfinite(v), axis=1)
         out = np.full((len(v), 3), np.nan)
         if ok.any():
@@ -178,7 +184,7 @@ def qualitative_figure(traj_world: Mapping[str, np.ndarray], overlap: np.ndarray
     g = cam_pos(first, "gt")
     ax_rel.plot(g[:, 0], g[:, 2], "k.-", lw=1.2, ms=5, label="ground truth", zorder=4)
     for m, df in rel.items():
-        e = cam_pos(df, "est")
+        e = cam_pos(df, "est", gt_scale=m not in metric_methods)
         if np.isfinite(e).any():
             ax_rel.plot(e[:, 0], e[:, 2], ".-", color=METHOD_COLORS.get(m, "gray"), lw=0.9, ms=4,
                         label=SHORT_LABELS.get(m, m).replace("\n", " "), alpha=0.85)
@@ -186,7 +192,7 @@ def qualitative_figure(traj_world: Mapping[str, np.ndarray], overlap: np.ndarray
     ax_rel.set_aspect("equal", "datalim")
     ax_rel.set_xlabel("x in ego camera (m, right)")
     ax_rel.set_ylabel("z in ego camera (m, forward)")
-    ax_rel.set_title(f"position of {other} in {ego}'s camera frame\n(GT-scale-free methods: unit direction)")
+    ax_rel.set_title(f"position of {other} in {ego}'s camera frame\n(CERPE: predicted scale; baselines: GT scale)")
     ax_rel.legend(fontsize=7, loc="best")
     for k, (cap, im_i, im_j) in enumerate(images):
         for s, (im, who) in enumerate(((im_i, ego), (im_j, other))):
@@ -222,6 +228,7 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
     ax.set_xticks(range(len(kb)))
     ax.set_xticklabels(bytes_table["scheme"], fontsize=8)
     ax.set_ylabel("KB per robot per step (this run)")
+    ax.set_ylim(0, 1.15 * max(np.nanmax(kb), 1e-3))
     if paper:
         ax.set_title(f"paper (other machine, VGGT/SALAD): descriptor {paper['descriptor_kb']} KB,\n"
                      f"one 640x480 JPEG {paper['image_kb']} KB", fontsize=8)
@@ -246,6 +253,7 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
             bottom += piv[st].to_numpy() * 1000
         for x, v in enumerate(bottom):
             ax.text(x, v, f"{v:.0f} ms", ha="center", va="bottom", fontsize=8)
+        ax.set_ylim(0, 1.15 * max(bottom.max(), 1e-3))
     ax.set_xlabel("robots in the encounter")
     ax.set_ylabel("ms per robot and step (this machine, CPU)")
     if paper:
