@@ -59,7 +59,11 @@ def best_f1(scores: np.ndarray, labels: np.ndarray) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--manifest", required=True, nargs="+", help="suite manifest(s) with overlap ground truth")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--manifest", nargs="+", help="suite manifest(s) with overlap ground truth")
+    src.add_argument("--synth", nargs="+", metavar="SETTING:INDEX",
+                     help="render encounter INDEX of the paper-default suite's SETTING in memory "
+                          "(e.g. synthetic-cad:0 synthetic-indoor:1), same arguments as the suite")
     ap.add_argument("--overlap", type=float, default=0.2, help="overlap ratio that counts as overlapping")
     ap.add_argument("--q-m", type=float, default=0.10)
     ap.add_argument("--q-k", type=float, default=0.01)
@@ -74,9 +78,22 @@ def main(argv: list[str] | None = None) -> int:
 
     desc = XFeatSaladDescriptor({"thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
     cross_s, cross_y, consec = [], [], []
-    for mpath in a.manifest:
-        setting = load_setting(mpath)
-        for enc in setting.encounters:
+
+    def _encounters():
+        if a.manifest:
+            for mpath in a.manifest:
+                yield from load_setting(mpath).encounters
+            return
+        from cerpe.synth import SUITES, render_encounter
+
+        for spec in a.synth:
+            setting, index = spec.split(":")
+            world, conf = SUITES["paper-default"][setting]
+            conf = {k: v for k, v in conf.items() if k != "workers"}
+            yield render_encounter(world, seed=conf.get("seed", 0), index=int(index), conf=conf, progress=True)
+
+    for enc in _encounters():
+        if True:
             if enc.overlap is None:
                 print(f"calibrate: {enc.name} has no overlap ground truth; skipped", file=sys.stderr)
                 continue
@@ -107,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         "gate": {"roc_auc": auc, **f1, "n_pairs": int(len(s)), "n_overlapping": int(y.sum()),
                  "overlap_threshold": a.overlap},
         "consecutive": {"n": int(len(c)), "q_m": a.q_m, "q_k": a.q_k, "median": float(np.median(c))},
-        "manifests": a.manifest, "descriptor_dim": desc.dim, "descriptor_conf": {
+        "sources": a.manifest or [f"paper-default {x}" for x in a.synth], "descriptor_dim": desc.dim, "descriptor_conf": {
             k: v for k, v in desc.conf.items() if k not in ("thresholds", "xfeat")},
     }
     print(json.dumps(result, indent=2))

@@ -5,7 +5,11 @@ The offline descriptor (cerpe.backbones.descriptor.XFeatSaladDescriptor) needs n
 training, only cluster centres of L2-normalised dense XFeat features and their
 mean. Fit them on images that the evaluation never sees:
 
-    # a fitting suite rendered with seeds disjoint from the evaluation suites
+    # synthetic encounters rendered in memory with seeds disjoint from the evaluation
+    # suites (cerpe.synth.SUITES use seed 0); this is how the shipped file was made:
+    python scripts/fit_descriptor.py --synth indoor-team:1001 indoor-team:1002 \
+        cad-intersection:1001 cad-intersection:1002 --frames 16 --every 2
+    # or a suite already on disk, or any folder of images
     python scripts/fit_descriptor.py --manifest build/synth-fit/<suite>/manifest.yaml
     # or any folder of images
     python scripts/fit_descriptor.py --images 'some/dir/*.png'
@@ -39,6 +43,24 @@ def _images_from_manifest(path: str, every: int, limit: int):
                 yield f"{enc.name}/{r.robot_id}/{t}", r.image(t)
 
 
+def _images_from_synth(specs: list[str], frames: int, every: int, limit: int):
+    from cerpe.synth import SUITES, render_encounter
+
+    eval_seeds = {conf.get("seed", 0) for suite in SUITES.values() for _, conf in suite.values()}
+    n = 0
+    for spec in specs:
+        world, seed = spec.split(":")[0], int(spec.split(":")[1])
+        if seed in eval_seeds:
+            raise SystemExit(f"fit_descriptor: seed {seed} is used by an evaluation suite; pick another")
+        enc = render_encounter(world, seed=seed, index=0, conf={"n_frames": frames}, progress=True)
+        for r in enc.robots:
+            for t in range(0, len(r), every):
+                if n >= limit:
+                    return
+                n += 1
+                yield f"{enc.name}/{r.robot_id}/{t}", r.image(t)
+
+
 def _images_from_glob(pattern: str, limit: int):
     from cerpe.scene import load_rgb
 
@@ -51,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--manifest", help="manifest of a fitting suite (seeds disjoint from evaluation)")
     src.add_argument("--images", help="glob of image files")
+    src.add_argument("--synth", nargs="+", metavar="WORLD:SEED", help="render these encounters in memory")
+    ap.add_argument("--frames", type=int, default=16, help="frames per rendered encounter (--synth)")
     ap.add_argument("--every", type=int, default=5, help="use every n-th frame of each robot (manifest)")
     ap.add_argument("--limit", type=int, default=200, help="at most this many images")
     ap.add_argument("--clusters", type=int, default=64)
@@ -63,13 +87,18 @@ def main(argv: list[str] | None = None) -> int:
     from cerpe.backbones.xfeat import XFeatEncoder
 
     enc = XFeatEncoder()
-    it = _images_from_manifest(a.manifest, a.every, a.limit) if a.manifest else _images_from_glob(a.images, a.limit)
+    if a.synth:
+        it = _images_from_synth(a.synth, a.frames, a.every, a.limit)
+    elif a.manifest:
+        it = _images_from_manifest(a.manifest, a.every, a.limit)
+    else:
+        it = _images_from_glob(a.images, a.limit)
     maps = [enc.encode_image(img, what=name).dense for name, img in tqdm(it, desc="XFeat", unit="img")]
     if not maps:
         print("fit_descriptor: no images found", file=sys.stderr)
         return 2
     out = fit_centres(maps, num_clusters=a.clusters, seed=a.seed)
-    source = a.manifest or a.images
+    source = ("cerpe.synth.render_encounter " + " ".join(a.synth)) if a.synth else (a.manifest or a.images)
     dst = Path(a.out)
     tmp = dst.with_name(dst.stem + ".tmp.npz")
     np.savez(tmp, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),

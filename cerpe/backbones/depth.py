@@ -65,7 +65,8 @@ class NoDepth:
         return None
 
 
-def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what: str) -> Any:
+def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what: str,
+                 keywords: bool = False) -> Any:
     import importlib
 
     try:
@@ -75,6 +76,8 @@ def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what
     for n in names:
         obj = getattr(mod, n, None)
         if obj is not None:
+            if keywords:  # dataclass-style constructors take the fields as keywords
+                return obj(**conf)
             return obj(conf) if conf else obj()
     raise DepthSourceError(f"depth source {what!r}: {module} defines none of {list(names)}")
 
@@ -92,9 +95,9 @@ def build_depth_source(name: str, conf: dict[str, Any] | None = None) -> Any:
     if name == "none":
         return NoDepth(conf)
     if name == "sensor":
-        return _from_module("cerpe.synth", ("SensorDepthSim",), conf, name)
+        return _from_module("cerpe.synth", ("SensorDepthSim",), conf, name, keywords=True)
     if name == "mono-sim":
-        return _from_module("cerpe.synth", ("MonoDepthSim",), conf, name)
+        return _from_module("cerpe.synth", ("MonoDepthSim",), conf, name, keywords=True)
     if name == "metric3d":
         return _from_module("cerpe.backbones.metric3d", ("build_metric3d", "Metric3DDepth", "Metric3D"), conf, name)
     raise DepthSourceError(f"unknown depth source {name!r}; valid: {', '.join(DEPTH_SOURCES)}")
