@@ -91,6 +91,12 @@ class DescriptorEncoder(Protocol):
 
     ``describe`` returns ``[dim] float32``, L2-normalised. Thresholds calibrated
     for this descriptor live in ``thresholds`` (keys ``tau``, ``tau_m``, ``tau_k``).
+
+    Images without usable texture (blank, black): an encoder returns either the
+    zero vector (the algorithm counts ``descriptor:zero-norm``) or, like the
+    offline descriptor, a unit vector seeded by ``View.key`` that is nearly
+    orthogonal to every other descriptor (it cannot open the gate) and reports
+    ``flags(key) -> {"low-texture"}`` when it has such a method.
     """
 
     dim: int
