@@ -428,7 +428,6 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
     desc = (R["bytes_descriptor"] + R["bytes_pose"]).mean()
     gated = R["bytes_total"].mean()
     # an image reply as CERPE sent it, else the baselines' JPEG of the same frames
-    replies = R.loc[R["bytes_reply"] > 0]
     pair_reply = S.loc[S["bytes_pair"] > 0, "bytes_pair"]
     img = float(pair_reply.mean()) if len(pair_reply) else float("nan")
     if not np.isfinite(img):
@@ -455,6 +454,9 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
     lat = R.melt(id_vars=["n_robots"], value_vars=stage_cols, var_name="stage", value_name="seconds")
     lat["stage"] = lat["stage"].str[2:-2]
     lat = lat.groupby(["n_robots", "stage"], as_index=False)["seconds"].mean()
+    # encounters of different sizes come from different settings (image sizes, scenes): say which
+    where = R.groupby("n_robots")["setting"].agg(lambda v: ", ".join(sorted(set(v))))
+    lat["n_robots"] = lat["n_robots"].map(lambda n: f"{n} ({where[n]})")
     summary = pd.DataFrame({
         "quantity": ["descriptor+pose message bytes / robot / step", "CERPE bytes / robot / step",
                      "always-send-images bytes / robot / step", "gate open rate (pairs)",
@@ -466,11 +468,10 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
     paper_col = {0: PAPER_NUMBERS["descriptor_kb"] * 1000, 2: np.nan}
     summary["paper (RTX 4080 laptop, VGGT)"] = [paper_col.get(k, np.nan) for k in range(len(summary))]
     for k, q in enumerate(summary["quantity"]):
-        if q.endswith("2 robots (ms)"):
+        if q.startswith("latency per robot-step, 2 "):
             summary.loc[k, "paper (RTX 4080 laptop, VGGT)"] = PAPER_NUMBERS["ms_2"]
-        if q.endswith("3 robots (ms)"):
+        if q.startswith("latency per robot-step, 3 "):
             summary.loc[k, "paper (RTX 4080 laptop, VGGT)"] = PAPER_NUMBERS["ms_3"]
-    del replies
     return {"bytes_table": bytes_table, "gate": gate, "latency": lat, "summary": summary,
             "paper": PAPER_NUMBERS, "image_bytes": img}
 
