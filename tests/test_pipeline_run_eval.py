@@ -135,6 +135,11 @@ def test_mixed_configurations_never_aggregated(tmp_path, manifest, fake_method):
     b = rp.run_method(manifest, "sift-ransac", tmp_path / "b", setting=s, seed=3, progress=False)
     with pytest.raises(ev.EvalError, match="mixed configurations"):
         ev.evaluate_runs([a, b])
+    import shutil
+
+    shutil.copytree(a, tmp_path / "a_copy")  # same configuration twice would double-count frames
+    with pytest.raises(ev.EvalError, match="given twice"):
+        ev.evaluate_runs([a, tmp_path / "a_copy"])
     # an encounter copied in from another configuration's folder
     import shutil
 

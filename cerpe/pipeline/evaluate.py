@@ -195,7 +195,7 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
 def check_consistent(runs: Iterable[Run]) -> None:
     """Refuse runs that must not share a table.
 
-    * one (setting, method) with two fingerprints (two configurations);
+    * one (setting, method) with two fingerprints (two configurations), or twice;
     * the cerpe methods run under different profiles or seeds, or settings
       evaluated with different ``evaluation.every`` across methods.
     """
@@ -207,6 +207,9 @@ def check_consistent(runs: Iterable[Run]) -> None:
             raise EvalError(f"refusing to aggregate mixed configurations for setting {r.setting!r}, method "
                             f"{r.method!r}: {seen[key].path} ({seen[key].fingerprint}) vs {r.path} "
                             f"({r.fingerprint})")
+        if key in seen:  # same configuration twice (a copied folder) would count every frame twice
+            raise EvalError(f"setting {r.setting!r}, method {r.method!r} given twice ({seen[key].path} and "
+                            f"{r.path}); pass one run folder per setting and method")
         seen[key] = r
     profiles = {r.meta.get("profile") for r in runs if r.metric_scale}
     if len(profiles) > 1:
