@@ -58,7 +58,7 @@ class AlikedLightGlue:
     name = "aliked-lightglue"
     default_conf: dict[str, Any] = {
         "model": "aliked-n16",
-        "max_keypoints": 2048,
+        "max_keypoints": 1024,  # 2048 doubles the CPU time per pair for little gain here
         "detection_threshold": 0.0,
         "max_side_px": 1024,
         "filter_threshold": 0.1,
