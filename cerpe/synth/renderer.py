@@ -265,13 +265,16 @@ def render(faces: FaceSet, T_world_cam: np.ndarray, K: CameraIntrinsics, ctx: tx
         face_light = (0.5 + 0.6 * lam) if ctx.outdoor else (0.72 + 0.35 * lam)
         kinds = faces.kind[f_px]
         col = np.zeros((idx.size, 3), np.float32)
-        u_px, v_px = ubuf.ravel()[idx].astype(np.float64), vbuf.ravel()[idx].astype(np.float64)
+        u_px, v_px = ubuf.ravel()[idx], vbuf.ravel()[idx]
+        xw = xw.astype(np.float32)  # world coordinates within a few hundred metres: float32 is ample
+        foot = foot.astype(np.float32)
+        size32, color32, prm32 = (a.astype(np.float32) for a in (faces.size, faces.color, faces.prm))
         for kd in np.flatnonzero(np.bincount(kinds, minlength=len(tx.SHADERS))):
             sel = np.flatnonzero(kinds == kd)
             fs = f_px[sel]
-            si = tx.ShadeInput(u=u_px[sel], v=v_px[sel], lu=faces.size[fs, 0], lv=faces.size[fs, 1],
-                               xw=xw[sel], foot=foot[sel].astype(np.float64), seed=faces.seed[fs],
-                               color=faces.color[fs], prm=faces.prm[fs], ctx=ctx)
+            si = tx.ShadeInput(u=u_px[sel], v=v_px[sel], lu=size32[fs, 0], lv=size32[fs, 1],
+                               xw=xw[sel], foot=foot[sel], seed=tx.PerFace(fs, faces.seed),
+                               color=color32[fs], prm=prm32[fs], ctx=ctx)
             col[sel] = tx.SHADERS[int(kd)](si)
         col *= face_light[f_px][:, None].astype(np.float32)
         if ctx.outdoor:

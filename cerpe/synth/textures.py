@@ -27,6 +27,11 @@ N_TILES = 4
 # fixed per-octave rotations (radians): octaves never share lattice axes
 _OCT_ANGLES = (0.0, 0.61, 1.37, 2.19, 0.93, 2.71, 1.83)
 
+def F32(values) -> np.ndarray:
+    """A float32 constant: shaders run in float32 and numpy promotes on any float64 operand."""
+    return np.asarray(values, dtype=np.float32)
+
+
 # material kinds (index into SHADERS)
 GROUND, FACADE, ROOF, CAR, POSTER, WALL, FLOOR, CEILING, WOOD, BOOKS, CARDBOARD, ROBOT, PLAIN = range(13)
 KIND_NAMES = ("ground", "facade", "roof", "car", "poster", "wall", "floor", "ceiling", "wood", "books",
@@ -34,8 +39,43 @@ KIND_NAMES = ("ground", "facade", "roof", "car", "poster", "wall", "floor", "cei
 
 
 # --------------------------------------------------------------------------- hashing and noise
+class PerFace:
+    """Per-pixel integer keys that come from few faces: ``seeds[idx]``, hashed per face.
+
+    Hashing ``seeds`` (length F) and gathering with ``idx`` (length N) costs one
+    gather instead of a dozen full-length integer passes; ``+ int`` shifts all seeds.
+    """
+
+    __slots__ = ("idx", "seeds")
+
+    def __init__(self, idx: np.ndarray, seeds: np.ndarray):
+        self.idx, self.seeds = idx, np.asarray(seeds, np.int64)
+
+    def __add__(self, k: int) -> "PerFace":
+        return PerFace(self.idx, self.seeds + int(k))
+
+    def __getitem__(self, sel) -> "PerFace":
+        return PerFace(self.idx[sel], self.seeds)
+
+    def values(self) -> np.ndarray:
+        return self.seeds[self.idx]
+
+
 def hash_u32(*keys) -> np.ndarray:
-    """Vectorised integer hash (murmur3 finaliser) of any number of int keys/arrays."""
+    """Vectorised integer hash (murmur3 finaliser) of any number of int keys/arrays.
+
+    A :class:`PerFace` first key is hashed per face and gathered when the other
+    keys are scalars (the common case), else expanded to per-pixel values.
+    """
+    if keys and isinstance(keys[0], PerFace):
+        pf = keys[0]
+        if all(np.ndim(k) == 0 for k in keys[1:]):
+            return _hash_u32(pf.seeds, *keys[1:])[pf.idx]
+        keys = (pf.values(),) + keys[1:]
+    return _hash_u32(*[k.values() if isinstance(k, PerFace) else k for k in keys])
+
+
+def _hash_u32(*keys) -> np.ndarray:
     h = np.uint32(0x9E3779B9)
     h = np.full(np.broadcast(*[np.asarray(k) for k in keys]).shape, h, dtype=np.uint32)
     with np.errstate(over="ignore"):
@@ -53,8 +93,8 @@ def hash_u32(*keys) -> np.ndarray:
 
 
 def hash_unit(*keys) -> np.ndarray:
-    """Hash to floats uniform in ``[0, 1)``."""
-    return hash_u32(*keys).astype(np.float64) / 4294967296.0
+    """Hash to float32 uniform in ``[0, 1)``."""
+    return hash_u32(*keys).astype(np.float32) * np.float32(1.0 / 4294967296.0)
 
 
 @lru_cache(maxsize=None)
@@ -77,9 +117,10 @@ def _remap(tile: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     m = -(-n // w) * w
     X = np.zeros(m, np.float32)
     Y = np.zeros(m, np.float32)
-    # reduce in float64 first: float32 maps lose sub-texel precision far from the origin
-    X[:n] = np.mod(x, TILE)
-    Y[:n] = np.mod(y, TILE)
+    # remap needs small coordinates (fixed-point internally): wrap first. float32 keeps
+    # 1/128 texel at 10^5 texels from the origin, ample for these worlds.
+    np.mod(x, TILE, out=X[:n])
+    np.mod(y, TILE, out=Y[:n])
     out = cv2.remap(tile, X.reshape(-1, w), Y.reshape(-1, w), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.ravel()[:n]
 
@@ -91,11 +132,11 @@ def noise(x: np.ndarray, y: np.ndarray, texel_m: float, key, octave: int = 0) ->
     and the offset; the octave index picks the rotation.
     """
     a = _OCT_ANGLES[octave % len(_OCT_ANGLES)]
-    ca, sa = np.cos(a), np.sin(a)
+    ca, sa = float(np.cos(a) / texel_m), float(np.sin(a) / texel_m)
     ox = hash_unit(key, octave, 1) * TILE
     oy = hash_unit(key, octave, 2) * TILE
-    xs = (ca * x - sa * y) / texel_m + ox
-    ys = (sa * x + ca * y) / texel_m + oy
+    xs = ca * x - sa * y + ox
+    ys = sa * x + ca * y + oy
     return _remap(_tile(octave % N_TILES), xs, ys)
 
 
@@ -131,7 +172,7 @@ def box_cov(a: np.ndarray, b: np.ndarray, a0, a1, b0, b1, foot) -> np.ndarray:
 def mix(c0: np.ndarray, c1, w: np.ndarray) -> np.ndarray:
     """Blend colours ``c0 [N,3]`` and ``c1 [N,3] or [3]`` with weight ``w [N]`` on c1."""
     w = w[:, None]
-    return c0 * (1.0 - w) + np.asarray(c1) * w
+    return c0 * (1.0 - w) + np.asarray(c1, np.float32) * w
 
 
 def palette(h: np.ndarray, sat: float = 0.7, val: float = 0.85) -> np.ndarray:
@@ -141,7 +182,7 @@ def palette(h: np.ndarray, sat: float = 0.7, val: float = 0.85) -> np.ndarray:
     g = np.clip(2.0 - np.abs(hue - 2.0), 0, 1)
     b = np.clip(2.0 - np.abs(hue - 4.0), 0, 1)
     rgb = np.stack([r, g, b], 1)
-    val = np.asarray(val, float)
+    val = np.asarray(val, np.float32)
     return (val[:, None] if val.ndim == 1 else val) * (1.0 - sat + sat * rgb)
 
 
@@ -167,7 +208,7 @@ class ShadeInput:
     """Hit points of one material kind. All arrays have length ``N``.
 
     ``u, v`` surface metres; ``lu, lv`` face extents (m); ``xw`` world points ``[N,3]``;
-    ``foot`` pixel footprint on the surface (m); ``seed`` per-face int; ``color``
+    ``foot`` pixel footprint on the surface (m); ``seed`` per-face int keys (:class:`PerFace`); ``color``
     per-face base colour ``[N,3]``; ``prm`` per-face parameters ``[N,4]``.
     """
 
@@ -186,7 +227,7 @@ class ShadeInput:
 def subset(s: ShadeInput, idx: np.ndarray) -> ShadeInput:
     """The hit points ``idx`` of ``s`` (shaders evaluate costly layers only where needed)."""
     return ShadeInput(s.u[idx], s.v[idx], s.lu[idx], s.lv[idx], s.xw[idx], s.foot[idx], s.seed[idx],
-                      s.color[idx], s.prm[idx], s.ctx)
+                      s.color[idx], s.prm[idx], s.ctx)  # PerFace.__getitem__ keeps per-face hashing
 
 
 def layered(base: np.ndarray, weight: np.ndarray, s: ShadeInput, layer) -> np.ndarray:
@@ -207,13 +248,13 @@ def shade_ground(s: ShadeInput) -> np.ndarray:
     n_in = np.zeros(n, np.int32)
     kerb = np.zeros(n, bool)
     for r in s.ctx.roads:
-        ax, c, hw, s0, s1 = int(r[0]), r[1], r[2], r[3], r[4]
+        ax, c, hw, s0, s1 = int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4])
         along, lat = (x, y - c) if ax == 0 else (y, x - c)
         span = (along > s0) & (along < s1)
         n_in += (np.abs(lat) < hw) & span
         kerb |= (np.abs(lat) < hw + 0.25) & span
     road = n_in > 0
-    col = np.zeros((n, 3))
+    col = np.zeros((n, 3), np.float32)
     i_side = np.flatnonzero(~road)
     if i_side.size:
         q = subset(s, i_side)
@@ -234,7 +275,7 @@ def _sidewalk(s: ShadeInput) -> np.ndarray:
     joint = 1.0 - 0.4 * (1.0 - coverage(np.minimum(jx, jy) - 0.015, f))
     g = fbm(x, y, f, 0.04, 6, s.seed + 11)
     stain = np.clip(fbm(x, y, f, 0.5, 3, s.seed + 12), 0, None)
-    return (slab * joint * (1.0 + 0.16 * g - 0.12 * stain))[:, None] * np.array([1.0, 0.98, 0.93])
+    return (slab * joint * (1.0 + 0.16 * g - 0.12 * stain))[:, None] * F32([1.0, 0.98, 0.93])
 
 
 def _asphalt(s: ShadeInput, n_in: np.ndarray) -> np.ndarray:
@@ -244,7 +285,7 @@ def _asphalt(s: ShadeInput, n_in: np.ndarray) -> np.ndarray:
     grain = fbm(x, y, f, 0.025, 5, key + 21)
     patch = fbm(x, y, f, 1.2, 2, key + 23)
     tone = 0.27 + 0.09 * grain + 0.05 * patch
-    asph = tone[:, None] * np.array([1.0, 1.0, 1.04])
+    asph = tone[:, None] * F32([1.0, 1.0, 1.04])
     # manholes and drains on a 13 m lattice
     mx, my = np.floor(x / 13.0), np.floor(y / 13.0)
     hx = (mx + 0.2 + 0.6 * hash_unit(mx, my, 3)) * 13.0
@@ -252,13 +293,13 @@ def _asphalt(s: ShadeInput, n_in: np.ndarray) -> np.ndarray:
     rr = np.hypot(x - hx, y - hy)
     man = coverage(0.35 - rr, f) * (hash_unit(mx, my, 5) < 0.6)
     ring = np.cos(rr * 60.0) * 0.08
-    asph = mix(asph, (0.18 + ring)[:, None] * np.ones(3), man)
-    paint = np.zeros(n)
-    yellow = np.zeros(n)
+    asph = mix(asph, (0.18 + ring)[:, None] * F32([1.0, 1.0, 1.0]), man)
+    paint = np.zeros(n, np.float32)
+    yellow = np.zeros(n, np.float32)
     single = n_in == 1
     roads = s.ctx.roads
     for r in roads:
-        ax, c, hw, s0, s1, lanes = int(r[0]), r[1], r[2], r[3], r[4], max(int(r[5]), 1)
+        ax, c, hw, s0, s1, lanes = int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), max(int(r[5]), 1)
         along, lat = (x, y - c) if ax == 0 else (y, x - c)
         on = np.flatnonzero(single & (np.abs(lat) < hw) & (along > s0) & (along < s1))
         if not on.size:
@@ -275,27 +316,27 @@ def _asphalt(s: ShadeInput, n_in: np.ndarray) -> np.ndarray:
         for r2 in roads:  # crosswalk and stop line before every road that crosses this one
             if int(r2[0]) == ax or not (r2[3] - hw <= c <= r2[4] + hw):
                 continue
-            dd = np.abs(along - r2[1]) - r2[2]
+            dd = np.abs(along - float(r2[1])) - float(r2[2])
             zebra = (dd > 0.8) & (dd < 3.8) & (alat < hw - 0.5)
             stripe = coverage(0.25 - np.abs(((lat + 100.0) % 1.0) - 0.5), fo)
             p = np.maximum(p, zebra * stripe)
             p = np.maximum(p, coverage(0.2 - np.abs(dd - 4.6), fo) * (alat < hw - 0.4))
         paint[on] = p
     wear = np.clip(0.85 + 0.3 * fbm(x, y, f, 0.04, 3, key + 31), 0.3, 1.0)
-    asph = mix(asph, np.array([0.86, 0.86, 0.84]), paint * wear)
-    return mix(asph, np.array([0.85, 0.68, 0.15]), yellow * wear)
+    asph = mix(asph, F32([0.86, 0.86, 0.84]), paint * wear)
+    return mix(asph, F32([0.85, 0.68, 0.15]), yellow * wear)
 
 
 def _window_glass(s: ShadeInput, wid: np.ndarray, cu: np.ndarray, cv: np.ndarray, ww, wh) -> np.ndarray:
     """Per-window glass: sky reflections, curtains, blinds or a lit room (hash ``wid``)."""
     h = hash_unit(wid, 1)
     t = cv / wh
-    refl = (0.25 + 0.35 * t + 0.08 * hash_unit(wid, 2))[:, None] * np.array([0.75, 0.85, 1.0])
+    refl = (0.25 + 0.35 * t + 0.08 * hash_unit(wid, 2))[:, None] * F32([0.75, 0.85, 1.0])
     curtain_col = palette(hash_unit(wid, 3), 0.5, 0.75)
     folds = 0.8 + 0.2 * np.sin(cu / ww * (8 + 10 * hash_unit(wid, 4)) * np.pi)
     curtain = curtain_col * folds[:, None]
-    blinds = (0.55 + 0.25 * (np.sin(cv * 2 * np.pi / 0.05) > 0))[:, None] * np.array([0.95, 0.93, 0.88])
-    lit = np.array([0.95, 0.82, 0.5]) * (0.8 + 0.2 * t)[:, None]
+    blinds = (0.55 + 0.25 * (np.sin(cv * 2 * np.pi / 0.05) > 0).astype(np.float32))[:, None] * F32([0.95, 0.93, 0.88])
+    lit = F32([0.95, 0.82, 0.5]) * (0.8 + 0.2 * t)[:, None]
     out = np.where((h < 0.45)[:, None], refl, curtain)
     out = np.where(((h >= 0.75) & (h < 0.9))[:, None], blinds, out)
     out = np.where((h >= 0.9)[:, None], lit, out)
@@ -324,7 +365,7 @@ def shade_facade(s: ShadeInput) -> np.ndarray:
     mort = np.minimum(np.minimum(v - row * bh, (row + 1) * bh - v), np.minimum(bu - col_ * bw, (col_ + 1) * bw - bu))
     btone = 0.8 + 0.35 * hash_unit(row, col_, key)
     brick = base * (btone * (1.0 + 0.06 * g2))[:, None]
-    brick = mix(brick, np.array([0.72, 0.7, 0.66]), 1.0 - coverage(mort - 0.008, f))
+    brick = mix(brick, F32([0.72, 0.7, 0.66]), 1.0 - coverage(mort - 0.008, f))
     wall = np.where((style > 0.5)[:, None], brick, plaster)
     # window grid, centred on the face, only whole cells
     ncell = np.maximum(np.floor(s.lu / cell), 1.0)
@@ -349,8 +390,8 @@ def shade_facade(s: ShadeInput) -> np.ndarray:
         frame_w = 0.07
         inglass = box_cov(a, b, frame_w, w_ - frame_w, frame_w, h_ - frame_w, q.foot)
         mull = coverage(0.025 - np.abs(a - w_ * 0.5), q.foot) * (hash_unit(q.seed, 8) < 0.6)
-        frame_col = np.where((hash_unit(q.seed, 10) < 0.5)[:, None], np.array([0.92, 0.92, 0.9]),
-                             np.array([0.25, 0.22, 0.2]))
+        frame_col = np.where((hash_unit(q.seed, 10) < 0.5)[:, None], F32([0.92, 0.92, 0.9]),
+                             F32([0.25, 0.22, 0.2]))
         return mix(frame_col, glass, inglass * (1.0 - mull))
 
     out = layered(wall, inwin, s, window)
@@ -365,16 +406,16 @@ def shade_facade(s: ShadeInput) -> np.ndarray:
         sid = hash_u32(q.seed, np.floor(q.u / bay), 77).astype(np.int64)
         sglass = _window_glass(q, sid, su, q.v - 0.4, bay, 2.2)
         sg = box_cov(su, q.v, 0.08, bay - 0.08, 0.4, 2.6, q.foot)
-        shopc = mix(np.array([0.2, 0.2, 0.22]) * np.ones_like(q.color), sglass, sg)
+        shopc = mix(F32([0.2, 0.2, 0.22]) * np.ones_like(q.color), sglass, sg)
         fascia = box_cov(q.u, q.v, -1.0, q.lu + 1.0, 2.75, floor_h[i] - 0.1, q.foot)
         fcol = palette(hash_unit(q.seed, 12), 0.8, 0.7) * (
-            1.0 + 0.25 * (np.sin(q.u * 9.0 + 3 * hash_unit(q.seed, 13)) > 0.6))[:, None]
+            1.0 + 0.25 * (np.sin(q.u * 9.0 + 3 * hash_unit(q.seed, 13)) > 0.6).astype(np.float32))[:, None]
         return mix(shopc, fcol, fascia)
 
     out = layered(out, isshop, s, shopfront)
     # cornice at the top, plinth at the bottom
     out = mix(out, base * 0.6, coverage(0.35 - (s.lv - v), f))
-    out = mix(out, np.array([0.35, 0.34, 0.33]) * (1.0 + 0.1 * g2)[:, None], coverage(0.25 - v, f))
+    out = mix(out, F32([0.35, 0.34, 0.33]) * (1.0 + 0.1 * g2)[:, None], coverage(0.25 - v, f))
     # ambient occlusion near the ground
     return out * (1.0 - 0.3 * np.exp(-v / 0.6))[:, None]
 
@@ -394,16 +435,16 @@ def shade_car(s: ShadeInput) -> np.ndarray:
     paint = s.color * (1.0 + 0.05 * g + 0.15 * (v / np.maximum(H, 1e-3) - 0.5))[:, None]
     out = paint
     low = coverage(0.32 - v, f)
-    out = mix(out, np.array([0.08, 0.08, 0.09]), low)
+    out = mix(out, F32([0.08, 0.08, 0.09]), low)
     side = face < 0.5
     for wc in (0.9, -0.9):
         cx = np.where(wc > 0, wc, L + wc)
         r = np.hypot(u - cx, v - 0.34)
         tyre = coverage(0.34 - r, f) * side
-        out = mix(out, np.array([0.05, 0.05, 0.05]), tyre)
+        out = mix(out, F32([0.05, 0.05, 0.05]), tyre)
         rim = coverage(0.2 - r, f) * side
-        spokes = 0.55 + 0.2 * (np.sin(5 * np.arctan2(v - 0.34, u - cx)) > 0)
-        out = mix(out, spokes[:, None] * np.array([1, 1, 1.02]), rim)
+        spokes = 0.55 + 0.2 * (np.sin(5 * np.arctan2(v - 0.34, u - cx)) > 0).astype(np.float32)
+        out = mix(out, spokes[:, None] * F32([1, 1, 1.02]), rim)
     seam = (coverage(0.012 - np.abs(u - L * 0.48), f) + coverage(0.012 - np.abs(u - L * 0.72), f)) * side * (v > 0.35) * (v < 0.95)
     out = mix(out, paint * 0.3, np.clip(seam, 0, 1))
     handle = (box_cov(u, v, L * 0.50, L * 0.50 + 0.18, 0.82, 0.86, f) + box_cov(u, v, L * 0.74, L * 0.74 + 0.18, 0.82, 0.86, f)) * side
@@ -411,7 +452,7 @@ def shade_car(s: ShadeInput) -> np.ndarray:
     gb0 = np.where(H > 2.2, H - 0.9, H - 0.62)
     gl = box_cov(u, v, 0.25, L - 0.25, gb0, H - 0.08, f) * (face < 2.5)
     t = (v - gb0) / 0.6
-    glass = (0.12 + 0.25 * t + 0.05 * g)[:, None] * np.array([0.7, 0.8, 0.95])
+    glass = (0.12 + 0.25 * t + 0.05 * g)[:, None] * F32([0.7, 0.8, 0.95])
     pillar = coverage(0.05 - np.abs(u - L * 0.5), f) * side
     out = mix(out, glass, gl * (1 - pillar))
     front = np.abs(face - 1) < 0.5
@@ -419,11 +460,11 @@ def shade_car(s: ShadeInput) -> np.ndarray:
     for lx in (0.15, -0.15):
         x0 = np.where(lx > 0, 0.12, L - 0.42)
         lamp = box_cov(u, v, x0, x0 + 0.3, 0.62, 0.76, f)
-        out = mix(out, np.array([0.95, 0.95, 0.85]), lamp * front)
-        out = mix(out, np.array([0.8, 0.08, 0.05]), lamp * back)
+        out = mix(out, F32([0.95, 0.95, 0.85]), lamp * front)
+        out = mix(out, F32([0.8, 0.08, 0.05]), lamp * back)
     plate = box_cov(u, v, L * 0.5 - 0.26, L * 0.5 + 0.26, 0.42, 0.53, f) * (front | back)
     chars = (hash_unit(s.seed, np.floor((u - L * 0.5) / 0.06), 5) < 0.7) & (np.abs(u - L * 0.5) < 0.22) & (np.abs(v - 0.475) < 0.035)
-    pc = np.where(chars[:, None], np.array([0.1, 0.1, 0.1]), np.array([0.92, 0.92, 0.85]))
+    pc = np.where(chars[:, None], F32([0.1, 0.1, 0.1]), F32([0.92, 0.92, 0.85]))
     out = mix(out, pc, plate)
     return out
 
@@ -458,7 +499,7 @@ def shade_poster(s: ShadeInput) -> np.ndarray:
     txt &= (hash_unit(k, row, word) < 0.75) & (hash_unit(k, row, letter, 7) < 0.8)
     out = np.where(txt[:, None], palette(hash_unit(k, 40), 0.3, 0.15) * np.ones_like(out), out)
     border = 1.0 - box_cov(a, b, 0.02, 0.98, 0.02, 0.98, f)
-    out = mix(out, np.array([0.95, 0.95, 0.95]), border)
+    out = mix(out, F32([0.95, 0.95, 0.95]), border)
     return out * (1.0 + 0.05 * fbm(s.u, s.v, s.foot, 0.02, 3, k + 50))[:, None]
 
 
@@ -471,20 +512,21 @@ def shade_wall(s: ShadeInput) -> np.ndarray:
     g = fbm(u, v, f, 0.015, 5, k + 1)
     g2 = fbm(u, v, f, 0.25, 3, k + 2)
     base = s.color * (1.0 + 0.06 * g + 0.08 * g2)[:, None]
-    stripes = base * (1.0 - 0.18 * (np.mod(u, 0.3) < 0.1) - 0.06 * (np.mod(u + 0.05, 0.3) < 0.02))[:, None]
+    stripes = base * (1.0 - 0.18 * (np.mod(u, 0.3) < 0.1).astype(np.float32)
+                      - 0.06 * (np.mod(u + 0.05, 0.3) < 0.02).astype(np.float32))[:, None]
     blot = fbm(u, v, f, 0.04, 4, k + 3)
-    pattern = base * (1.0 - 0.22 * (blot > 0.35) + 0.1 * (blot < -0.5))[:, None]
+    pattern = base * (1.0 - 0.22 * (blot > 0.35).astype(np.float32) + 0.1 * (blot < -0.5).astype(np.float32))[:, None]
     out = np.where((style < 0.5)[:, None], stripes, np.where((style < 1.5)[:, None], pattern, base))
     skirt = coverage(0.1 - v, f)
-    out = mix(out, np.array([0.9, 0.88, 0.84]) * (1 + 0.04 * g)[:, None], skirt)
-    out = mix(out, np.array([0.5, 0.48, 0.45]), coverage(0.006 - np.abs(v - 0.1), f))
+    out = mix(out, F32([0.9, 0.88, 0.84]) * (1 + 0.04 * g)[:, None], skirt)
+    out = mix(out, F32([0.5, 0.48, 0.45]), coverage(0.006 - np.abs(v - 0.1), f))
     # sockets every ~2.3 m with per-socket jitter
     sc = np.floor(u / 2.3)
     sx = sc * 2.3 + 0.5 + 1.2 * hash_unit(k, sc)
     sock = box_cov(u, v, sx, sx + 0.08, 0.28, 0.36, f) * (hash_unit(k, sc, 2) < 0.7)
-    out = mix(out, np.array([0.95, 0.95, 0.93]), sock)
+    out = mix(out, F32([0.95, 0.95, 0.93]), sock)
     holes = (np.hypot(u - sx - 0.025, v - 0.32) < 0.008) | (np.hypot(u - sx - 0.055, v - 0.32) < 0.008)
-    out = np.where((holes & (sock > 0.5))[:, None], np.array([0.2, 0.2, 0.2]), out)
+    out = np.where((holes & (sock > 0.5))[:, None], F32([0.2, 0.2, 0.2]), out)
     scuff = np.clip(fbm(u, v * 3, f, 0.08, 3, k + 4) - 0.8, 0, None) * (v < 0.6)
     return out * (1.0 - 0.5 * scuff)[:, None]
 
@@ -535,7 +577,7 @@ def shade_books(s: ShadeInput) -> np.ndarray:
     gapb = hash_unit(k, row, bi, 3) < 0.08
     book = palette(hash_unit(k, row, bi, 4), 0.55, 0.35 + 0.5 * hash_unit(k, row, bi, 5))
     lab = coverage(0.012 - np.abs(rv - bh * (0.55 + 0.3 * hash_unit(k, row, bi, 6))), f)
-    book = mix(book, np.array([0.9, 0.85, 0.6]), lab)
+    book = mix(book, F32([0.9, 0.85, 0.6]), lab)
     spine = np.abs((u / bw + hash_unit(k, row, 2) * 10) - bi - 0.5) * 2
     book = book * (1.0 - 0.25 * spine ** 4)[:, None]
     back = s.color * 0.35
@@ -552,27 +594,27 @@ def shade_cardboard(s: ShadeInput) -> np.ndarray:
     g = fbm(u, v, f, 0.01, 4, k + 1)
     col = s.color * (1.0 + 0.08 * g + 0.03 * np.sin(v * 400.0) * (f < 0.003))[:, None]
     tape = coverage(0.025 - np.abs(u - s.lu * 0.5), f) * (v > s.lv - 0.12)
-    col = mix(col, np.array([0.75, 0.6, 0.35]), tape)
+    col = mix(col, F32([0.75, 0.6, 0.35]), tape)
     lx, ly = s.lu * (0.15 + 0.3 * hash_unit(k, 3)), s.lv * (0.2 + 0.3 * hash_unit(k, 4))
     lw, lh = 0.12 + 0.08 * hash_unit(k, 5), 0.08 + 0.05 * hash_unit(k, 6)
     lab = box_cov(u, v, lx, lx + lw, ly, ly + lh, f)
     line = (np.mod(v - ly, 0.018) < 0.008) & (hash_unit(k, np.floor((v - ly) / 0.018), np.floor((u - lx) / 0.012)) < 0.7)
     bar = (v - ly < lh * 0.35) & (hash_unit(k, np.floor((u - lx) / 0.004), 9) < 0.5)
     ink = (line & (v - ly > lh * 0.4)) | bar
-    labc = np.where(ink[:, None], np.array([0.1, 0.1, 0.1]), np.array([0.95, 0.95, 0.92]))
+    labc = np.where(ink[:, None], F32([0.1, 0.1, 0.1]), F32([0.95, 0.95, 0.92]))
     col = mix(col, labc, lab)
     arrow = (np.abs(u - (lx + lw + 0.06)) < 0.015) & (v > ly) & (v < ly + lh)
-    return np.where(arrow[:, None], np.array([0.15, 0.15, 0.15]), col)
+    return np.where(arrow[:, None], F32([0.15, 0.15, 0.15]), col)
 
 
 def shade_robot(s: ShadeInput) -> np.ndarray:
     """Small robot chassis: dark plastic, a coloured band, a checker marker."""
     u, v, f = s.u, s.v, s.foot
-    col = np.array([0.15, 0.15, 0.17]) * (1.0 + 0.1 * fbm(u, v, f, 0.01, 3, s.seed))[:, None]
+    col = F32([0.15, 0.15, 0.17]) * (1.0 + 0.1 * fbm(u, v, f, 0.01, 3, s.seed))[:, None]
     band = coverage(0.02 - np.abs(v - s.lv * 0.6), f)
     col = mix(col, s.color, band)
     chk = ((np.floor(u / 0.03) + np.floor(v / 0.03)) % 2 == 0) & (np.abs(u - s.lu / 2) < 0.06) & (np.abs(v - s.lv * 0.3) < 0.03)
-    return np.where(chk[:, None], np.array([0.9, 0.9, 0.9]), col)
+    return np.where(chk[:, None], F32([0.9, 0.9, 0.9]), col)
 
 
 def shade_plain(s: ShadeInput) -> np.ndarray:

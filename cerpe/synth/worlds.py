@@ -292,7 +292,9 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
     dur = (T - 1) * dt
     nodes = _nodes(roads)
     node, arms, road_of = nodes[rng.integers(len(nodes))]
-    scenario = ("diverge", "converge")[int(rng.integers(2))]
+    # alternate by index so a suite has both kinds: overlap first then lost (diverge: one vehicle
+    # turns away) and no overlap first, then overlap (converge: one turns in ahead of the other)
+    scenario = ("diverge", "converge")[(index + attempt // 4) % 2]
     v = rng.uniform(5.0, 9.0) if conf.get("fast", False) else rng.uniform(3.0, 10.0)
 
     def pick_turn(d_in, allow_straight=True):
@@ -300,7 +302,7 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
         return outs[int(rng.integers(len(outs)))]
 
     routes, t_node = [], []
-    gap_t = rng.uniform(1.2, 2.2)
+    gap_t = rng.uniform(9.0, 16.0) / v  # follower 9-16 m behind the leader
     t_lead = dur * rng.uniform(0.3, 0.55)
     if scenario == "diverge":
         straight_ok = [d for d in arms if any(np.allclose(-d, e) for e in arms)]
@@ -310,11 +312,12 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
         routes = [_route(node, road_of, d_in, lead_out, 0), _route(node, road_of, d_in, fol_out, 0)]
         t_node = [t_lead, t_lead + gap_t]
     else:
-        d_out = arms[int(rng.integers(len(arms)))]
-        fol_in = -d_out if any(np.allclose(-d_out, e) for e in arms) else None
-        side_in = [d for d in arms if abs(d @ d_out) < 0.5]
-        if fol_in is None or not side_in:
+        outs = [d for d in arms if any(np.allclose(-d, e) for e in arms) and any(abs(e @ d) < 0.5 for e in arms)]
+        if not outs:
             return _cad_plan(seed, index, conf, attempt + 100)
+        d_out = outs[int(rng.integers(len(outs)))]
+        fol_in = -d_out
+        side_in = [d for d in arms if abs(d @ d_out) < 0.5]
         lead_in = side_in[int(rng.integers(len(side_in)))]
         routes = [_route(node, road_of, lead_in, d_out, 0), _route(node, road_of, fol_in, d_out, 0)]
         t_lead = dur * rng.uniform(0.15, 0.4)
@@ -323,7 +326,8 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
         d_in = arms[int(rng.integers(len(arms)))]
         routes.append(_route(node, road_of, d_in, pick_turn(d_in), 0))
         t_node.append(dur * rng.uniform(0.2, 0.8))
-    speeds = [v * rng.uniform(0.93, 1.07) for _ in range(n_rob)]
+    # the follower is never faster than the leader: it must not drive into it
+    speeds = [v, v * rng.uniform(0.9, 1.0)] + [v * rng.uniform(0.9, 1.1) for _ in range(2, n_rob)]
     times = np.arange(T) * dt
     T_wc = np.zeros((n_rob, T, 4, 4))
     moving: list[MovingObject] = []
