@@ -283,6 +283,26 @@ def _cad_static(rng: np.random.Generator, roads: np.ndarray, seed: int) -> FaceS
     return FaceSet.concat(parts)
 
 
+def _vehicles_collide(moving: list[MovingObject], margin_m: float = 0.4) -> bool:
+    """True if two vehicle bodies come closer than ``margin_m`` at any step.
+
+    Each body is covered by discs along its long axis (cars: 3 discs of 1.1 m; the
+    truck, the only object longer than 6 m: 6 discs of 1.35 m)."""
+    discs = []
+    for m in moving:
+        ext = np.ptp(m.faces.origin[:, 0]) if len(m.faces) else 0.0
+        offs, r = (np.linspace(-5.5, 5.0, 6), 1.35) if ext > 6.0 else (np.array([-1.5, 0.0, 1.5]), 1.1)
+        R, t = m.T_world_obj[:, :2, :2], m.T_world_obj[:, :2, 3]
+        discs.append((t[:, None, :] + offs[None, :, None] * R[:, None, :, 0], r))  # [T,k,2]
+    for a in range(len(discs)):
+        for b in range(a + 1, len(discs)):
+            (pa, ra), (pb, rb) = discs[a], discs[b]
+            d = np.linalg.norm(pa[:, :, None, :] - pb[:, None, :, :], axis=-1)
+            if d.min() < ra + rb + margin_m:
+                return True
+    return False
+
+
 def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
     rng = np.random.default_rng([seed, index, attempt, 17])
     layout = CAD_LAYOUTS[index % len(CAD_LAYOUTS)]
@@ -315,13 +335,15 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
         outs = [d for d in arms if any(np.allclose(-d, e) for e in arms) and any(abs(e @ d) < 0.5 for e in arms)]
         if not outs:
             return _cad_plan(seed, index, conf, attempt + 100)
+        # the leader has just crossed straight and drives away; the follower comes from a
+        # side road (looking across the junction, not where the leader looks) and turns in
+        # behind it: no overlap first, then a lot
         d_out = outs[int(rng.integers(len(outs)))]
-        fol_in = -d_out
         side_in = [d for d in arms if abs(d @ d_out) < 0.5]
-        lead_in = side_in[int(rng.integers(len(side_in)))]
-        routes = [_route(node, road_of, lead_in, d_out, 0), _route(node, road_of, fol_in, d_out, 0)]
-        t_lead = dur * rng.uniform(0.15, 0.4)
-        t_node = [t_lead, t_lead + gap_t]
+        fol_side = side_in[int(rng.integers(len(side_in)))]
+        routes = [_route(node, road_of, -d_out, d_out, 0), _route(node, road_of, fol_side, d_out, 0)]
+        t_fol = dur * rng.uniform(0.3, 0.55)
+        t_node = [t_fol - gap_t, t_fol]
     for k in range(2, n_rob):  # extra vehicles cross the junction on their own routes
         d_in = arms[int(rng.integers(len(arms)))]
         routes.append(_route(node, road_of, d_in, pick_turn(d_in), 0))
@@ -344,19 +366,23 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
         body = _car(rng, seed * 100 + k, size=(4.4, 1.8, 1.45))
         T_body = np.stack([yaw_pose(x[t] - 1.0 * np.cos(h[t]), y[t] - 1.0 * np.sin(h[t]), h[t]) for t in range(T)])
         moving.append(MovingObject(body, T_body, owner=k, name=f"vehicle r{k}"))
-    # a truck crossing the junction (occluder), timed at random
-    d_in = arms[int(rng.integers(len(arms)))]
+    # a truck crossing the junction straight, shortly before the leader gets there (it
+    # occludes); draws where any two vehicles would touch are rejected below
+    straight = [d for d in arms if any(np.allclose(-d, e) for e in arms)] or arms
+    d_in = straight[int(rng.integers(len(straight)))]
     tpath = _route(node, road_of, d_in, -d_in if any(np.allclose(-d_in, e) for e in arms) else pick_turn(d_in), 0)
-    ts = tpath.closest_s(node) + rng.uniform(4.0, 8.0) * (times - dur * rng.uniform(0.2, 0.8))
+    t_truck = t_node[0] - rng.uniform(1.5, 3.5)
+    ts = tpath.closest_s(node) + rng.uniform(4.0, 8.0) * (times - t_truck)
     tx_, ty_, th_ = tpath.at(ts)
     moving.append(MovingObject(_truck(rng, seed * 100 + 50),
                                np.stack([yaw_pose(tx_[t], ty_[t], th_[t]) for t in range(T)]), name="truck"))
+    collision = _vehicles_collide(moving)
     W, H = conf["size"]
     f = conf.get("focal_ratio", 0.65) * W
     K = CameraIntrinsics(f, f, (W - 1) / 2, (H - 1) / 2, W, H)
     static = _cad_static(rng, roads, seed * 10 + index)
     meta = {"layout": layout, "scenario": scenario, "speed_mps": [round(float(s), 3) for s in speeds],
-            "junction_xy": node.tolist(), "attempt": attempt}
+            "junction_xy": node.tolist(), "attempt": attempt, "collision": collision}
     return EncounterPlan(name="", world="cad-intersection", static=static, moving=moving,
                          robot_ids=[f"r{k}" for k in range(n_rob)], T_world_cam=T_wc, intrinsics=K,
                          stamps_s=times, ctx=tx.ShadeContext(roads=roads, outdoor=True), meta=meta)
@@ -547,7 +573,7 @@ def check_conf(world: str, conf: dict) -> None:
         raise SynthError(f"fps {conf.get('fps')}: must be between 0.5 and 60")
 
 
-def plan_encounter(world: str, seed: int, index: int, conf: dict, max_attempts: int = 12) -> EncounterPlan:
+def plan_encounter(world: str, seed: int, index: int, conf: dict, max_attempts: int = 16) -> EncounterPlan:
     """Draw encounter ``index`` of ``world`` (deterministic in ``seed``, ``index``, ``conf``).
 
     Re-draws until the quick overlap check at low resolution shows a transition
@@ -559,6 +585,8 @@ def plan_encounter(world: str, seed: int, index: int, conf: dict, max_attempts: 
     best, best_spread = None, -1.0
     for attempt in range(max_attempts):
         plan = planner(seed, index, conf, attempt)
+        if plan.meta.get("collision", False):
+            continue  # vehicles would overlap: draw again without rendering anything
         ov = quick_overlap(plan)
         ok = has_transition(ov, high=0.33, low=0.04)
         n = ov.shape[1]
@@ -568,6 +596,9 @@ def plan_encounter(world: str, seed: int, index: int, conf: dict, max_attempts: 
             return plan
         if spread > best_spread:
             best, best_spread = plan, spread
+    if best is None:
+        raise SynthError(f"{world} encounter {index} (seed {seed}): every one of {max_attempts} draws had "
+                         f"colliding vehicles; try another seed or fewer frames")
     log.warning("%s encounter %d (seed %d): no overlap transition after %d draws; keeping the best one",
                 world, index, seed, max_attempts)
     return best
