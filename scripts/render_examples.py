@@ -21,10 +21,11 @@ from tqdm import tqdm  # noqa: E402
 
 from cerpe.synth.groundtruth import overlap_ratio, viewing_angle_matrix  # noqa: E402
 from cerpe.synth.renderer import render  # noqa: E402
-from cerpe.synth.worlds import plan_encounter  # noqa: E402
+from cerpe.synth.worlds import plan_encounter, quick_overlap  # noqa: E402
 
-ROWS = [("cad-intersection", 0, 0.5), ("cad-intersection", 1, 0.15), ("cad-intersection", 2, 0.8),
-        ("cad-intersection", 3, 0.5), ("indoor-team", 0, 0.3), ("indoor-team", 1, 0.7)]
+# (world, encounter index, show the step of highest (True) or lowest (False) r0->r1 overlap)
+ROWS = [("cad-intersection", 0, True), ("cad-intersection", 1, False), ("cad-intersection", 2, False),
+        ("cad-intersection", 3, True), ("indoor-team", 0, True), ("indoor-team", 1, False)]
 
 
 def main() -> None:
@@ -36,10 +37,11 @@ def main() -> None:
     a = ap.parse_args()
     W, H = (int(x) for x in a.size.lower().split("x"))
     fig, axes = plt.subplots(len(ROWS), 4, figsize=(16, 3.0 * len(ROWS)))
-    for r, (world, index, frac) in enumerate(tqdm(ROWS, desc="examples")):
+    for r, (world, index, high) in enumerate(tqdm(ROWS, desc="examples")):
         plan = plan_encounter(world, a.seed, index, {"n_robots": 2 if world.startswith("cad") else 3,
                                                      "n_frames": a.frames, "fps": 10.0, "size": (W, H)})
-        t = int(frac * (plan.n_steps - 1))
+        ov_quick = quick_overlap(plan)[:, 0, 1]
+        t = int(np.argmax(ov_quick) if high else np.argmin(ov_quick))
         outs = [render(plan.faces_at(t, k), plan.T_world_cam[k, t], plan.intrinsics, plan.ctx) for k in (0, 1)]
         K = plan.intrinsics
         ov = overlap_ratio(outs[0].depth_m, K, plan.T_world_cam[0, t], outs[1].depth_m, K, plan.T_world_cam[1, t])

@@ -12,8 +12,9 @@ On disk (one *setting* folder per world; see docs/ARCHITECTURE.md "Dataset manif
     OUT/<enc>/<rid>/groundtruth.txt   TUM: stamp tx ty tz qx qy qz qw, camera-to-world (T_body_cam = identity)
     OUT/<enc>/<rid>/camera.yaml       width height fx fy cx cy distortion
 
-Generation is cached: the same arguments find ``OUT/meta.json`` equal and render
-nothing; different arguments raise :class:`SynthError` unless ``force``. Work
+Generation is cached: the same arguments (and the same generator source, by
+hash) find ``OUT/meta.json`` equal and render nothing; different ones raise
+:class:`SynthError` unless ``force``. Work
 goes into ``.OUT.partial`` (finished encounters there are reused after an
 interruption) and is renamed to ``OUT`` at the end.
 """
@@ -252,10 +253,21 @@ def _manifest(setting: str, world: str, conf: dict, names: list[str], robots: di
     return head + yaml.safe_dump(doc, sort_keys=False)
 
 
+def code_fingerprint() -> str:
+    """Hash of the generator's source: output made by other code is not "the same arguments"."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in ("renderer", "textures", "worlds", "groundtruth", "writer"):
+        h.update((Path(__file__).parent / f"{name}.py").read_bytes())
+    return h.hexdigest()[:16]
+
+
 def _cache_key(world: str, conf: dict) -> dict:
     key = {k: v for k, v in conf.items() if k != "workers"}
     key["size"] = list(key["size"])
-    return {"generator": "cerpe.synth", "version": SYNTH_VERSION, "world": world, "args": key}
+    return {"generator": "cerpe.synth", "version": SYNTH_VERSION, "code": code_fingerprint(), "world": world,
+            "args": key}
 
 
 def _render_job(job: tuple) -> tuple[str, int, bool]:
