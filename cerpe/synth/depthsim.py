@@ -70,6 +70,11 @@ class SensorDepthSim:
     seed: int = 0
     name: str = "sensor"
 
+    @classmethod
+    def outdoor(cls, **kw) -> "SensorDepthSim":
+        """An outdoor stereo-like range: 0.5..40 m (other fields as given)."""
+        return cls(**{"min_m": 0.5, "max_m": 40.0, **kw})
+
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         z = _exact(frame, "SensorDepthSim")
         if z is None:
