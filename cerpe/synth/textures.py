@@ -426,15 +426,17 @@ def shade_roof(s: ShadeInput) -> np.ndarray:
 
 
 def shade_car(s: ShadeInput) -> np.ndarray:
-    """Vehicle box: tyres and wheel arches, paint, door seams, glass band, lights,
-    a number plate. ``prm = (face 0 side|1 front|2 back|3 top, 0, 0, 0)``."""
+    """Vehicle box: tyres, paint, door seams, lights, a number plate, and glass:
+    a band on tall single boxes (vans, cabs; height > 1.2 m) or the whole of a
+    cabin box. ``prm = (face 0 side|1 front|2 back|3 top|4 cabin, 0, 0, 0)``."""
     u, v, f = s.u, s.v, s.foot
     face = s.prm[:, 0]
     H, L = s.lv, s.lu
     g = fbm(u, v, f, 0.03, 4, s.seed + 50)
     paint = s.color * (1.0 + 0.05 * g + 0.15 * (v / np.maximum(H, 1e-3) - 0.5))[:, None]
     out = paint
-    low = coverage(0.32 - v, f)
+    cabin = face > 3.5
+    low = coverage(0.32 - v, f) * ~cabin
     out = mix(out, F32([0.08, 0.08, 0.09]), low)
     side = face < 0.5
     for wc in (0.9, -0.9):
@@ -445,16 +447,19 @@ def shade_car(s: ShadeInput) -> np.ndarray:
         rim = coverage(0.2 - r, f) * side
         spokes = 0.55 + 0.2 * (np.sin(5 * np.arctan2(v - 0.34, u - cx)) > 0).astype(np.float32)
         out = mix(out, spokes[:, None] * F32([1, 1, 1.02]), rim)
-    seam = (coverage(0.012 - np.abs(u - L * 0.48), f) + coverage(0.012 - np.abs(u - L * 0.72), f)) * side * (v > 0.35) * (v < 0.95)
+    seam = (coverage(0.012 - np.abs(u - L * 0.48), f) + coverage(0.012 - np.abs(u - L * 0.72), f)) * side * (v > 0.35) * (v < 0.9)
     out = mix(out, paint * 0.3, np.clip(seam, 0, 1))
-    handle = (box_cov(u, v, L * 0.50, L * 0.50 + 0.18, 0.82, 0.86, f) + box_cov(u, v, L * 0.74, L * 0.74 + 0.18, 0.82, 0.86, f)) * side
+    handle = (box_cov(u, v, L * 0.50, L * 0.50 + 0.18, 0.74, 0.78, f) + box_cov(u, v, L * 0.74, L * 0.74 + 0.18, 0.74, 0.78, f)) * side
     out = mix(out, paint * 0.5, np.clip(handle, 0, 1))
     gb0 = np.where(H > 2.2, H - 0.9, H - 0.62)
-    gl = box_cov(u, v, 0.25, L - 0.25, gb0, H - 0.08, f) * (face < 2.5)
+    gl = box_cov(u, v, 0.25, L - 0.25, gb0, H - 0.08, f) * (face < 2.5) * (H > 1.2)
     t = (v - gb0) / 0.6
     glass = (0.12 + 0.25 * t + 0.05 * g)[:, None] * F32([0.7, 0.8, 0.95])
-    pillar = coverage(0.05 - np.abs(u - L * 0.5), f) * side
+    pillar = coverage(0.05 - np.abs(u - L * 0.5), f) * (side | cabin)
     out = mix(out, glass, gl * (1 - pillar))
+    cab_glass = (0.12 + 0.3 * v / np.maximum(H, 1e-3) + 0.05 * g)[:, None] * F32([0.7, 0.8, 0.95])
+    cab = box_cov(u, v, 0.1, L - 0.1, 0.04, H - 0.06, f) * (1 - pillar) * cabin
+    out = mix(out, cab_glass, cab)
     front = np.abs(face - 1) < 0.5
     back = np.abs(face - 2) < 0.5
     for lx in (0.15, -0.15):

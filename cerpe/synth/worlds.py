@@ -195,13 +195,23 @@ def _facade(rng: np.random.Generator, seed: int, shop: bool) -> Material:
     return Material(tx.FACADE, color, (rng.uniform(2.9, 3.6), rng.uniform(2.2, 3.6), float(brick), float(shop)), seed)
 
 
-def _car(rng: np.random.Generator, seed: int, size=(4.4, 1.8, 1.5), color=None) -> FaceSet:
-    """A car or van as one box in its own frame (x forward, z up, base at z=0)."""
+def _car(rng: np.random.Generator, seed: int, size=(4.4, 1.8, 1.5), color=None, van: bool | None = None) -> FaceSet:
+    """A vehicle in its own frame (x forward, z up, base at z=0): a car (body box plus
+    a glass cabin box) or, with ``van`` (default: 20 % of draws, always for height > 2 m),
+    a single box with a glass band."""
     color = tuple(color if color is not None else np.clip(rng.choice(
         [[0.75, 0.1, 0.08], [0.1, 0.2, 0.55], [0.85, 0.85, 0.85], [0.12, 0.12, 0.13], [0.5, 0.52, 0.55],
          [0.9, 0.75, 0.1], [0.15, 0.4, 0.2], [0.95, 0.95, 0.95]]) * rng.uniform(0.9, 1.1, 3), 0, 1))
     m = lambda f: Material(tx.CAR, color, (f, 0, 0, 0), seed)  # noqa: E731
-    return box((0, 0), 0.0, size, 0.0, m(0), top=m(3), front=m(1), back=m(2))
+    L, W, H = size
+    if van is None:
+        van = H > 2.0 or rng.random() < 0.2
+    if van:
+        return box((0, 0), 0.0, size, 0.0, m(0), top=m(3), front=m(1), back=m(2))
+    hb = 0.9
+    body = box((0, 0), 0.0, (L, W, hb), 0.0, m(0), top=m(3), front=m(1), back=m(2))
+    cabin = box((-0.08 * L, 0), hb, (0.55 * L, 0.92 * W, H - hb), 0.0, m(4), top=m(3))
+    return FaceSet.concat([body, cabin])
 
 
 def _truck(rng: np.random.Generator, seed: int) -> FaceSet:
@@ -363,7 +373,7 @@ def _cad_plan(seed: int, index: int, conf: dict, attempt: int) -> EncounterPlan:
                              f"{T} frames); use fewer frames")
         x, y, h = path.at(s)
         T_wc[k] = [camera_pose(x[t], y[t], cam_h, h[t], pitch) for t in range(T)]
-        body = _car(rng, seed * 100 + k, size=(4.4, 1.8, 1.45))
+        body = _car(rng, seed * 100 + k, size=(4.4, 1.8, 1.45), van=False)
         T_body = np.stack([yaw_pose(x[t] - 1.0 * np.cos(h[t]), y[t] - 1.0 * np.sin(h[t]), h[t]) for t in range(T)])
         moving.append(MovingObject(body, T_body, owner=k, name=f"vehicle r{k}"))
     # a truck crossing the junction straight, shortly before the leader gets there (it
