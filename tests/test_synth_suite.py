@@ -125,3 +125,13 @@ def test_cli_renders_a_tiny_world(tmp_path, capsys):
                    "--fps", "2", "--seed", "5", "--no-progress"])
     assert rc == 0 and (tmp_path / "c" / "manifest.yaml").is_file()
     assert "synthetic-cad" in capsys.readouterr().out
+
+
+def test_two_worker_processes_give_the_same_files_as_one(tmp_path):
+    conf = {"seed": 1, "n_encounters": 2, "n_frames": 3, "fps": 2.0, "size": (48, 32), "n_robots": 2}
+    one = generate_suite("cad-intersection", tmp_path / "one", {**conf, "workers": 1}, progress=False)
+    two = generate_suite("cad-intersection", tmp_path / "two", {**conf, "workers": 2}, progress=False)
+    files = sorted(p.relative_to(one.parent) for p in one.parent.rglob("*.png"))
+    assert len(files) == 2 * 2 * 3 * 2
+    for rel in files:
+        assert (one.parent / rel).read_bytes() == (two.parent / rel).read_bytes()

@@ -270,6 +270,12 @@ def _cache_key(world: str, conf: dict) -> dict:
             "args": key}
 
 
+def _worker_init() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)  # one process per core already
+
+
 def _render_job(job: tuple) -> tuple[str, int, bool]:
     world, conf, index, root = job
     return write_encounter(world, conf, index, Path(root))
@@ -321,7 +327,9 @@ def generate_suite(world: str, out_dir: str | Path, conf: dict | None = None, *,
     if c["workers"] > 1 and len(jobs) > 1:
         import multiprocessing as mp
 
-        with mp.get_context("fork").Pool(min(c["workers"], len(jobs))) as pool:
+        # fork (spawn would re-run an unguarded calling script); workers only use numpy and
+        # OpenCV, and OpenCV is put in single-thread mode before any work
+        with mp.get_context("fork").Pool(min(c["workers"], len(jobs)), initializer=_worker_init) as pool:
             for r in pool.imap_unordered(_render_job, jobs):
                 results.append(r)
                 bar.update(r[1])
