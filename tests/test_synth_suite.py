@@ -109,8 +109,9 @@ def test_bad_arguments_raise(tmp_path, world, conf, match):
 def test_not_a_synth_folder_is_refused(tmp_path):
     (tmp_path / "x").mkdir()
     (tmp_path / "x" / "precious.txt").write_text("keep me")
-    with pytest.raises(SynthError, match="not a cerpe synth output"):
-        generate_suite("indoor-team", tmp_path / "x", {"size": (48, 32), "n_frames": 2}, progress=False)
+    for force in (False, True):
+        with pytest.raises(SynthError, match="not a cerpe synth output"):
+            generate_suite("indoor-team", tmp_path / "x", {"size": (48, 32), "n_frames": 2}, progress=False, force=force)
     assert (tmp_path / "x" / "precious.txt").exists()
 
 

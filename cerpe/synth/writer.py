@@ -303,9 +303,13 @@ def generate_suite(world: str, out_dir: str | Path, conf: dict | None = None, *,
         if old is not None and old.get("key") == key and (out / "manifest.yaml").is_file():
             log.info("%s: up to date (same generator arguments); nothing rendered", out)
             return out / "manifest.yaml"
+        if old is None and any(out.iterdir()):
+            # never delete a folder we did not write, --force or not
+            raise SynthError(f"{out} exists and is not a cerpe synth output (no {meta.name} with a generator key); "
+                             f"choose another --out")
         if not force:
-            what = "was generated with different arguments" if old is not None else "exists and is not a cerpe synth output"
-            raise SynthError(f"{out} {what} ({meta}); use --force (force=True) to replace it, or another --out")
+            raise SynthError(f"{out} was generated with different arguments ({meta}); use --force (force=True) "
+                             f"to replace it, or another --out")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     if tmp.exists():
