@@ -65,7 +65,7 @@ def test_descriptor_protocol_size_and_unit_norm(descriptor, room):
 
     assert isinstance(descriptor, DescriptorEncoder)
     d = descriptor.describe(View(("d", 0), room.render(pose())[0], K))
-    assert d.shape == (descriptor.dim,) == (16 * 64 + 64,) and d.dtype == np.float32
+    assert d.shape == (descriptor.dim,) == (16 * 64 + 24 * 8,) and d.dtype == np.float32
     assert abs(np.linalg.norm(d) - 1) < 1e-5
     wb = descriptor.wire_bytes()
     for dt in ("fp32", "fp16", "int8"):
