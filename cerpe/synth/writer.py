@@ -308,7 +308,9 @@ def generate_suite(world: str, out_dir: str | Path, conf: dict | None = None, *,
             raise SynthError(f"{out} exists and is not a cerpe synth output (no {meta.name} with a generator key); "
                              f"choose another --out")
         if not force:
-            raise SynthError(f"{out} was generated with different arguments ({meta}); use --force (force=True) "
+            what = ("by another version of the generator code" if {**old.get("key", {}), "code": key["code"]} == key
+                    else "with different arguments")
+            raise SynthError(f"{out} was generated {what} ({meta}); use --force (force=True) "
                              f"to replace it, or another --out")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
