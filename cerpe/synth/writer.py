@@ -24,6 +24,8 @@ import json
 import logging
 import os
 import shutil
+import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -276,6 +278,47 @@ def _worker_init() -> None:
     cv2.setNumThreads(1)  # one process per core already
 
 
+@contextmanager
+def _main_not_rerun():
+    """While starting spawned workers, hide a ``__main__`` script's path so children do not run it."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if main is None or path is None or getattr(main, "__spec__", None) is not None:
+        yield
+        return
+    del main.__file__
+    try:
+        yield
+    finally:
+        main.__file__ = path
+
+
+def _render_parallel(jobs: list[tuple], workers: int, bar) -> list[tuple[str, int, bool]]:
+    """Render ``jobs`` in ``workers`` spawned processes; ``[]`` if processes cannot be started.
+
+    Spawn, not fork: a forked child inherits the parent's OpenCV/BLAS thread pools in a
+    broken state and can hang (seen here). Spawn would re-run a calling *script*
+    (an unguarded one would render again in every child); the jobs only need
+    :mod:`cerpe.synth.writer`, so the script path is hidden while the workers start.
+    If processes still cannot start, everything is rendered in this process (logged).
+    """
+    import multiprocessing as mp
+
+    results = []
+    try:
+        with _main_not_rerun():
+            pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_worker_init)
+        with pool:
+            for r in pool.imap_unordered(_render_job, jobs):
+                results.append(r)
+                bar.update(r[1])
+    except RuntimeError as exc:
+        if results:
+            raise
+        log.warning("cannot start worker processes (%s); rendering in this process", str(exc).strip().splitlines()[0])
+    return results
+
+
 def _render_job(job: tuple) -> tuple[str, int, bool]:
     world, conf, index, root = job
     return write_encounter(world, conf, index, Path(root))
@@ -331,15 +374,8 @@ def generate_suite(world: str, out_dir: str | Path, conf: dict | None = None, *,
     bar = tqdm(total=total, desc=f"synth {setting}", unit="frame", disable=not progress)
     results = []
     if c["workers"] > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-
-        # fork (spawn would re-run an unguarded calling script); workers only use numpy and
-        # OpenCV, and OpenCV is put in single-thread mode before any work
-        with mp.get_context("fork").Pool(min(c["workers"], len(jobs)), initializer=_worker_init) as pool:
-            for r in pool.imap_unordered(_render_job, jobs):
-                results.append(r)
-                bar.update(r[1])
-    else:
+        results = _render_parallel(jobs, c["workers"], bar)
+    if not results:
         for j in jobs:
             results.append(_render_job(j))
             bar.update(results[-1][1])
