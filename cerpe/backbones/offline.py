@@ -198,7 +198,8 @@ class OfflineGeometryBackbone:
         epipolar_px: RANSAC threshold of the essential matrix (Sampson, px).
         min_inliers: fewer essential-matrix inliers -> ``few-inliers``.
         min_inlier_ratio: inliers / matches below this -> ``few-inliers``.
-        min_parallax_deg: median triangulation angle of the reference pair below
+        min_parallax_deg, parallax_quantile: the ``parallax_quantile`` quantile of the
+            triangulation angles of the reference pair's inliers below ``min_parallax_deg``
             this -> ``no-parallax`` (pure rotation, tiny baseline).
         max_reproj_px: triangulated points reprojecting worse are dropped.
         min_point_angle_deg: points with a smaller triangulation angle are dropped.
@@ -219,6 +220,9 @@ class OfflineGeometryBackbone:
         "min_inliers": 25,
         "min_inlier_ratio": 0.2,
         "min_parallax_deg": 0.5,
+        # a high quantile, not the median: forward motion has near-zero parallax at the
+        # focus of expansion but enough at the image sides; pure rotation has none anywhere
+        "parallax_quantile": 0.8,
         "max_reproj_px": 3.0,
         "min_point_angle_deg": 0.2,
         "pnp_px": 3.0,
@@ -364,7 +368,7 @@ class OfflineGeometryBackbone:
                 pair_reason[s] = why
                 continue
             X, keep, err, ang = self._triangulate_pair(uv0[inl], uvs[inl], Ks[0], Ks[s], T_s_0)
-            if np.median(ang) < self.conf["min_parallax_deg"]:
+            if np.quantile(ang, self.conf["parallax_quantile"]) < self.conf["min_parallax_deg"]:
                 pair_reason[s] = "no-parallax"
                 continue
             if keep.sum() < self.conf["min_inliers"]:
