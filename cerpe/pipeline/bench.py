@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--preset", default="offline", help="backbone preset (offline | paper)")
     parser.add_argument("--depth", default=None, help="depth source (default: the manifest's metric_depth)")
+    parser.add_argument("--depth-conf", default="{}",
+                        help='JSON options of the depth source, e.g. \'{"min_m": 0.5, "max_m": 40}\' for '
+                             'an outdoor stereo sensor on the CAD world (the default sensor sees 0.3-10 m)')
     parser.add_argument("--out", default=None, help="write the figures as JSON here")
 
 
@@ -230,7 +233,11 @@ def main(args: argparse.Namespace) -> int:
             raise BenchError(f"bench: manifest not found: {path} (generate it with `cerpe synth`)")
         setting = load_setting(path)
         encounters, metric_depth = setting.encounters, setting.metric_depth
-    plugins = build_plugins(args.preset, depth=args.depth or metric_depth)
+    try:
+        depth_conf = json.loads(args.depth_conf)
+    except json.JSONDecodeError as exc:
+        raise BenchError(f"bench: --depth-conf is not JSON: {exc}") from None
+    plugins = build_plugins(args.preset, {"depth_conf": depth_conf}, depth=args.depth or metric_depth)
     results = []
     for n in args.robots:
         encs = [e for e in encounters if len(e.robots) >= n][: args.encounters]
