@@ -128,7 +128,7 @@ class CerpeConfig:
     propagate: bool = True
     descriptor_dtype: str = "fp16"
     jpeg_quality: int = 90
-    min_scale_pixels: int = 100
+    min_scale_pixels: int = 25
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
