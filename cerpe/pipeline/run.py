@@ -219,18 +219,21 @@ def _file_digest(path: Path) -> str:
 StepSource = Callable[[Any], Iterator[StepResult]]
 
 
-def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None) -> tuple[dict, StepSource]:
+def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
+                   every: int = 1) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
-    the cerpe methods; None keeps the preset's default.
+    the cerpe methods; None keeps the preset's default. ``every`` is the
+    setting's evaluation stride: per-frame baselines only compute evaluated steps
+    (CERPE runs every step: its odometry and propagation need them).
 
     Raises :class:`MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
     if method in UNAVAILABLE:
         raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
     if method in BASELINE_METHODS:
-        steps, conf = _baseline_steps(method, seed)
+        steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
     if method in CERPE_METHODS:
         return _cerpe_steps(method, profile, seed, metric_depth)
@@ -268,20 +271,66 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None)
                     "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__)},
     }
 
+    # Propagation feeds nothing back (anchors come only from direct estimates; the
+    # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
+    # equals the full method's pass with its propagated estimates removed. A
+    # cerpe-wo-em run right after a cerpe run in the same process reuses that pass
+    # (tests/test_pipeline_woem.py checks it against a real propagate=False run).
+    pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None}}, sort_keys=True,
+                          default=str)
+
     def steps(encounter: Any) -> Iterator[StepResult]:
-        yield from algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
-                                           config=cfg, seed=seed)
+        key = (pass_key, seed, _encounter_identity(encounter))
+        if not cfg.propagate and key in _FULL_PASSES:
+            for res in _FULL_PASSES.pop(key):
+                yield without_propagation(res)
+            return
+        keep: list[StepResult] = []
+        for res in algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
+                                           config=cfg, seed=seed):
+            if cfg.propagate:
+                keep.append(res)
+            yield res
+        if cfg.propagate:
+            _FULL_PASSES.clear()  # keep one encounter at most: it is reused only right after
+            _FULL_PASSES[key] = keep
 
     return conf, steps
 
 
-def _baseline_steps(method: str, seed: int) -> tuple[StepSource, dict]:
+_FULL_PASSES: dict[tuple, list[StepResult]] = {}
+
+
+def _encounter_identity(encounter: Any) -> str:
+    first = [str(r.frame_ids[0]) if len(r) else "" for r in encounter.robots]
+    return json.dumps([encounter.name, encounter.n_steps, encounter.robot_ids, first])
+
+
+def without_propagation(res: StepResult) -> StepResult:
+    """The "w/o EM" view of a full CERPE step: propagated estimates become ``none``."""
+    import dataclasses
+
+    pairs = []
+    for p in res.pairs:
+        if p.source == "propagated" or (p.source == "none" and "no-anchor" in p.reason):
+            parts = [r for r in p.reason.split("; ") if r and r not in ("stale-pose", "no-anchor", "no-pose-of-other")]
+            reason = "; ".join(parts) or ("gate-closed" if not p.gate_open else "")
+            p = dataclasses.replace(p, source="none", T_cj_ci=None, anchor_step=-1, reason=reason)
+        pairs.append(p)
+    robots = [dataclasses.replace(r, timings_s={**r.timings_s, "propagation": 0.0},
+                                  degradations=[d for d in r.degradations if d != "pose:stale"])
+              for r in res.robots]
+    return StepResult(step=res.step, pairs=pairs, robots=robots)
+
+
+def _baseline_steps(method: str, seed: int, every: int = 1) -> tuple[StepSource, dict]:
     """Per-pair, per-frame baseline: each unordered pair once, the reverse direction is its inverse.
 
     The baseline sees both raw images at every step, i.e. every robot always
     sends its image; the bytes counted are the JPEG image replies it would take.
     """
     from ..baselines import build_baseline
+    from ..baselines.base import PairEstimate
     from ..messages import ImageReply
 
     bl = build_baseline(method, seed=seed)
@@ -298,9 +347,13 @@ def _baseline_steps(method: str, seed: int) -> tuple[StepSource, dict]:
             ]
             pairs: dict[tuple[int, int], PairRecord] = {}
             timing = {k: {s: 0.0 for s in STAGES} for k in range(n)}
+            evaluated = t % every == 0
             for i in range(n):
                 for j in range(i + 1, n):
-                    est = bl.estimate(imgs[i], robots[i].intrinsics, imgs[j], robots[j].intrinsics)
+                    if evaluated:
+                        est = bl.estimate(imgs[i], robots[i].intrinsics, imgs[j], robots[j].intrinsics)
+                    else:  # independent per frame: a step nobody evaluates need not be computed
+                        est = PairEstimate(None, f"not-evaluated (evaluation.every={every})")
                     dt = float(sum(est.timings_s.values()))
                     timing[i]["backbone"] += dt
                     for (a, b, T) in ((i, j, est.T_cj_ci),
@@ -445,7 +498,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     out = Path(out)
     setting = setting if setting is not None else _load_setting(manifest)
     every = evaluation_every(setting, manifest)
-    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None))
+    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every)
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),
