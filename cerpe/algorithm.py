@@ -118,6 +118,10 @@ class CerpeConfig:
         jpeg_quality: quality of image replies (OpenCV scale 0-100).
         min_scale_pixels: a keyframe needs this many valid depth pixels to vote
             in the scale.
+        unit_scale_without_depth: for data with no metric depth at all (depth
+            source ``none``): use s = 1 instead of giving up, so poses are the
+            backbone's up-to-scale ones (counted as ``scale:unit-no-depth``); such
+            runs are evaluated with ground-truth-scale translation only.
     """
 
     tau: float | None = None
@@ -129,6 +133,7 @@ class CerpeConfig:
     descriptor_dtype: str = "fp16"
     jpeg_quality: int = 90
     min_scale_pixels: int = 25
+    unit_scale_without_depth: bool = False
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
@@ -476,6 +481,9 @@ class RobotAgent:
         elif np.isfinite(self.last_scale):
             st.scale = self.last_scale
             self._degrade("scale:fallback-last")
+        elif self.config.unit_scale_without_depth:
+            st.scale = 1.0
+            self._degrade("scale:unit-no-depth")
         else:
             st.scale = float("nan")
             self._degrade("scale:unavailable")

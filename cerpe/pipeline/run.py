@@ -263,7 +263,9 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None)
     from ..backbones.build import build_plugins
 
     plugins = build_plugins(profile, depth=metric_depth)
-    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"))
+    # Without any metric depth (e.g. RGB-only data) poses stay up to scale: evaluated at GT scale only.
+    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"),
+                              unit_scale_without_depth=(metric_depth == "none"))
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
         "cerpe": _as_dict(cfg), "preset": profile,
@@ -522,7 +524,8 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
         stale.unlink(missing_ok=True)
     atomic_write_json(run_json, {
         "method": method, "label": METHOD_LABELS[method], "fingerprint": fp, "config": config,
-        "metric_scale": method in CERPE_METHODS, "manifest": str(manifest),
+        "metric_scale": method in CERPE_METHODS and getattr(setting, "metric_depth", None) != "none",
+        "manifest": str(manifest),
         "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
         "profile": config["profile"], "setting": setting.name, "command": " ".join(sys.argv),
     })
