@@ -276,8 +276,9 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None)
     # Propagation feeds nothing back (anchors come only from direct estimates; the
     # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
     # equals the full method's pass with its propagated estimates removed. A
-    # cerpe-wo-em run right after a cerpe run in the same process reuses that pass
-    # (tests/test_pipeline_woem.py checks it against a real propagate=False run).
+    # cerpe-wo-em run after a cerpe run in the same process reuses that pass, each
+    # encounter's records once (tests/test_pipeline_woem.py checks it against a
+    # real propagate=False run).
     pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None}}, sort_keys=True,
                           default=str)
 
@@ -294,8 +295,7 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None)
                 keep.append(res)
             yield res
         if cfg.propagate:
-            _FULL_PASSES.clear()  # keep one encounter at most: it is reused only right after
-            _FULL_PASSES[key] = keep
+            _FULL_PASSES[key] = keep  # records only (no images): a few MB per setting
 
     return conf, steps
 
