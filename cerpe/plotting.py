@@ -215,7 +215,7 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
         bytes_table: columns ``scheme`` (descriptor-only / CERPE gated / always send images),
             ``bytes_per_robot_step`` (mean).
         gate: columns ``step, gate_score, gate_open, overlap_gt`` of one pair.
-        latency: columns ``n_robots, stage, seconds`` (mean per robot and step).
+        latency: columns ``n_robots, stage, seconds`` (mean per team step).
         paper: the paper's own figures (descriptor KB, image KB, ms for 2/3 robots).
     """
     plt = _plt()
@@ -255,7 +255,7 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
             ax.text(x, v, f"{v:.0f} ms", ha="center", va="bottom", fontsize=8)
         ax.set_ylim(0, 1.15 * max(bottom.max(), 1e-3))
     ax.set_xlabel("robots in the encounter")
-    ax.set_ylabel("ms per robot and step (this machine, CPU)")
+    ax.set_ylabel("ms per team step, all robots (this machine, CPU)")
     if paper:
         ax.set_title(f"paper (RTX 4080 laptop): {paper['ms_2']:.0f} ms (2 robots), {paper['ms_3']:.0f} ms (3)",
                      fontsize=8)
