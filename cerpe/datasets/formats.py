@@ -21,7 +21,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw
+from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw, se3_to_tq_xyzw
 from ..scene import CameraIntrinsics, SceneError
 from .manifest import ManifestError, Problem, is_number, read_yaml, type_name
 
@@ -306,3 +306,16 @@ def image_size(path: Path) -> tuple[int, int] | None:
     if img is None:
         return None
     return int(img.shape[1]), int(img.shape[0])
+
+
+def format_tum(stamps_s: np.ndarray, T: np.ndarray,
+               header: str = "timestamp tx ty tz qx qy qz qw", stamp_decimals: int = 9) -> str:
+    """TUM trajectory text, ``stamp tx ty tz qx qy qz qw`` per pose ``T [N,4,4]``.
+
+    Quaternions scalar-last; evo and :func:`read_trajectory` (``fmt="tum"``) read it unchanged.
+    """
+    lines = [f"# {header}"]
+    for s, Tk in zip(stamps_s, T):
+        t, q = se3_to_tq_xyzw(Tk)
+        lines.append(f"{s:.{stamp_decimals}f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
+    return "\n".join(lines) + "\n"

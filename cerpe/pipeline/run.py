@@ -127,11 +127,9 @@ def read_json(path: Path, what: str) -> dict:
 
 def tum_lines(stamps_s: np.ndarray, T: np.ndarray) -> str:
     """TUM trajectory text: ``stamp tx ty tz qx qy qz qw`` per pose (evo reads it unchanged)."""
-    lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for s, Tk in zip(stamps_s, T):
-        t, q = se3_to_tq_xyzw(Tk)
-        lines.append(f"{s:.9f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
-    return "\n".join(lines) + "\n"
+    from ..datasets.formats import format_tum
+
+    return format_tum(stamps_s, T)
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:

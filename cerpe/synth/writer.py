@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import se3_to_tq_xyzw
 from ..scene import Encounter, RobotStream
 from .errors import SynthError
 from .groundtruth import has_transition, overlap_matrix, viewing_angle_matrix
@@ -183,11 +182,10 @@ def _camera_yaml(plan: EncounterPlan) -> str:
 
 
 def _tum(stamps: np.ndarray, T_world_cam: np.ndarray) -> str:
-    lines = ["# timestamp tx ty tz qx qy qz qw  (camera-to-world, OpenCV camera axes)"]
-    for s, T in zip(stamps, T_world_cam):
-        t, q = se3_to_tq_xyzw(T)
-        lines.append(f"{s:.6f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
-    return "\n".join(lines) + "\n"
+    from ..datasets.formats import format_tum
+
+    return format_tum(stamps, T_world_cam, stamp_decimals=6,
+                      header="timestamp tx ty tz qx qy qz qw  (camera-to-world, OpenCV camera axes)")
 
 
 def write_encounter(world: str, conf: dict, index: int, root: Path) -> tuple[str, int, bool]:
