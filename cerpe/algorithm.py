@@ -648,6 +648,13 @@ class Team:
                 return a
         raise AlgorithmError(f"team: no robot {robot_id!r}")
 
+    def _inbox(self, a: RobotAgent) -> list:
+        """Robot ``a``'s decoded messages; lost/garbled frames are counted on ``a``."""
+        d = self.channel.receive(a.robot_id)
+        for what in d.degradations:
+            a._degrade(what)
+        return [msg for _, msg in d.messages]
+
     def _sender(self, a: RobotAgent, idx: int) -> str | None:
         r = self._by_index.get(idx)
         if r is None:
@@ -674,10 +681,7 @@ class Team:
         # 3. gate: score, request, reply
         for a in A:
             got: dict[str, np.ndarray] = {}
-            d = ch.receive(a.robot_id)
-            for what in d.degradations:
-                a._degrade(what)
-            for _, msg in d.messages:
+            for msg in self._inbox(a):
                 if isinstance(msg, DescriptorMessage) and msg.step == t:
                     r = self._sender(a, msg.sender)
                     if r is not None and r != a.robot_id:
@@ -695,10 +699,7 @@ class Team:
                     pair_bytes[(a.robot_id, b.robot_id)] += nb
         requests: list[tuple[RobotAgent, str, ImageRequest]] = []
         for b in A:  # all requests are read before any reply is sent (one inbox per robot)
-            d = ch.receive(b.robot_id)
-            for what in d.degradations:
-                b._degrade(what)
-            for _, msg in d.messages:
+            for msg in self._inbox(b):
                 if isinstance(msg, ImageRequest):
                     r = self._sender(b, msg.sender)
                     if r is not None:
@@ -710,10 +711,7 @@ class Team:
                 b.cur.bytes_sent["reply"] += nb
                 pair_bytes[(r, b.robot_id)] += nb
         for a in A:
-            d = ch.receive(a.robot_id)
-            for what in d.degradations:
-                a._degrade(what)
-            for _, msg in d.messages:
+            for msg in self._inbox(a):
                 if isinstance(msg, ImageReply):
                     r = self._sender(a, msg.sender)
                     if r is not None and a.gate_open(r):
@@ -727,10 +725,7 @@ class Team:
             ch.broadcast(a.robot_id, "pose", a.pose_frame())
         for a in A:
             a.note_pose(a.robot_id, t, a.X)
-            d = ch.receive(a.robot_id)
-            for what in d.degradations:
-                a._degrade(what)
-            for _, msg in d.messages:
+            for msg in self._inbox(a):
                 if isinstance(msg, PoseMessage) and msg.step == t:
                     r = self._sender(a, msg.sender)
                     if r is not None:

@@ -130,6 +130,19 @@ def type_name(v: Any) -> str:
     return "null" if v is None else type(v).__name__
 
 
+def mapping_problems(obj: Any, f: Path, field: str, known: Iterable[str]) -> list[Problem] | None:
+    """Problems of a sub-mapping ``field``: None if it is not a mapping at all (skip it),
+    else one problem per unknown key (usually a typo), naming the known ones."""
+    if not isinstance(obj, dict):
+        return None
+    known = list(known)
+    return [Problem(f, f"{field}.{k}", f"unknown field; known: {', '.join(known)}") for k in obj if k not in known]
+
+
+def not_a_mapping(obj: Any, f: Path, field: str) -> Problem:
+    return Problem(f, field, f"expected a mapping, got {type_name(obj)}")
+
+
 def is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
 

@@ -34,7 +34,7 @@ import numpy as np
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
 from .formats import (STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
                       parse_transform, read_intrinsics, read_trajectory)
-from .manifest import Manifest, ManifestError, Problem, is_number, type_name
+from .manifest import Manifest, ManifestError, Problem, is_number, mapping_problems, not_a_mapping, type_name
 from .report import LoadReport
 from .sync import poses_at, synchronise, window_mask
 
@@ -68,12 +68,11 @@ def validate_encounters(m: Manifest) -> list[Problem]:
     names: set[str] = set()
     for e, enc in enumerate(encs):
         fe = f"encounters[{e}]"
-        if not isinstance(enc, dict):
-            probs.append(Problem(f, fe, f"expected a mapping, got {type_name(enc)}"))
+        unknown = mapping_problems(enc, f, fe, ENCOUNTER_FIELDS)
+        if unknown is None:
+            probs.append(not_a_mapping(enc, f, fe))
             continue
-        for k in enc:
-            if k not in ENCOUNTER_FIELDS:
-                probs.append(Problem(f, f"{fe}.{k}", f"unknown field; known: {', '.join(ENCOUNTER_FIELDS)}"))
+        probs += unknown
         name = enc.get("name")
         if not isinstance(name, str) or not name:
             probs.append(Problem(f, f"{fe}.name", f"required: a non-empty string, got {type_name(name)}"))
@@ -94,12 +93,11 @@ def validate_encounters(m: Manifest) -> list[Problem]:
         ids: set[str] = set()
         for r, rob in enumerate(robots):
             fr = f"{fe}.robots[{r}]"
-            if not isinstance(rob, dict):
-                probs.append(Problem(f, fr, f"expected a mapping, got {type_name(rob)}"))
+            unknown = mapping_problems(rob, f, fr, ROBOT_FIELDS)
+            if unknown is None:
+                probs.append(not_a_mapping(rob, f, fr))
                 continue
-            for k in rob:
-                if k not in ROBOT_FIELDS:
-                    probs.append(Problem(f, f"{fr}.{k}", f"unknown field; known: {', '.join(ROBOT_FIELDS)}"))
+            probs += unknown
             rid = rob.get("id")
             if not isinstance(rid, str) or not rid:
                 probs.append(Problem(f, f"{fr}.id", f"required: a non-empty string, got {type_name(rid)}"))

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..geometry import GeometryError, make_se3, quat_wxyz_to_matrix, se3_inverse
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
-from .manifest import Manifest, Problem, is_number, type_name
+from .manifest import Manifest, Problem, is_number, mapping_problems, not_a_mapping, type_name
 from .mocap import _check_window
 from .report import LoadReport
 from .sync import nearest, synchronise, window_mask
@@ -227,12 +227,11 @@ class OpenMarsAdapter:
         names: set[str] = set()
         for e, enc in enumerate(encs):
             fe = f"encounters[{e}]"
-            if not isinstance(enc, dict):
-                probs.append(Problem(f, fe, f"expected a mapping, got {type_name(enc)}"))
+            unknown = mapping_problems(enc, f, fe, ENCOUNTER_FIELDS)
+            if unknown is None:
+                probs.append(not_a_mapping(enc, f, fe))
                 continue
-            for k in enc:
-                if k not in ENCOUNTER_FIELDS:
-                    probs.append(Problem(f, f"{fe}.{k}", f"unknown field; known: {', '.join(ENCOUNTER_FIELDS)}"))
+            probs += unknown
             if not isinstance(enc.get("scene"), str) or not enc.get("scene"):
                 probs.append(Problem(f, f"{fe}.scene", f"required: a scene name or token, got {type_name(enc.get('scene'))}"))
             v = enc.get("vehicles")
