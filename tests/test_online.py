@@ -267,3 +267,28 @@ def test_addresses_and_cli_errors(tmp_path: Path):
         s.listen(1)
         with pytest.raises(OnlineError, match="cannot listen"):
             NetTransport("r0", Address("127.0.0.1", s.getsockname()[1]))
+
+
+class SlowBackbone(GTBackbone):
+    """A robot whose joint pass takes longer than its peers wait."""
+
+    def __init__(self, *a, delay_s: float = 0.25, **k):
+        super().__init__(*a, **k)
+        self.delay_s = delay_s
+
+    def infer(self, views):
+        time.sleep(self.delay_s)
+        return super().infer(views)
+
+
+def test_slow_robot_neither_deadlocks_nor_stalls_its_peer():
+    """r1's pass outlasts r0's step timeout: both finish every step, r0 counts what r1 delivered too late."""
+    world = make_world(2, 8, seed=10)
+    nets, nodes = make_nodes(world, conf={"step_timeout_s": 0.05, "max_lag_steps": 1})
+    nodes["r1"].agent.backbone = SlowBackbone(world, seed=7)
+    connect(nets)
+    out = run_threads({r: node_job(nodes[r], nets[r], world, r) for r in world.robot_ids})
+    assert [len(out[r]) for r in world.robot_ids] == [8, 8]
+    assert nodes["r0"].stats["msg:lost"] > 0
+    assert nodes["r0"].stats["msg:lost"] == sum(res.robots[0].degradations.count("msg:lost") for res in out["r0"])
+    assert nets["r0"].stats["peer_lost"] == 0 and nets["r1"].stats["peer_lost"] == 0
