@@ -75,7 +75,9 @@ def match_mnn(desc0: np.ndarray, desc1: np.ndarray, min_cossim: float = 0.82,
         k0 = min(2, sim.shape[1])
         k1 = min(2, sim.shape[0])
         top01, idx01 = torch.topk(sim, k0, dim=1)
-        top10, idx10 = torch.topk(sim, k1, dim=0)
+        # top-k along rows of a contiguous transpose: torch's column-wise topk is about 2x slower
+        top10, idx10 = torch.topk(sim.T.contiguous(), k1, dim=1)
+        top10, idx10 = top10.T, idx10.T
         nn01 = idx01[:, 0].numpy()
         nn10 = idx10[0, :].numpy()
         best = top01[:, 0].numpy().astype(np.float64)
@@ -177,14 +179,39 @@ def splat_depth(uv: np.ndarray, depth: np.ndarray, conf: np.ndarray, hw: tuple[i
 
 # ---------------------------------------------------------------------------- the backbone
 @dataclass
-class _Track3D:
-    """Triangulated points of one pass, in the current camera frame (= pass frame)."""
+class _Recon:
+    """Points and placed views of one reconstruction (frame: its anchor view's camera).
 
-    X: np.ndarray                      # [P,3]
-    kp_cur: np.ndarray                 # [P] keypoint index in the current view
-    kp_ref: np.ndarray                 # [P] keypoint index in the reference view
-    err_px: np.ndarray                 # [P] mean reprojection error over both views
-    obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # view -> (point ids, uv)
+    Attributes:
+        X: ``[P,3]`` points in the frame.
+        T: view index -> ``T_frame_view [4,4]`` (metric up to the pass's unit).
+        obs: view index -> ``(point ids [M], keypoint ids [M])`` of that view.
+        pair: the two views whose essential matrix made the points (anchor first).
+    """
+
+    X: np.ndarray
+    T: dict[int, np.ndarray] = field(default_factory=dict)
+    obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pair: tuple[int, int] = (0, 0)
+
+    def kp_to_pt(self, s: int, n_kp: int) -> np.ndarray:
+        """``[n_kp]`` point id of each keypoint of view ``s`` (-1: none)."""
+        a = np.full(n_kp, -1, np.int64)
+        if s in self.obs:
+            ids, kp = self.obs[s]
+            a[kp] = ids
+        return a
+
+
+@dataclass
+class _Pass:
+    """Per-call inputs shared by the helpers."""
+
+    views: Sequence[View]
+    feats: list[XFeatFeatures]
+    Ks: list[np.ndarray]
+    cams: list[dict]
+    low_tex: list[bool]
 
 
 class OfflineGeometryBackbone:
@@ -208,6 +235,9 @@ class OfflineGeometryBackbone:
         min_scale_points: shared points the two-view fallback needs for its scale.
         min_texture_std: grey-level standard deviation below which an image is
             ``low-texture`` (blank, black).
+        ransac_min_iterations: poselib's lower bound on RANSAC iterations (its default,
+            1000, is far more than the adaptive stopping rule needs at the inlier
+            ratios of consecutive frames).
     """
 
     default_conf: dict[str, Any] = {
@@ -229,6 +259,7 @@ class OfflineGeometryBackbone:
         "min_pnp_inliers": 15,
         "min_scale_points": 8,
         "min_texture_std": 2.0,
+        "ransac_min_iterations": 100,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
@@ -237,6 +268,10 @@ class OfflineGeometryBackbone:
         self._matches: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self.n_match_computed = 0
         self.n_match_cached = 0
+
+    def clear_caches(self) -> None:
+        """Forget cached matches (a cold start; features live in the encoder's cache)."""
+        self._matches.clear()
 
     # ------------------------------------------------------------------ matching with cache
     def _match(self, ka: Hashable, fa: XFeatFeatures, kb: Hashable, fb: XFeatFeatures) -> np.ndarray:
@@ -259,6 +294,15 @@ class OfflineGeometryBackbone:
             self._matches.popitem(last=False)
         return m
 
+    def _m(self, p: _Pass, a: int, b: int) -> np.ndarray:
+        """``[M,2]`` keypoint index pairs between views ``a`` and ``b`` (empty for low texture)."""
+        if p.low_tex[a] or p.low_tex[b]:
+            return np.zeros((0, 2), np.int64)
+        return self._match(p.views[a].key, p.feats[a], p.views[b].key, p.feats[b])
+
+    def _ransac(self, **extra: float) -> dict[str, float]:
+        return {"min_iterations": int(self.conf["ransac_min_iterations"]), **extra}
+
     # ------------------------------------------------------------------ two-view geometry
     def _relative_pose(self, uv0: np.ndarray, uv1: np.ndarray, cam0: dict, cam1: dict
                        ) -> tuple[np.ndarray | None, np.ndarray, str]:
@@ -270,7 +314,7 @@ class OfflineGeometryBackbone:
             return None, np.zeros(len(uv0), bool), "few-matches"
         pose, info = poselib.estimate_relative_pose(
             uv0.astype(np.float64), uv1.astype(np.float64), cam0, cam1,
-            {"max_epipolar_error": float(c["epipolar_px"])}, {})
+            self._ransac(max_epipolar_error=float(c["epipolar_px"])), {})
         inl = np.asarray(info["inliers"], bool)
         if inl.sum() < c["min_inliers"] or inl.mean() < c["min_inlier_ratio"]:
             return None, inl, "few-inliers"
@@ -292,11 +336,101 @@ class OfflineGeometryBackbone:
                 & (e0 < self.conf["max_reproj_px"]) & (e1 < self.conf["max_reproj_px"]))
         return X, keep & (ang >= self.conf["min_point_angle_deg"]), 0.5 * (e0 + e1), ang
 
+    def _bootstrap(self, p: _Pass, anchor: int, cands: Sequence[int]) -> tuple[_Recon | None, dict[int, str]]:
+        """Points from ``anchor`` and the first candidate with a good essential matrix and
+        parallax. Returns the reconstruction (frame: ``anchor``'s camera) and a reason per
+        candidate tried that did not work."""
+        c = self.conf
+        why: dict[int, str] = {}
+        for s in cands:
+            if p.low_tex[s]:
+                why[s] = "low-texture"
+                continue
+            m = self._m(p, anchor, s)
+            uva, uvs = p.feats[anchor].keypoints[m[:, 0]], p.feats[s].keypoints[m[:, 1]]
+            T_s_a, inl, reason = self._relative_pose(uva, uvs, p.cams[anchor], p.cams[s])
+            if T_s_a is None:
+                why[s] = reason
+                continue
+            X, keep, _, ang = self._triangulate_pair(uva[inl], uvs[inl], p.Ks[anchor], p.Ks[s], T_s_a)
+            parallax = float(np.quantile(ang, c["parallax_quantile"]))
+            if parallax < c["min_parallax_deg"]:
+                why[s] = "no-parallax"
+                continue
+            if keep.sum() < c["min_inliers"]:
+                why[s] = "few-3d-points"
+                continue
+            mi = m[inl][keep]
+            ids = np.arange(len(mi))
+            return _Recon(X=X[keep], T={anchor: np.eye(4), s: _inv(T_s_a)},
+                          obs={anchor: (ids, mi[:, 0]), s: (ids, mi[:, 1])}, pair=(anchor, s)), why
+        return None, why
+
+    def _place_pnp(self, p: _Pass, s: int, anchors: Sequence[int], rec: _Recon) -> bool:
+        """Absolute pose of view ``s`` from 2D-3D correspondences through its matches with
+        the placed ``anchors``; writes ``rec.T[s]`` and ``rec.obs[s]`` on success."""
+        import poselib
+
+        cand_kp, cand_pt = [], []
+        for a in anchors:
+            if a == s or a not in rec.obs:
+                continue
+            m = self._m(p, a, s)
+            pt = rec.kp_to_pt(a, p.feats[a].n)[m[:, 0]]
+            cand_kp.append(m[pt >= 0, 1])
+            cand_pt.append(pt[pt >= 0])
+        if not cand_kp:
+            return False
+        kp = np.concatenate(cand_kp)
+        pt = np.concatenate(cand_pt)
+        _, first = np.unique(kp, return_index=True)  # one 3D point per keypoint of view s
+        kp, pt = kp[first], pt[first]
+        if len(kp) < self.conf["min_pnp_inliers"]:
+            return False
+        pose, info = poselib.estimate_absolute_pose(
+            p.feats[s].keypoints[kp].astype(np.float64), rec.X[pt], p.cams[s],
+            self._ransac(max_reproj_error=float(self.conf["pnp_px"])), {})
+        inl = np.asarray(info["inliers"], bool)
+        T_s_f = _pose_to_T(pose.R, pose.t)
+        if inl.sum() < self.conf["min_pnp_inliers"] or not np.all(np.isfinite(T_s_f)):
+            return False
+        rec.T[s] = _inv(T_s_f)
+        rec.obs[s] = (pt[inl], kp[inl])
+        return True
+
+    def _two_view_with_scale(self, p: _Pass, s: int, rec: _Recon) -> str:
+        """Place view ``s`` by its essential matrix with view 0 (placed); scale from shared points.
+
+        Writes ``rec.T[s]`` and the view's observations on success; returns ``""`` or a reason.
+        """
+        m0s = self._m(p, 0, s)
+        uv0 = p.feats[0].keypoints[m0s[:, 0]]
+        uvs = p.feats[s].keypoints[m0s[:, 1]]
+        T_s_0, inl, why = self._relative_pose(uv0, uvs, p.cams[0], p.cams[s])
+        if T_s_0 is None:
+            return why
+        cur_to_pt = rec.kp_to_pt(0, p.feats[0].n)
+        shared = inl & (cur_to_pt[m0s[:, 0]] >= 0)
+        if shared.sum() < self.conf["min_scale_points"]:
+            return "few-3d-points"
+        X_unit, keep, _, _ = self._triangulate_pair(uv0[shared], uvs[shared], p.Ks[0], p.Ks[s], T_s_0)
+        pt = cur_to_pt[m0s[shared, 0]]
+        if keep.sum() < self.conf["min_scale_points"]:
+            return "no-parallax"
+        T_0_f = _inv(rec.T[0])
+        X0 = rec.X[pt[keep]] @ T_0_f[:3, :3].T + T_0_f[:3, 3]  # shared points in camera 0
+        scale = float(np.median(X0[:, 2] / X_unit[keep, 2]))
+        if not np.isfinite(scale) or scale <= 0:
+            return "few-3d-points"
+        T_s_0 = T_s_0.copy()
+        T_s_0[:3, 3] *= scale
+        rec.T[s] = rec.T[0] @ _inv(T_s_0)
+        rec.obs[s] = (pt[keep], m0s[shared, 1][keep])
+        return ""
+
     # ------------------------------------------------------------------ main entry
     def infer(self, views: Sequence[View]) -> BackboneOutput:
         """One joint pass; see the module docstring for the method and the reasons."""
-        import poselib
-
         S = len(views)
         if S == 0:
             raise OfflineBackboneError("offline backbone: no views given")
@@ -311,172 +445,68 @@ class OfflineGeometryBackbone:
             intr.append(v.intrinsics)
         feats = [self.encoder.encode(v) for v in views]
         timings["encode"] = time.perf_counter() - t0
-
+        p = _Pass(views=views, feats=feats, Ks=[i.K for i in intr], cams=[_camera(i) for i in intr],
+                  low_tex=[float(np.std(v.image.mean(axis=2))) < self.conf["min_texture_std"] for v in views])
+        rec, reasons = self._solve(p, timings)
         T = np.full((S, 4, 4), np.nan)
-        T[0] = np.eye(4)
         valid = np.zeros(S, bool)
         valid[0] = True
+        if rec is None:
+            T[0] = np.eye(4)
+        else:
+            for s, Ts in rec.T.items():
+                T[s] = Ts
+                valid[s] = True
+        depth, conf = self._depth_maps(p, rec, valid)
+        timings["total"] = time.perf_counter() - t0
+        return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
+                              intrinsics=list(intr), reasons=reasons, timings_s=timings)
+
+    def _solve(self, p: _Pass, timings: dict[str, float]) -> tuple[_Recon | None, list[str]]:
+        """The reconstruction of this pass (None: nothing placed besides view 0) and reasons."""
+        S = len(p.views)
         reasons = [""] + ["no-reference"] * (S - 1)
-        hw = [f.image_hw for f in feats]
-        Ks = [i.K for i in intr]
-        cams = [_camera(i) for i in intr]
-        low_tex = [float(np.std(v.image.mean(axis=2))) < self.conf["min_texture_std"] for v in views]
-        pts_uv: list[list[np.ndarray]] = [[] for _ in range(S)]
-        pts_d: list[list[np.ndarray]] = [[] for _ in range(S)]
-        pts_c: list[list[np.ndarray]] = [[] for _ in range(S)]
-
-        def _outputs() -> BackboneOutput:
-            depth, conf = [], []
-            for s in range(S):
-                if valid[s] and pts_uv[s]:
-                    D, C = splat_depth(np.concatenate(pts_uv[s]), np.concatenate(pts_d[s]),
-                                       np.concatenate(pts_c[s]), hw[s])
-                else:
-                    D = np.zeros(hw[s], np.float32)
-                    C = np.zeros(hw[s], np.float32)
-                depth.append(D)
-                conf.append(C)
-            timings["total"] = time.perf_counter() - t0
-            return BackboneOutput(T_frame_cam=T, valid=valid.copy(), depth=depth, depth_conf=conf,
-                                  intrinsics=list(intr), reasons=reasons, timings_s=timings)
-
         if S == 1:
-            return _outputs()
-        if low_tex[0] or feats[0].n < self.conf["min_matches"]:
-            for s in range(1, S):
-                reasons[s] = "low-texture" if low_tex[0] else "few-matches"
-            return _outputs()
-
-        # -- matches of the current view with every other view
-        tm = time.perf_counter()
-        m0 = [np.zeros((0, 2), np.int64)] + [
-            (np.zeros((0, 2), np.int64) if low_tex[s] else self._match(views[0].key, feats[0], views[s].key, feats[s]))
-            for s in range(1, S)]
-        timings["match"] = time.perf_counter() - tm
-
-        # -- reference pair: first candidate with a good essential matrix and parallax
+            return None, reasons
+        if p.low_tex[0] or p.feats[0].n < self.conf["min_matches"]:
+            return None, [""] + ["low-texture" if p.low_tex[0] else "few-matches"] * (S - 1)
         tg = time.perf_counter()
-        ref, track = -1, None
-        pair_reason = {s: ("low-texture" if low_tex[s] else "") for s in range(1, S)}
-        for s in range(1, S):
-            if low_tex[s]:
-                continue
-            uv0 = feats[0].keypoints[m0[s][:, 0]]
-            uvs = feats[s].keypoints[m0[s][:, 1]]
-            T_s_0, inl, why = self._relative_pose(uv0, uvs, cams[0], cams[s])
-            if T_s_0 is None:
-                pair_reason[s] = why
-                continue
-            X, keep, err, ang = self._triangulate_pair(uv0[inl], uvs[inl], Ks[0], Ks[s], T_s_0)
-            if np.quantile(ang, self.conf["parallax_quantile"]) < self.conf["min_parallax_deg"]:
-                pair_reason[s] = "no-parallax"
-                continue
-            if keep.sum() < self.conf["min_inliers"]:
-                pair_reason[s] = "few-3d-points"
-                continue
-            ref = s
-            mi = m0[s][inl][keep]
-            track = _Track3D(X=X[keep], kp_cur=mi[:, 0], kp_ref=mi[:, 1], err_px=err[keep])
-            T[s] = _inv(T_s_0)
-            valid[s] = True
-            reasons[s] = ""
-            P = len(track.X)
-            ids = np.arange(P)
-            track.obs[0] = (ids, feats[0].keypoints[track.kp_cur])
-            track.obs[s] = (ids, feats[s].keypoints[track.kp_ref])
-            break
+        rec, why = self._bootstrap(p, 0, range(1, S))
         timings["two_view"] = time.perf_counter() - tg
-        if track is None:
-            for s in range(1, S):
-                reasons[s] = pair_reason[s] or "no-reference"
-            return _outputs()
-
-        # -- every other view: PnP against the track, else two-view with scale from shared points
+        if rec is None:
+            return None, [""] + [why.get(s) or "no-reference" for s in range(1, S)]
         tp = time.perf_counter()
-        cur_to_pt = np.full(feats[0].n, -1, np.int64)
-        cur_to_pt[track.kp_cur] = np.arange(len(track.X))
-        ref_to_pt = np.full(feats[ref].n, -1, np.int64)
-        ref_to_pt[track.kp_ref] = np.arange(len(track.X))
+        anchors = (0,) + tuple(a for a in rec.pair if a != 0)[:1]
         for s in range(1, S):
-            if s == ref:
+            if s in rec.T:
                 continue
-            if low_tex[s]:
+            if p.low_tex[s]:
                 reasons[s] = "low-texture"
-                continue
-            # 2D-3D through the current view's matches and through the reference view's (cached) matches
-            cand_kp, cand_pt = [], []
-            a = cur_to_pt[m0[s][:, 0]]
-            cand_kp.append(m0[s][a >= 0, 1])
-            cand_pt.append(a[a >= 0])
-            mr = self._match(views[ref].key, feats[ref], views[s].key, feats[s])
-            b = ref_to_pt[mr[:, 0]]
-            cand_kp.append(mr[b >= 0, 1])
-            cand_pt.append(b[b >= 0])
-            kp = np.concatenate(cand_kp)
-            pt = np.concatenate(cand_pt)
-            _, first = np.unique(kp, return_index=True)  # one 3D point per keypoint of view s
-            kp, pt = kp[first], pt[first]
-            placed = False
-            if len(kp) >= self.conf["min_pnp_inliers"]:
-                pose, info = poselib.estimate_absolute_pose(
-                    feats[s].keypoints[kp].astype(np.float64), track.X[pt], cams[s],
-                    {"max_reproj_error": float(self.conf["pnp_px"])}, {})
-                inl = np.asarray(info["inliers"], bool)
-                T_s_f = _pose_to_T(pose.R, pose.t)
-                if inl.sum() >= self.conf["min_pnp_inliers"] and np.all(np.isfinite(T_s_f)):
-                    T[s] = _inv(T_s_f)
-                    valid[s] = True
-                    reasons[s] = ""
-                    track.obs[s] = (pt[inl], feats[s].keypoints[kp[inl]])
-                    placed = True
-            if not placed:
-                why = self._two_view_with_scale(s, m0[s], feats, Ks, cams, track, cur_to_pt, T)
-                if why:
-                    reasons[s] = pair_reason[s] or why
-                else:
-                    valid[s] = True
-                    reasons[s] = ""
+            elif not self._place_pnp(p, s, anchors, rec):
+                reasons[s] = self._two_view_with_scale(p, s, rec)
+                reasons[s] = (why.get(s) or reasons[s]) if reasons[s] else ""
+        for s in rec.T:
+            reasons[s] = ""
         timings["pnp"] = time.perf_counter() - tp
+        return rec, reasons
 
-        # -- sparse depth per placed view
-        n_obs = np.zeros(len(track.X))
-        for ids, _ in track.obs.values():
+    def _depth_maps(self, p: _Pass, rec: _Recon | None, valid: np.ndarray
+                    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Per view sparse depth of its observed points and confidence ``n_obs / (1 + err px)``."""
+        hw = [f.image_hw for f in p.feats]
+        depth = [np.zeros(h, np.float32) for h in hw]
+        conf = [np.zeros(h, np.float32) for h in hw]
+        if rec is None:
+            return depth, conf
+        n_obs = np.zeros(len(rec.X))
+        for ids, _ in rec.obs.values():
             np.add.at(n_obs, ids, 1)
-        for s, (ids, uv) in track.obs.items():
+        for s, (ids, kp) in rec.obs.items():
             if not valid[s]:
                 continue
-            Tsf = _inv(T[s])
-            Xs = track.X[ids] @ Tsf[:3, :3].T + Tsf[:3, 3]
-            err = reprojection_error(Xs, uv, Ks[s])
-            pts_uv[s].append(uv)
-            pts_d[s].append(Xs[:, 2])
-            pts_c[s].append(n_obs[ids] / (1.0 + np.minimum(err, 1e3)))
-        return _outputs()
-
-    def _two_view_with_scale(self, s: int, m0s: np.ndarray, feats: list[XFeatFeatures], Ks: list[np.ndarray],
-                             cams: list[dict], track: _Track3D, cur_to_pt: np.ndarray, T: np.ndarray) -> str:
-        """Place view ``s`` by its essential matrix with the current view; scale from shared points.
-
-        Writes ``T[s]`` and the view's observations on success; returns ``""`` or a reason.
-        """
-        uv0 = feats[0].keypoints[m0s[:, 0]]
-        uvs = feats[s].keypoints[m0s[:, 1]]
-        T_s_0, inl, why = self._relative_pose(uv0, uvs, cams[0], cams[s])
-        if T_s_0 is None:
-            return why
-        shared = inl & (cur_to_pt[m0s[:, 0]] >= 0)
-        if shared.sum() < self.conf["min_scale_points"]:
-            return "few-3d-points"
-        X_unit, keep, _, _ = self._triangulate_pair(uv0[shared], uvs[shared], Ks[0], Ks[s], T_s_0)
-        pt = cur_to_pt[m0s[shared, 0]]
-        if keep.sum() < self.conf["min_scale_points"]:
-            return "no-parallax"
-        ratio = track.X[pt[keep], 2] / X_unit[keep, 2]
-        scale = float(np.median(ratio))
-        if not np.isfinite(scale) or scale <= 0:
-            return "few-3d-points"
-        T_s_0 = T_s_0.copy()
-        T_s_0[:3, 3] *= scale
-        T[s] = _inv(T_s_0)
-        track.obs[s] = (pt[keep], uvs[shared][keep])
-        return ""
+            Tsf = _inv(rec.T[s])
+            Xs = rec.X[ids] @ Tsf[:3, :3].T + Tsf[:3, 3]
+            uv = p.feats[s].keypoints[kp]
+            err = reprojection_error(Xs, uv, p.Ks[s])
+            depth[s], conf[s] = splat_depth(uv, Xs[:, 2], n_obs[ids] / (1.0 + np.minimum(err, 1e3)), hw[s])
+        return depth, conf

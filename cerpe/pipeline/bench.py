@@ -11,8 +11,13 @@ and 3 robots, and reports:
 * message bytes per robot per step by kind (``RobotRecord.bytes_sent``) and the
   descriptor frame size in fp32/fp16/int8;
 * peak resident memory of the process (``ru_maxrss``);
-* accuracy figures of the same run: direct inter-robot rotation error (rad),
-  ego-motion end drift and per-step errors against ground truth.
+* accuracy figures of the same run (issue 4's checks): direct inter-robot rotation
+  error (rad) on overlapping pairs, and per robot the per-step relative pose error
+  (sum of per-step translation errors / path length, median per-step rotation
+  error) and the end drift; ``--all-encounters`` adds them over the whole suite.
+
+Every team size starts cold: the plug-ins' caches (XFeat features, matches) are
+cleared first, and the table prints how many XFeat passes ran per robot-step.
 
 A 2-robot run uses the first two robots of an encounter, a 3-robot run needs an
 encounter with at least three. Images are resized to ``--width x --height``
@@ -57,6 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=25, help="steps per team size (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=2, help="first steps left out of the statistics")
     parser.add_argument("--encounters", type=int, default=2, help="encounters to walk per team size")
+    parser.add_argument("--all-encounters", action="store_true",
+                        help="also walk every encounter of the suite, all steps, with all its robots, and print "
+                             "the accuracy checks over the whole suite")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--preset", default="offline", help="backbone preset (offline | paper)")
@@ -86,52 +94,105 @@ def _stats(x: list[float]) -> dict[str, float]:
             "n": int(a.size)}
 
 
-def _ego_errors(X: list[np.ndarray], T_world_cam: np.ndarray) -> dict[str, float]:
-    """Ego-motion errors of one robot: metric odometry ``X`` against ground truth.
+OVERLAP_MIN = 0.2  # a pair "overlaps" at a step when the ground-truth overlap ratio (either way) reaches this
 
-    ``end_drift_pct``: final position error of ``X_0^-1 X_T`` over the path length;
-    ``step_trans_err_pct``: sum over steps of the per-step relative translation
-    error over the path length; ``step_rot_err_deg``: median per-step rotation error.
+
+def _ego_steps(X: list[np.ndarray], T_world_cam: np.ndarray) -> dict[str, Any]:
+    """Per-step ego-motion errors of one robot on one encounter: metric odometry ``X`` vs ground truth.
+
+    Returns ``trans_err_m`` ``[T-1]`` (norm of the difference of the per-step relative
+    translations), ``rot_err_deg`` ``[T-1]``, ``path_m`` (ground-truth path length) and
+    ``end_err_m`` (position error of ``X_0^-1 X_T`` against ground truth); empty when
+    ground truth is missing or the robot did not move.
     """
     T = len(X)
     gt = [np.asarray(T_world_cam[t]) for t in range(T)]
     path = sum(float(np.linalg.norm(gt[t][:3, 3] - gt[t - 1][:3, 3])) for t in range(1, T))
     if T < 2 or path <= 0 or not all(np.all(np.isfinite(g)) for g in gt):
-        return {"end_drift_pct": float("nan"), "step_trans_err_pct": float("nan"), "step_rot_err_deg": float("nan")}
-    e_end = se3_inverse(X[0]) @ X[-1]
-    g_end = se3_inverse(gt[0]) @ gt[-1]
+        return {"trans_err_m": [], "rot_err_deg": [], "path_m": 0.0, "end_err_m": float("nan")}
     tr, rot = [], []
     for t in range(1, T):
         de = se3_inverse(X[t - 1]) @ X[t]
         dg = se3_inverse(gt[t - 1]) @ gt[t]
         tr.append(float(np.linalg.norm(de[:3, 3] - dg[:3, 3])))
         rot.append(float(np.degrees(e_rot(de, dg))))
-    return {"end_drift_pct": 100 * float(np.linalg.norm(e_end[:3, 3] - g_end[:3, 3])) / path,
-            "step_trans_err_pct": 100 * sum(tr) / path, "step_rot_err_deg": float(np.median(rot))}
+    e_end = se3_inverse(X[0]) @ X[-1]
+    g_end = se3_inverse(gt[0]) @ gt[-1]
+    return {"trans_err_m": tr, "rot_err_deg": rot, "path_m": path,
+            "end_err_m": float(np.linalg.norm(e_end[:3, 3] - g_end[:3, 3]))}
 
 
-def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int, warmup: int,
-               width: int, height: int) -> dict[str, Any]:
-    """Walk ``encounters`` with an ``n_robots`` team; latency/bytes statistics (ms, bytes)."""
+def ego_summary(runs: list[dict[str, Any]]) -> dict[str, float]:
+    """Issue 4's ego-motion check over several :func:`_ego_steps` results of one robot.
+
+    ``rpe_trans_pct``: sum of per-step translation errors / total path length (%);
+    ``rpe_rot_deg_median``: median per-step rotation error (degrees);
+    ``end_drift_pct``: sum of end position errors / total path length (%).
+    """
+    path = sum(r["path_m"] for r in runs)
+    tr = [e for r in runs for e in r["trans_err_m"]]
+    rot = [e for r in runs for e in r["rot_err_deg"]]
+    if path <= 0 or not tr:
+        return {"rpe_trans_pct": float("nan"), "rpe_rot_deg_median": float("nan"), "end_drift_pct": float("nan"),
+                "path_m": float(path), "n_steps": 0}
+    ends = [r["end_err_m"] for r in runs if r["path_m"] > 0]
+    return {"rpe_trans_pct": 100 * float(np.sum(tr)) / path, "rpe_rot_deg_median": float(np.median(rot)),
+            "end_drift_pct": 100 * float(np.nansum(ends)) / path, "path_m": float(path), "n_steps": len(tr)}
+
+
+def _overlapping(enc: Any, t: int, i: int, j: int) -> bool:
+    if enc.overlap is None:
+        return True  # no ground truth of overlap: every direct estimate counts
+    return bool(max(enc.overlap[t, i, j], enc.overlap[t, j, i]) >= OVERLAP_MIN)
+
+
+def _cold_start(plugins: Any) -> None:
+    """Drop the plug-ins' public caches (``clear_cache``/``clear_caches``), including the XFeat
+    encoder that presets share between plug-in objects, so a run is measured from scratch."""
+    seen = set()
+    for obj in (plugins.descriptor, plugins.backbone, getattr(plugins.backbone, "encoder", None),
+                getattr(plugins.descriptor, "encoder", None)):
+        if obj is None or id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        for name in ("clear_cache", "clear_caches"):
+            if callable(getattr(obj, name, None)):
+                getattr(obj, name)()
+
+
+def _n_encoded(plugins: Any) -> int:
+    enc = getattr(plugins.backbone, "encoder", None)
+    return int(getattr(enc, "n_encoded", 0))
+
+
+def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
+         width: int, height: int) -> dict[str, Any]:
+    """Walk ``encounters`` with an ``n_robots`` team (first ``steps`` steps, all when None).
+
+    Returns latency (ms), bytes, ego-motion per robot id and direct rotation errors; the
+    plug-ins' caches are cleared first, so the figures are those of a cold start.
+    """
     from tqdm.auto import tqdm
 
     from ..algorithm import Team
     from ..protocols import FrameContext
 
+    _cold_start(plugins)
+    enc0 = _n_encoded(plugins)
     team_ms: list[float] = []
     stage_ms: dict[str, list[float]] = {s: [] for s in STAGES}
     robot_ms: list[float] = []
     bytes_kind: dict[str, list[int]] = {k: [] for k in ("descriptor", "pose", "request", "reply")}
     bytes_total: list[int] = []
-    gate_open = 0
-    pairs = 0
+    gate_open = pairs = robot_steps = all_robot_steps = 0
     rot_direct: list[float] = []
-    ego: list[dict[str, float]] = []
+    ego: dict[str, list[dict[str, Any]]] = {}
     for enc in encounters:
         robots = enc.robots[:n_robots]
-        team = Team([r.robot_id for r in robots], plugins.descriptor, plugins.backbone, plugins.depth)
-        T = min(enc.n_steps, steps)
-        X: dict[str, list[np.ndarray]] = {r.robot_id: [] for r in robots}
+        ids = [r.robot_id for r in robots]
+        team = Team(ids, plugins.descriptor, plugins.backbone, plugins.depth)
+        T = enc.n_steps if steps is None else min(enc.n_steps, steps)
+        X: dict[str, list[np.ndarray]] = {r: [] for r in ids}
         for t in tqdm(range(T), desc=f"bench {n_robots} robots {enc.name}", unit="step", leave=False):
             imgs, ctxs = [], []
             for r in robots:
@@ -141,17 +202,19 @@ def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int, warmup
             t0 = time.perf_counter()
             res = team.step(imgs, ctxs)
             dt = (time.perf_counter() - t0) * 1000
+            all_robot_steps += len(res.robots)
             for rec in res.robots:
                 X[rec.robot].append(rec.T_odom_cam)
-            ids = [r.robot_id for r in robots]
             for p in res.pairs:
                 if p.source == "direct" and p.T_cj_ci is not None:
-                    gt = enc.gt_T_cj_ci(t, enc.robot_ids.index(p.ego), enc.robot_ids.index(p.other))
-                    if gt is not None and p.ego in ids and p.other in ids:
+                    i, j = enc.robot_ids.index(p.ego), enc.robot_ids.index(p.other)
+                    gt = enc.gt_T_cj_ci(t, i, j)
+                    if gt is not None and _overlapping(enc, t, i, j):
                         rot_direct.append(float(e_rot(p.T_cj_ci, gt)))
             if t < warmup:
                 continue
             team_ms.append(dt)
+            robot_steps += len(res.robots)
             for rec in res.robots:
                 for s in STAGES:
                     stage_ms[s].append(1000 * float(rec.timings_s.get(s, 0.0)))
@@ -162,24 +225,64 @@ def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int, warmup
             gate_open += sum(p.gate_open for p in res.pairs)
             pairs += len(res.pairs)
         for r in robots:
-            ego.append(_ego_errors(X[r.robot_id], r.T_world_cam[:T]))
-    acc = {
-        "direct_rot_err_rad": _stats(rot_direct),
-        "ego_end_drift_pct": _stats([e["end_drift_pct"] for e in ego]),
-        "ego_step_trans_err_pct_of_path": _stats([e["step_trans_err_pct"] for e in ego]),
-        "ego_step_rot_err_deg_median": _stats([e["step_rot_err_deg"] for e in ego]),
-    }
+            ego.setdefault(r.robot_id, []).append(_ego_steps(X[r.robot_id], r.T_world_cam[:T]))
+    return {"team_ms": team_ms, "stage_ms": stage_ms, "robot_ms": robot_ms, "bytes_kind": bytes_kind,
+            "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs, "rot_direct": rot_direct,
+            "ego": ego, "xfeat_passes": _n_encoded(plugins) - enc0, "robot_steps": robot_steps,
+            "all_robot_steps": all_robot_steps}
+
+
+def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
+    """Statistics of one :func:`walk` (the figures ``format_table`` prints)."""
+    rs = max(w["all_robot_steps"], 1)  # XFeat passes are counted over warm-up steps too
     return {
         "n_robots": n_robots,
-        "accuracy": acc,
-        "team_step_ms": _stats(team_ms),
-        "robot_step_ms": _stats(robot_ms),
-        "stage_ms": {s: _stats(v) for s, v in stage_ms.items()},
-        "bytes_per_robot_step": {k: _stats(v) for k, v in bytes_kind.items()} | {"total": _stats(bytes_total)},
-        "gate_open_ratio": gate_open / pairs if pairs else float("nan"),
+        "accuracy": {
+            "direct_rot_err_rad": _stats(w["rot_direct"]),
+            "ego_per_robot": {r: ego_summary(v) for r, v in sorted(w["ego"].items())},
+        },
+        "team_step_ms": _stats(w["team_ms"]),
+        "robot_step_ms": _stats(w["robot_ms"]),
+        "stage_ms": {s: _stats(v) for s, v in w["stage_ms"].items()},
+        "bytes_per_robot_step": {k: _stats(v) for k, v in w["bytes_kind"].items()} | {"total": _stats(w["bytes_total"])},
+        "gate_open_ratio": w["gate_open"] / w["pairs"] if w["pairs"] else float("nan"),
+        # XFeat network passes per robot-step (own image + received images): > 0 means the
+        # encoder really ran, i.e. the run did not reuse features cached by an earlier one
+        "xfeat_passes_per_robot_step": w["xfeat_passes"] / rs,
         "target_ms": TARGET_MS.get(n_robots),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
+
+
+def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
+               width: int, height: int) -> dict[str, Any]:
+    """Walk ``encounters`` cold with an ``n_robots`` team; latency/bytes/accuracy statistics."""
+    return summarise(walk(encounters, n_robots, plugins, steps, warmup, width, height), n_robots)
+
+
+def suite_accuracy(encounters: list, plugins: Any, width: int, height: int) -> dict[str, Any]:
+    """Accuracy checks over every encounter, every step, with all of each encounter's robots."""
+    merged: dict[str, Any] = {"rot_direct": [], "ego": {}}
+    for enc in encounters:
+        w = walk([enc], len(enc.robots), plugins, None, 0, width, height)
+        merged["rot_direct"] += w["rot_direct"]
+        for r, v in w["ego"].items():
+            merged["ego"].setdefault(r, []).extend(v)
+    return {"n_encounters": len(encounters),
+            "accuracy": {"direct_rot_err_rad": _stats(merged["rot_direct"]),
+                         "ego_per_robot": {r: ego_summary(v) for r, v in sorted(merged["ego"].items())}}}
+
+
+def _fmt_acc(a: dict[str, Any]) -> list[str]:
+    d = a["direct_rot_err_rad"]
+    lines = [f"   direct relative rotation error, overlapping pairs (overlap >= {OVERLAP_MIN}): median "
+             f"{d['median']:.4f} rad, p90 {d['p90']:.4f} rad, n={d['n']} (target < 0.05 rad)"]
+    lines.append(f"   {'ego-motion per robot':<22}{'RPE trans %':>12}{'RPE rot deg':>12}{'end drift %':>12}"
+                 f"{'path m':>9}{'steps':>7}   (targets: < 2 %, < 0.5 deg median)")
+    for r, e in a["ego_per_robot"].items():
+        lines.append(f"   {r:<22}{e['rpe_trans_pct']:>12.2f}{e['rpe_rot_deg_median']:>12.3f}"
+                     f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}")
+    return lines
 
 
 def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any]) -> str:
@@ -188,7 +291,8 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
         ts = r["team_step_ms"]
         tgt = r["target_ms"]
         verdict = "" if tgt is None else (" (target %.0f ms: %s)" % (tgt, "met" if ts["median"] <= tgt else "NOT met"))
-        lines.append(f"== {r['n_robots']} robots: team step median {ts['median']:.0f} ms, p90 {ts['p90']:.0f} ms"
+        lines.append(f"== {r['n_robots']} robots (cold start; {r['xfeat_passes_per_robot_step']:.2f} XFeat passes "
+                     f"per robot-step): team step median {ts['median']:.0f} ms, p90 {ts['p90']:.0f} ms"
                      f" over {ts['n']} steps{verdict}; peak RSS {r['peak_rss_mib']:.0f} MiB;"
                      f" gate open {100 * r['gate_open_ratio']:.0f} % of pairs")
         lines.append(f"   {'stage (per robot-step)':<24}{'median ms':>10}{'p90 ms':>10}{'mean ms':>10}")
@@ -196,15 +300,10 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
             lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
         v = r["robot_step_ms"]
         lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
-        a = r["accuracy"]
-        lines.append(f"   accuracy: direct rotation error median {a['direct_rot_err_rad']['median']:.4f} rad"
-                     f" (n={a['direct_rot_err_rad']['n']}); ego end drift median"
-                     f" {a['ego_end_drift_pct']['median']:.2f} % of path (max {np.nanmax([a['ego_end_drift_pct']['p90']]):.2f} p90);"
-                     f" per-step translation error {a['ego_step_trans_err_pct_of_path']['median']:.1f} % of path;"
-                     f" per-step rotation error {a['ego_step_rot_err_deg_median']['median']:.3f} deg")
         lines.append(f"   {'bytes per robot-step':<24}{'median':>10}{'p90':>10}{'mean':>10}")
         for k, v in r["bytes_per_robot_step"].items():
             lines.append(f"   {k:<24}{v['median']:>10.0f}{v['p90']:>10.0f}{v['mean']:>10.0f}")
+        lines += _fmt_acc(r["accuracy"])
     lines.append(f"descriptor: {descriptor_info['dim']} values; frame bytes " +
                  ", ".join(f"{k} {v}" for k, v in descriptor_info["wire_bytes"].items()))
     return "\n".join(lines)
@@ -237,19 +336,27 @@ def main(args: argparse.Namespace) -> int:
         depth_conf = json.loads(args.depth_conf)
     except json.JSONDecodeError as exc:
         raise BenchError(f"bench: --depth-conf is not JSON: {exc}") from None
-    plugins = build_plugins(args.preset, {"depth_conf": depth_conf}, depth=args.depth or metric_depth)
+    def fresh() -> Any:  # new plug-in objects per run: no descriptor or match cached by an earlier run
+        return build_plugins(args.preset, {"depth_conf": depth_conf}, depth=args.depth or metric_depth)
+
     results = []
     for n in args.robots:
         encs = [e for e in encounters if len(e.robots) >= n][: args.encounters]
         if not encs:
             raise BenchError(f"bench: {path} has no encounter with {n} robots")
-        results.append(bench_team(encs, n, plugins, args.steps, args.warmup, args.width, args.height))
+        results.append(bench_team(encs, n, fresh(), args.steps, args.warmup, args.width, args.height))
+    plugins = fresh()
     d = plugins.descriptor
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
     report = {"manifest": str(path), "preset": args.preset, "width": args.width, "height": args.height,
               "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
     print(format_table(results, info))
+    if args.all_encounters:
+        suite = suite_accuracy(encounters, plugins, args.width, args.height)
+        report["suite_accuracy"] = suite
+        print(f"== accuracy over the whole suite ({suite['n_encounters']} encounters, all steps, all robots)")
+        print("\n".join(_fmt_acc(suite["accuracy"])))
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)

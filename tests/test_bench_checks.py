@@ -1,0 +1,54 @@
+"""`cerpe bench` accuracy checks (issue 4) on known trajectories; no models run."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cerpe import geometry as G
+from cerpe.pipeline.bench import _ego_steps, ego_summary
+
+
+def _traj(n: int = 11, step_m: float = 0.1, yaw_deg: float = 1.0) -> np.ndarray:
+    """``[n,4,4]`` camera-to-world poses moving ``step_m`` along z and turning ``yaw_deg`` per step."""
+    out, T = [], np.eye(4)
+    for _ in range(n):
+        out.append(T.copy())
+        T = T @ G.make_se3(G.so3_exp(np.radians([0, yaw_deg, 0])), np.array([0, 0, step_m]))
+    return np.stack(out)
+
+
+def test_perfect_odometry_has_zero_error_in_any_odometry_frame():
+    gt = _traj()
+    offset = G.make_se3(G.so3_exp(np.array([0.1, -0.3, 0.2])), np.array([1.0, 2.0, 3.0]))
+    X = [offset @ T for T in gt]  # odometry frame differs from the world frame
+    s = ego_summary([_ego_steps(X, gt)])
+    assert s["rpe_trans_pct"] == pytest.approx(0, abs=1e-9)
+    assert s["rpe_rot_deg_median"] == pytest.approx(0, abs=1e-6)
+    assert s["end_drift_pct"] == pytest.approx(0, abs=1e-9)
+    assert s["path_m"] == pytest.approx(1.0) and s["n_steps"] == 10
+
+
+def test_scale_error_gives_that_percentage_per_step():
+    gt = _traj(yaw_deg=0.0)
+    X = [G.make_se3(T[:3, :3], 1.05 * T[:3, 3]) for T in gt]  # 5 % too long
+    s = ego_summary([_ego_steps(X, gt)])
+    assert s["rpe_trans_pct"] == pytest.approx(5.0)
+    assert s["end_drift_pct"] == pytest.approx(5.0)
+
+
+def test_frozen_odometry_is_100_percent_and_suite_pools_paths():
+    gt = _traj()
+    frozen = [np.eye(4)] * len(gt)
+    a = _ego_steps(frozen, gt)
+    b = _ego_steps(list(gt), gt)
+    assert ego_summary([a])["rpe_trans_pct"] == pytest.approx(100.0)
+    assert ego_summary([a, b])["rpe_trans_pct"] == pytest.approx(50.0)  # pooled over both paths
+    assert ego_summary([a])["rpe_rot_deg_median"] == pytest.approx(1.0, rel=1e-6)
+
+
+def test_no_motion_or_missing_ground_truth_gives_nan_not_an_error():
+    still = np.stack([np.eye(4)] * 4)
+    assert np.isnan(ego_summary([_ego_steps(list(still), still)])["rpe_trans_pct"])
+    gt = _traj(4)
+    gt[2] = np.nan
+    assert np.isnan(ego_summary([_ego_steps(list(_traj(4)), gt)])["rpe_trans_pct"])
