@@ -64,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     src.add_argument("--synth", nargs="+", metavar="SETTING:INDEX",
                      help="render encounter INDEX of the paper-default suite's SETTING in memory "
                           "(e.g. synthetic-cad:0 synthetic-indoor:1), same arguments as the suite")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="render --synth encounters with this seed instead of the suite's (calibrate on "
+                         "scenes the evaluation never sees, e.g. --seed 2001)")
     ap.add_argument("--overlap", type=float, default=0.2, help="overlap ratio that counts as overlapping")
     ap.add_argument("--q-m", type=float, default=0.10)
     ap.add_argument("--q-k", type=float, default=0.01)
@@ -90,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             setting, index = spec.split(":")
             world, conf = SUITES["paper-default"][setting]
             conf = {k: v for k, v in conf.items() if k != "workers"}
-            yield render_encounter(world, seed=conf.get("seed", 0), index=int(index), conf=conf, progress=True)
+            seed = conf.get("seed", 0) if a.seed is None else a.seed
+            yield render_encounter(world, seed=seed, index=int(index), conf=conf, progress=True)
 
     for enc in _encounters():
         if True:
@@ -124,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         "gate": {"roc_auc": auc, **f1, "n_pairs": int(len(s)), "n_overlapping": int(y.sum()),
                  "overlap_threshold": a.overlap},
         "consecutive": {"n": int(len(c)), "q_m": a.q_m, "q_k": a.q_k, "median": float(np.median(c))},
-        "sources": a.manifest or [f"paper-default {x}" for x in a.synth], "descriptor_dim": desc.dim, "descriptor_conf": {
+        "sources": a.manifest or [f"paper-default {x} seed {a.seed}" for x in a.synth], "descriptor_dim": desc.dim, "descriptor_conf": {
             k: v for k, v in desc.conf.items() if k not in ("thresholds", "xfeat")},
     }
     print(json.dumps(result, indent=2))

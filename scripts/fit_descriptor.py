@@ -2,13 +2,13 @@
 """Fit the k-means centres of the offline descriptor and ship them in cerpe/data/.
 
 The offline descriptor (cerpe.backbones.descriptor.XFeatSaladDescriptor) needs no
-training, only cluster centres of L2-normalised dense XFeat features and their
-mean. Fit them on images that the evaluation never sees:
+training, only cluster centres of L2-normalised XFeat features (keypoint
+descriptors by default, --features dense for the dense map) and their mean. Fit them on images that the evaluation never sees:
 
     # synthetic encounters rendered in memory with seeds disjoint from the evaluation
     # suites (cerpe.synth.SUITES use seed 0); this is how the shipped file was made:
-    python scripts/fit_descriptor.py --synth indoor-team:1001 indoor-team:1002 \
-        cad-intersection:1001 cad-intersection:1002 --frames 16 --every 2
+    python scripts/fit_descriptor.py --synth indoor-team:1001 indoor-team:1002 indoor-team:1003 \
+        cad-intersection:1001 cad-intersection:1002 cad-intersection:1003 --frames 16 --every 2
     # or a suite already on disk, or any folder of images
     python scripts/fit_descriptor.py --manifest build/synth-fit/<suite>/manifest.yaml
     # or any folder of images
@@ -78,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--every", type=int, default=5, help="use every n-th frame of each robot (manifest)")
     ap.add_argument("--limit", type=int, default=200, help="at most this many images")
     ap.add_argument("--clusters", type=int, default=64)
+    ap.add_argument("--features", choices=("sparse", "dense"), default="sparse",
+                    help="keypoint descriptors (the descriptor's default) or the dense map")
+    ap.add_argument("--max-keypoints", type=int, default=1024, help="keypoints per image (sparse)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--source-note", default="", help="free text stored as provenance")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "cerpe" / "data" / "xfeat_salad_centres.npz"))
@@ -86,14 +89,17 @@ def main(argv: list[str] | None = None) -> int:
     from cerpe.backbones.descriptor import fit_centres
     from cerpe.backbones.xfeat import XFeatEncoder
 
-    enc = XFeatEncoder()
+    enc = XFeatEncoder({"top_k": max(a.max_keypoints, XFeatEncoder.default_conf["top_k"])})
     if a.synth:
         it = _images_from_synth(a.synth, a.frames, a.every, a.limit)
     elif a.manifest:
         it = _images_from_manifest(a.manifest, a.every, a.limit)
     else:
         it = _images_from_glob(a.images, a.limit)
-    maps = [enc.encode_image(img, what=name).dense for name, img in tqdm(it, desc="XFeat", unit="img")]
+    def local(feats):  # [64, n] either way: fit_centres flattens all but the first axis
+        return feats.descriptors[: a.max_keypoints].T if a.features == "sparse" else feats.dense
+
+    maps = [local(enc.encode_image(img, what=name)) for name, img in tqdm(it, desc="XFeat", unit="img")]
     if not maps:
         print("fit_descriptor: no images found", file=sys.stderr)
         return 2
@@ -102,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     dst = Path(a.out)
     tmp = dst.with_name(dst.stem + ".tmp.npz")
     np.savez(tmp, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),
-             n_images=np.array(len(maps)), seed=np.array(a.seed), num_clusters=np.array(a.clusters))
+             n_images=np.array(len(maps)), seed=np.array(a.seed), num_clusters=np.array(a.clusters),
+             features=np.array(a.features), max_keypoints=np.array(a.max_keypoints))
     os.replace(tmp, dst)
     print(f"fit_descriptor: {len(maps)} images -> {a.clusters} centres, wrote {dst} ({dst.stat().st_size} B)")
     return 0

@@ -27,7 +27,8 @@ def descriptor(encoder, room, tmp_path_factory):
     """Descriptor with centres fitted on this test's own renders (independent of the shipped file)."""
     from cerpe.backbones.descriptor import XFeatSaladDescriptor, fit_centres
 
-    maps = [encoder.encode_image(room.render(pose((0.5 * i, 0, 0.3 * i), (0, 25 * i, 0)))[0]).dense for i in range(4)]
+    maps = [encoder.encode_image(room.render(pose((0.5 * i, 0, 0.3 * i), (0, 25 * i, 0)))[0]).descriptors.T
+            for i in range(4)]
     path = tmp_path_factory.mktemp("centres") / "c.npz"
     np.savez(path, **fit_centres(maps, num_clusters=16, seed=0))
     return XFeatSaladDescriptor({"centres": str(path), "thresholds": {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}},
@@ -65,7 +66,7 @@ def test_descriptor_protocol_size_and_unit_norm(descriptor, room):
 
     assert isinstance(descriptor, DescriptorEncoder)
     d = descriptor.describe(View(("d", 0), room.render(pose())[0], K))
-    assert d.shape == (descriptor.dim,) == (16 * 64 + 24 * 8,) and d.dtype == np.float32
+    assert d.shape == (descriptor.dim,) == (16 * 64 + 32 * 16 * 8,) and d.dtype == np.float32
     assert abs(np.linalg.norm(d) - 1) < 1e-5
     wb = descriptor.wire_bytes()
     for dt in ("fp32", "fp16", "int8"):
@@ -131,3 +132,40 @@ def test_fit_centres_recovers_clusters():
     out = fit_centres([pts.T.reshape(64, 10, 100)], num_clusters=5, seed=1)
     best = np.max(out["centres"] @ true.T, axis=0)
     assert np.all(best > 0.99)
+
+
+def test_centred_aggregation_is_upstream_salad(descriptor, encoder, room):
+    """reduction='centred', power=1 is SALAD's aggregation exactly (salad_aggregate, known answer)."""
+    import torch
+
+    from cerpe.backbones.descriptor import XFeatSaladDescriptor
+    from cerpe.backbones.salad import salad_aggregate
+
+    img = room.render(pose((0.1, 0, 0.1), (0, 10, 0)))[0]
+    d = XFeatSaladDescriptor({**descriptor.conf, "reduction": "centred", "power": 1.0, "token": "mean",
+                              "token_weight2": 1.0 / descriptor.num_clusters}, encoder=encoder)
+    feats = encoder.encode_image(img)
+    F, _ = d.local_features(feats)
+    c = d.conf
+    ref = salad_aggregate(torch.from_numpy((F - d.mean).T.copy())[None],
+                          torch.from_numpy((c["beta"] * F @ d.centres.T).T.copy())[None],
+                          torch.from_numpy((F.mean(0) - d.mean)[None].copy()),
+                          float(c["beta"] * c["dustbin_cos"]), int(c["sinkhorn_iters"]))[0].numpy()
+    assert np.allclose(d.aggregate(feats, img), ref, atol=1e-5)
+
+
+def test_too_few_keypoints_is_low_texture(descriptor, room):
+    """An image with fewer keypoints than clusters gets the gate-safe placeholder and the flag."""
+    img = np.full((240, 320, 3), 128, np.uint8)
+    img[100:120, 150:170] = 255  # a textured patch: grey std passes, a handful of keypoints
+    d = descriptor.describe(View(("few", 0), img, K))
+    good = descriptor.describe(View(("g", 1), room.render(pose())[0], K))
+    assert descriptor.flags(("few", 0)) == {"low-texture"}
+    assert abs(np.linalg.norm(d) - 1) < 1e-5 and d @ good < descriptor.thresholds["tau"]
+
+
+def test_residual_descriptor_is_sensitive_to_content(descriptor, room):
+    """Changing the image content changes the descriptor (guards against a constant output)."""
+    a = descriptor.describe(View(("c", 0), room.render(pose())[0], K))
+    b = descriptor.describe(View(("c", 1), Room(5).render(pose((0.3, 0, 0), (0, 90, 0)))[0], K))
+    assert a @ b < 0.99
