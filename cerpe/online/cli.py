@@ -3,7 +3,7 @@
 Usage (one command per robot/machine; the same manifest and encounter on every one)::
 
     cerpe online --robot r0 --listen 0.0.0.0:7000 --peer r1=10.0.0.2:7000 \\
-        --manifest datasets_manifest/synthetic-cad.yaml --encounter cad-l0-s0 --rate 10
+        --manifest datasets_manifest/synthetic-cad.yaml --encounter cad-l0-s0-e00 --rate 10
 
 The robot replays its own frames of ENCOUNTER from MANIFEST (``--rate`` frames
 per second; 0 = as fast as the team allows), exchanges descriptors, image

@@ -181,8 +181,10 @@ def package_versions() -> dict[str, str]:
 def code_hash(method: str) -> str:
     """Hash of the ``cerpe`` source files a method's results depend on.
 
-    Evaluation, plotting, CLI and paper-building code are left out: changing
-    them does not change what a method computes, so cached runs stay valid.
+    Evaluation, plotting, CLI, paper-building and online-transport code are left
+    out: changing them does not change what a method computes, so cached runs stay
+    valid. The data files shipped in ``cerpe/data`` (descriptor centres and
+    thresholds) are in: they change what CERPE computes.
     """
     root = Path(__file__).resolve().parents[1]
     skip = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/bench.py", "plotting.py", "cli.py"}
@@ -190,8 +192,8 @@ def code_hash(method: str) -> str:
         dirs = ["baselines", "datasets", "synth"]
         files = [root / f for f in ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py")]
     else:
-        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in ("baselines", "__pycache__")]
-        files = sorted(root.glob("*.py")) + [root / "pipeline" / "run.py"]
+        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in ("baselines", "online", "__pycache__")]
+        files = sorted(root.glob("*.py")) + [root / "pipeline" / "run.py"] + sorted((root / "data").glob("*.*"))
     for d in dirs:
         files += sorted((root / d).rglob("*.py"))
     h = hashlib.sha256()
