@@ -263,3 +263,39 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def gate_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], table: pd.DataFrame, points: pd.DataFrame,
+                overlap: float = 0.2, title: str = ""):
+    """The descriptor gate against ground-truth overlap: ROC per setting, and cosine vs overlap.
+
+    Args:
+        curves: ``{setting: (fpr, tpr)}``.
+        table: rows with ``setting, roc_auc, tau, precision, recall``.
+        points: rows with ``setting, gate_score, overlap_gt``.
+        overlap: the overlap ratio that counts as overlapping.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.3))
+    ax = axes[0]
+    for s, (fpr, tpr) in curves.items():
+        r = table[table["setting"] == s].iloc[0]
+        ax.plot(fpr, tpr, lw=1.3, label=f"{s}: AUC {r['roc_auc']:.3f}, P {r['precision']:.2f} / R {r['recall']:.2f} at tau")
+    ax.plot([0, 1], [0, 1], color="0.6", lw=0.7, ls=":")
+    ax.set_xlabel("false positive rate")
+    ax.set_ylabel("true positive rate")
+    ax.set_title(f"gate ROC: descriptor cosine vs GT overlap >= {overlap:g} (all ordered pairs, all steps)", fontsize=8)
+    ax.legend(fontsize=7, loc="lower right")
+    ax = axes[1]
+    for s, g in points.groupby("setting"):
+        ax.scatter(g["overlap_gt"], g["gate_score"], s=4, alpha=0.35, label=s)
+    taus = table["tau"].dropna().unique()
+    for tau in taus:
+        ax.axhline(tau, color="k", lw=0.7, ls=":", label=f"tau = {tau:.3f}")
+    ax.axvline(overlap, color="tab:red", lw=0.7, ls="--", label=f"overlap = {overlap:g}")
+    ax.set_xlabel("ground-truth overlap ratio")
+    ax.set_ylabel("descriptor cosine (fp16 wire)")
+    ax.legend(fontsize=7, markerscale=3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -30,33 +30,6 @@ import numpy as np
 from tqdm import tqdm
 
 
-def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
-    """Area under the ROC curve (Mann-Whitney U with average ranks for ties)."""
-    from scipy.stats import rankdata
-
-    pos, neg = labels.sum(), (~labels).sum()
-    if pos == 0 or neg == 0:
-        return float("nan")
-    r = rankdata(scores)
-    return float((r[labels].sum() - pos * (pos + 1) / 2) / (pos * neg))
-
-
-def best_f1(scores: np.ndarray, labels: np.ndarray) -> dict[str, float]:
-    """Threshold maximising F1 of ``score >= tau``; midpoint between neighbouring scores."""
-    order = np.argsort(-scores)
-    s, y = scores[order], labels[order]
-    tp = np.cumsum(y)
-    fp = np.cumsum(~y)
-    prec = tp / (tp + fp)
-    rec = tp / max(y.sum(), 1)
-    f1 = np.where(prec + rec > 0, 2 * prec * rec / np.maximum(prec + rec, 1e-12), 0)
-    k = int(np.argmax(f1))
-    tau = float(0.5 * (s[k] + s[k + 1])) if k + 1 < len(s) else float(s[k])
-    pred = scores >= tau
-    tp_, fp_, fn_ = int((pred & labels).sum()), int((pred & ~labels).sum()), int((~pred & labels).sum())
-    return {"tau": tau, "f1": float(f1[k]), "precision": tp_ / max(tp_ + fp_, 1), "recall": tp_ / max(tp_ + fn_, 1)}
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = ap.add_mutually_exclusive_group(required=True)
@@ -77,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
     from cerpe.datasets import load_setting
+    from cerpe.pipeline.evaluate import best_f1, roc_auc
     from cerpe.protocols import View
 
     desc = XFeatSaladDescriptor({"thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})

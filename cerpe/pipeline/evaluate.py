@@ -140,6 +140,78 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
     return Run(path, meta, sdf, rdf)
 
 
+GATE_OVERLAP = 0.2  # issue 4 / calibration: a pair "overlaps" when the GT overlap ratio is at least this
+
+
+def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve of ``scores`` for boolean ``labels`` (Mann-Whitney U, ties averaged).
+
+    NaN when either class is empty.
+    """
+    from scipy.stats import rankdata
+
+    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
+    pos, neg = int(labels.sum()), int((~labels).sum())
+    if pos == 0 or neg == 0:
+        return float("nan")
+    r = rankdata(scores)
+    return float((r[labels].sum() - pos * (pos + 1) / 2) / (pos * neg))
+
+
+def roc_curve(scores: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(false positive rate, true positive rate, threshold)`` of ``score >= threshold``, thresholds descending."""
+    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
+    order = np.argsort(-scores, kind="stable")
+    s, y = scores[order], labels[order]
+    last = np.r_[np.diff(s) != 0, True]  # one point per distinct score
+    tp, fp = np.cumsum(y)[last], np.cumsum(~y)[last]
+    P, N = max(int(y.sum()), 1), max(int((~y).sum()), 1)
+    return np.r_[0.0, fp / N], np.r_[0.0, tp / P], np.r_[np.inf, s[last]]
+
+
+def best_f1(scores: np.ndarray, labels: np.ndarray) -> dict[str, float]:
+    """Threshold maximising F1 of ``score >= tau`` (midpoint between neighbouring scores), with P and R at it."""
+    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
+    order = np.argsort(-scores)
+    s, y = scores[order], labels[order]
+    tp, fp = np.cumsum(y), np.cumsum(~y)
+    prec, rec = tp / (tp + fp), tp / max(y.sum(), 1)
+    f1 = np.where(prec + rec > 0, 2 * prec * rec / np.maximum(prec + rec, 1e-12), 0)
+    k = int(np.argmax(f1))
+    tau = float(0.5 * (s[k] + s[k + 1])) if k + 1 < len(s) else float(s[k])
+    return {"tau": tau, "f1": float(f1[k]), **precision_recall(scores, labels, tau)}
+
+
+def precision_recall(scores: np.ndarray, labels: np.ndarray, tau: float) -> dict[str, float]:
+    """Precision and recall of ``score >= tau`` (NaN where undefined)."""
+    pred, labels = np.asarray(scores, float) >= tau, np.asarray(labels, bool)
+    tp, fp, fn = int((pred & labels).sum()), int((pred & ~labels).sum()), int((~pred & labels).sum())
+    return {"precision": tp / (tp + fp) if tp + fp else float("nan"),
+            "recall": tp / (tp + fn) if tp + fn else float("nan")}
+
+
+def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_OVERLAP) -> dict[str, float]:
+    """How well the descriptor gate predicts overlap, over all ordered pairs and steps of ``steps``.
+
+    Uses the ``gate_score`` (cosine of the wire descriptors) and ``overlap_gt``
+    columns of CERPE's ``steps.csv``; rows without either are left out.
+
+    Returns:
+        ``n_pairs``, ``n_overlapping`` (``overlap_gt >= overlap``), ``roc_auc``, ``tau``
+        (the run's threshold), ``precision`` and ``recall`` at it, ``open_rate``.
+    """
+    ok = np.isfinite(pd.to_numeric(steps.get("gate_score"), errors="coerce")) & np.isfinite(
+        pd.to_numeric(steps.get("overlap_gt"), errors="coerce"))
+    s = steps.loc[ok, "gate_score"].to_numpy(float)
+    y = steps.loc[ok, "overlap_gt"].to_numpy(float) >= overlap
+    out = {"n_pairs": int(len(s)), "n_overlapping": int(y.sum()), "roc_auc": roc_auc(s, y),
+           "tau": float("nan") if tau is None else float(tau)}
+    out.update(precision_recall(s, y, out["tau"]) if tau is not None and len(s) else
+               {"precision": float("nan"), "recall": float("nan")})
+    out["open_rate"] = float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")
+    return out
+
+
 def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.DataFrame:
     """Per-(pair, step) errors of the evaluated frames.
 

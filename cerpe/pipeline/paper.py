@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import CerpeError
-from .evaluate import EvalError, evaluate_runs, summarise
+from .evaluate import GATE_OVERLAP, EvalError, evaluate_runs, gate_quality, roc_curve, summarise
 from .run import (BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE, atomic_write_json,
                   atomic_write_text, run_method)
 
@@ -51,7 +51,8 @@ PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2"
 NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime")
 # outputs each notebook must leave (stems; figures as .png and .pdf)
 EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
-EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime")
+EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality")
+NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv")  # written by notebook 04
 PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
 SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
 
@@ -447,8 +448,7 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
     gate = S[(S["setting"] == key[0]) & (S["encounter"] == key[1]) & (S["ego"] == key[2]) & (S["other"] == key[3])]
     gate = gate[["step", "gate_score", "gate_open", "overlap_gt"]].sort_values("step").reset_index(drop=True)
     gate.attrs["label"] = f"gate of {key[2]} about {key[3]} ({key[0]}/{key[1]})"
-    run_meta = json.loads((ctx.run_dirs[(key[0], method)] / "run.json").read_text())
-    tau = run_meta.get("config", {}).get("method_config", {}).get("cerpe", {}).get("tau")
+    tau = _run_tau(ctx.run_dirs[(key[0], method)], "cerpe")
     if tau is not None:
         gate.attrs["tau"] = float(tau)
     stage_cols = [c for c in R.columns if c.startswith("t_") and c.endswith("_s")]
@@ -480,6 +480,44 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
             "paper": PAPER_NUMBERS, "image_bytes": img}
 
 
+def _run_tau(run_dir: Path, method: str) -> float | None:
+    """The gate threshold a CERPE run used (``run.json``), or None."""
+    meta = json.loads((run_dir / "run.json").read_text())
+    tau = meta.get("config", {}).get("method_config", {}).get(method, {}).get("tau")
+    return None if tau is None else float(tau)
+
+
+def gate_data(ctx: PaperContext, method: str = "cerpe") -> dict:
+    """Descriptor gate vs ground-truth overlap per setting, from CERPE's ``steps.csv``.
+
+    Returns:
+        ``table``: one row per setting with :func:`~cerpe.pipeline.evaluate.gate_quality`'s
+        fields (ROC AUC of the cosine against ``overlap_gt >= 0.2`` over all ordered
+        pairs and steps, the run's ``tau``, precision and recall at it, open rate);
+        ``curves``: ``{setting: (fpr, tpr)}``; ``points``: ``setting, gate_score,
+        overlap_gt`` rows for a scatter; ``overlap``: the label threshold.
+    """
+    rows, curves, points = [], {}, []
+    for (s, m), p in sorted(ctx.run_dirs.items()):
+        if m != method:
+            continue
+        done = [d for d in sorted(p.iterdir()) if (d / "DONE.json").exists()]
+        if not done:
+            continue
+        S = pd.concat([pd.read_csv(d / "steps.csv") for d in done], ignore_index=True)
+        q = gate_quality(S, _run_tau(p, method))
+        rows.append({"setting": s, **q})
+        ok = S["gate_score"].notna() & S["overlap_gt"].notna()
+        if q["n_overlapping"] and q["n_overlapping"] < q["n_pairs"]:
+            fpr, tpr, _ = roc_curve(S.loc[ok, "gate_score"], S.loc[ok, "overlap_gt"] >= GATE_OVERLAP)
+            curves[s] = (fpr, tpr)
+        points.append(S.loc[ok, ["gate_score", "overlap_gt"]].assign(setting=s))
+    if not rows:
+        raise PaperError(f"no finished {method} runs under {ctx.runs_root}")
+    return {"table": pd.DataFrame(rows), "curves": curves, "overlap": GATE_OVERLAP,
+            "points": pd.concat(points, ignore_index=True)}
+
+
 # --------------------------------------------------------------------------- notebooks
 def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
     h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
@@ -500,7 +538,7 @@ def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
 
 
 def expected_outputs(ctx: PaperContext) -> list[Path]:
-    out = [ctx.tables_dir / t for t in EXPECTED_TABLES]
+    out = [ctx.tables_dir / t for t in EXPECTED_TABLES + NOTEBOOK_TABLES]
     for stem in EXPECTED_FIGURES:
         out += [ctx.figures_dir / f"{stem}.png", ctx.figures_dir / f"{stem}.pdf"]
     for e in ctx.ok_settings:

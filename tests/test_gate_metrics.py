@@ -1,0 +1,53 @@
+"""Gate metrics (ROC AUC, ROC curve, best-F1 threshold, gate_quality) with known answers."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cerpe.pipeline.evaluate import best_f1, gate_quality, precision_recall, roc_auc, roc_curve
+
+
+def test_auc_known_answers():
+    y = np.array([0, 0, 1, 1], bool)
+    assert roc_auc(np.array([0.1, 0.2, 0.3, 0.4]), y) == 1.0
+    assert roc_auc(np.array([0.4, 0.3, 0.2, 0.1]), y) == 0.0
+    assert roc_auc(np.array([0.5, 0.5, 0.5, 0.5]), y) == 0.5
+    # one of four positive-negative pairs misordered
+    assert roc_auc(np.array([0.1, 0.35, 0.3, 0.4]), y) == pytest.approx(0.75)
+    assert np.isnan(roc_auc(np.array([0.1, 0.2]), np.array([True, True])))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1, 1), st.booleans()), min_size=2, max_size=60))
+def test_auc_equals_area_under_curve(pairs):
+    s = np.array([p[0] for p in pairs])
+    y = np.array([p[1] for p in pairs])
+    if y.all() or (~y).all():
+        return
+    fpr, tpr, thr = roc_curve(s, y)
+    assert fpr[0] == tpr[0] == 0 and fpr[-1] == pytest.approx(1) and tpr[-1] == pytest.approx(1)
+    assert np.all(np.diff(fpr) >= 0) and np.all(np.diff(tpr) >= 0) and np.all(np.diff(thr) < 0)
+    assert np.trapezoid(tpr, fpr) == pytest.approx(roc_auc(s, y), abs=1e-9)
+
+
+def test_best_f1_and_precision_recall():
+    s = np.array([0.9, 0.8, 0.7, 0.2, 0.1])
+    y = np.array([1, 1, 0, 0, 0], bool)
+    r = best_f1(s, y)
+    assert 0.7 < r["tau"] < 0.8 and r["f1"] == 1.0 and r["precision"] == 1.0 and r["recall"] == 1.0
+    assert precision_recall(s, y, 0.65) == {"precision": pytest.approx(2 / 3), "recall": 1.0}
+    assert np.isnan(precision_recall(s, y, 2.0)["precision"])
+
+
+def test_gate_quality_from_steps_rows():
+    steps = pd.DataFrame({"gate_score": [0.9, 0.6, 0.4, 0.3, np.nan, 0.8],
+                          "overlap_gt": [0.5, 0.1, 0.3, 0.0, 0.9, np.nan]})
+    q = gate_quality(steps, tau=0.5)
+    assert q["n_pairs"] == 4 and q["n_overlapping"] == 2  # NaN rows left out
+    assert q["roc_auc"] == pytest.approx(0.75)
+    assert q["precision"] == pytest.approx(0.5) and q["recall"] == pytest.approx(0.5)
+    assert q["open_rate"] == pytest.approx(0.5) and q["tau"] == 0.5
+    assert np.isnan(gate_quality(steps, tau=None)["precision"])
