@@ -26,7 +26,6 @@ no estimate). See ``docs/ARCHITECTURE.md``, "Online transport".
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -57,21 +56,6 @@ def _check_robots(enc: Any, robot: str, peers: Mapping[str, Address], manifest: 
         raise OnlineError(f"--peer {robot}: that is this robot itself (--robot {robot})")
 
 
-def _plugins_and_config(method: str, profile: str, metric_depth: str | None) -> tuple[Any, Any, dict]:
-    """Plug-ins and resolved config as ``cerpe run`` builds them for ``method``."""
-    from .. import algorithm
-    from ..backbones.build import build_plugins
-
-    plugins = build_plugins(profile, depth=metric_depth)
-    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"),
-                              unit_scale_without_depth=(metric_depth == "none"))
-    cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
-    conf = {"cerpe": rp._as_dict(cfg), "preset": profile,
-            "plugins": {"descriptor": rp._conf_of(plugins.descriptor), "backbone": rp._conf_of(plugins.backbone),
-                        "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__)}}
-    return plugins, cfg, conf
-
-
 def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address, peers: Mapping[str, Address],
                out: Path | str, *, method: str = "cerpe", profile: str = "offline", seed: int = 0,
                node_conf: Mapping[str, Any] | None = None, overwrite: bool = False, progress: bool = True,
@@ -90,7 +74,7 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
     if method not in rp.CERPE_METHODS:
         raise OnlineError(f"--method {method!r}: online runs support {list(rp.CERPE_METHODS)}")
     manifest = Path(manifest).resolve()
-    setting = setting if setting is not None else rp._load_setting(manifest)
+    setting = setting if setting is not None else rp.load_manifest_setting(manifest)
     enc = _encounter(setting, encounter, manifest)
     _check_robots(enc, robot, peers, manifest)
     for rid, addr in peers.items():
@@ -103,7 +87,8 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
     net = NetTransport(robot, listen)  # binds now: a port in use fails before models load
     try:
         if plugins is None:
-            plugins, config, mconf = _plugins_and_config(method, profile, getattr(setting, "metric_depth", None))
+            plugins, config, mconf = rp.cerpe_plugins_and_config(method, profile,
+                                                                 getattr(setting, "metric_depth", None))
         else:
             config = config if config is not None else CerpeConfig()
             mconf = {"cerpe": rp._as_dict(config), "preset": "given", "plugins": "given"}

@@ -255,8 +255,11 @@ def _as_dict(cfg: Any) -> dict:
     return {"repr": repr(cfg)}
 
 
-def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None) -> tuple[dict, StepSource]:
-    """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
+def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None) -> tuple[Any, Any, dict]:
+    """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
+
+    One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
+    """
     import dataclasses
 
     from .. import algorithm
@@ -272,6 +275,14 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None)
         "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
                     "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__)},
     }
+    return plugins, cfg, conf
+
+
+def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None) -> tuple[dict, StepSource]:
+    """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
+    from .. import algorithm
+
+    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth)
 
     # Propagation feeds nothing back (anchors come only from direct estimates; the
     # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
@@ -456,7 +467,8 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
 
 
 # --------------------------------------------------------------------------- the run
-def _load_setting(manifest: Path) -> Any:
+def load_manifest_setting(manifest: Path) -> Any:
+    """The :class:`~cerpe.scene.Setting` of ``manifest`` (a RunError if the file is missing)."""
     from .. import datasets
 
     if not Path(manifest).is_file():
@@ -498,7 +510,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
         raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
     manifest = Path(manifest).resolve()
     out = Path(out)
-    setting = setting if setting is not None else _load_setting(manifest)
+    setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
     mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every)
     config = {
