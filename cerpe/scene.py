@@ -255,3 +255,4 @@ class Setting:
     encounters: list[Encounter]
     metric_depth: str = "dataset"
     meta: dict = field(default_factory=dict)
+    metric_depth_options: dict = field(default_factory=dict)  # keyword options of the depth source

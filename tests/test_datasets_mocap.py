@@ -176,3 +176,31 @@ def test_window_mask_relative_and_from_end() -> None:
     assert window_mask(s, [0, 3]).sum() == 4
     assert window_mask(s, [-2, None]).nonzero()[0].tolist() == [7, 8, 9]
     assert window_mask(s, None).all()
+
+
+def test_metric_depth_options_reach_the_setting_and_the_depth_source(tmp_path: Path) -> None:
+    from cerpe.backbones.depth import DepthSourceError, build_depth_source
+    from cerpe.datasets import ManifestError
+
+    m = write_mocap(tmp_path)
+    raw = yaml.safe_load(m.read_text())
+    raw["metric_depth_options"] = {"min_m": 0.5, "max_m": 40}
+    m.write_text(yaml.safe_dump(raw))
+    setting = load_setting(m)
+    assert setting.metric_depth_options == {"min_m": 0.5, "max_m": 40}
+    src = build_depth_source(setting.metric_depth, setting.metric_depth_options)
+    assert (src.min_m, src.max_m) == (0.5, 40)
+    with pytest.raises(DepthSourceError, match="bad options.*max_range"):
+        build_depth_source("sensor", {"max_range": 40})
+    for bad, field in (([40], "metric_depth_options"), ({"max_m": [1, 2]}, "metric_depth_options.max_m")):
+        raw["metric_depth_options"] = bad
+        m.write_text(yaml.safe_dump(raw))
+        with pytest.raises(ManifestError, match=field.replace(".", r"\.")):
+            load_manifest(m)
+
+
+def test_synth_manifest_gives_the_cad_world_an_outdoor_sensor() -> None:
+    from cerpe.synth import sensor_options
+
+    assert sensor_options("cad-intersection")["max_m"] >= 40
+    assert sensor_options("indoor-team") == {}

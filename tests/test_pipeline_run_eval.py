@@ -60,7 +60,7 @@ def manifest(tmp_path: Path) -> Path:
 
 @pytest.fixture()
 def fake_method(monkeypatch):
-    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1: ({"fake": True}, _fake_steps()))
+    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1, depth_options=None: ({"fake": True}, _fake_steps()))
 
 
 def test_run_folder_layout_and_known_metrics(tmp_path, manifest, fake_method):

@@ -76,9 +76,12 @@ def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what
     for n in names:
         obj = getattr(mod, n, None)
         if obj is not None:
-            if keywords:  # dataclass-style constructors take the fields as keywords
-                return obj(**conf)
-            return obj(conf) if conf else obj()
+            try:
+                if keywords:  # dataclass-style constructors take the fields as keywords
+                    return obj(**conf)
+                return obj(conf) if conf else obj()
+            except TypeError as exc:  # an option the source does not have (manifest metric_depth_options)
+                raise DepthSourceError(f"depth source {what!r}: bad options {sorted(conf)}: {exc}") from None
     raise DepthSourceError(f"depth source {what!r}: {module} defines none of {list(names)}")
 
 

@@ -76,6 +76,7 @@ def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None
     setting = get_adapter(manifest.adapter, str(manifest.path)).load(manifest, report)
     report.raise_if_problems()
     setting.metric_depth = manifest.metric_depth
+    setting.metric_depth_options = dict(manifest.metric_depth_options)
     setting.meta.setdefault("manifest", str(manifest.path))
     setting.meta.setdefault("adapter", manifest.adapter)
     setting.meta["evaluation_every"] = manifest.evaluation_every

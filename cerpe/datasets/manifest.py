@@ -11,6 +11,7 @@ Common fields (adapter-specific ones are checked by the adapter)::
     enabled: true              # false: the setting is listed as "not supplied"
     data_root: ../build/x      # relative to the manifest file; ${VAR} expands from the environment
     metric_depth: sensor       # sensor | mono-sim | dataset | metric3d | none
+    metric_depth_options: {max_m: 40}   # optional keyword options of that source (numbers, booleans, strings)
     sync_tolerance_s: 0.02     # > 0, seconds
     evaluation: {every: 1}     # evaluate every n-th step (n >= 1)
     encounters: [...]          # adapter-specific
@@ -32,7 +33,7 @@ from ..errors import CerpeError
 
 METRIC_DEPTH_CHOICES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
 COMMON_FIELDS: tuple[str, ...] = (
-    "name", "adapter", "enabled", "data_root", "metric_depth", "sync_tolerance_s",
+    "name", "adapter", "enabled", "data_root", "metric_depth", "metric_depth_options", "sync_tolerance_s",
     "evaluation", "encounters", "description",
 )
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
@@ -80,6 +81,8 @@ class Manifest:
     Attributes:
         path: the manifest file (absolute).
         name, adapter, enabled, metric_depth, sync_tolerance_s: common fields.
+        metric_depth_options: keyword options of the depth source (``{}`` when absent),
+            e.g. ``{min_m: 0.5, max_m: 40}`` for an outdoor ``sensor``.
         data_root: absolute data folder (None when it cannot be resolved, which is
             only allowed for a disabled manifest).
         evaluation_every: evaluate every n-th step.
@@ -97,6 +100,7 @@ class Manifest:
     evaluation_every: int
     encounters: Any
     raw: dict = field(default_factory=dict)
+    metric_depth_options: dict = field(default_factory=dict)
 
     def resolve(self, rel: str | os.PathLike) -> Path:
         """A path from the manifest, relative to ``data_root`` (absolute paths pass through)."""
@@ -195,6 +199,15 @@ def validate(raw: Any, path: Path, adapter_fields: Iterable[str] | None = ()) ->
     md = raw.get("metric_depth", "dataset")
     if md not in METRIC_DEPTH_CHOICES:
         probs.append(Problem(f, "metric_depth", f"expected one of {', '.join(METRIC_DEPTH_CHOICES)}, got {md!r}"))
+    opts = raw.get("metric_depth_options", {})
+    if not isinstance(opts, dict):
+        probs.append(Problem(f, "metric_depth_options",
+                             f"expected a mapping of option: value (e.g. {{max_m: 40}}), got {type_name(opts)}"))
+    else:
+        for k, v in opts.items():
+            if not isinstance(k, str) or not (isinstance(v, (bool, str)) or is_number(v)):
+                probs.append(Problem(f, f"metric_depth_options.{k}",
+                                     f"expected a number, boolean or string, got {type_name(v)}"))
     tol = raw.get("sync_tolerance_s", 0.02)
     if not is_number(tol) or float(tol) <= 0:
         probs.append(Problem(f, "sync_tolerance_s", f"expected a positive number of seconds, got {tol!r}"))
@@ -248,4 +261,5 @@ def build_manifest(raw: dict, path: Path) -> Manifest:
         evaluation_every=int(every) if isinstance(every, int) and not isinstance(every, bool) and every >= 1 else 1,
         encounters=raw.get("encounters"),
         raw=raw,
+        metric_depth_options=dict(raw["metric_depth_options"]) if isinstance(raw.get("metric_depth_options"), dict) else {},
     )

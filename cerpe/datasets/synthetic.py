@@ -129,7 +129,8 @@ class SyntheticAdapter:
         inner = load_manifest(generated)
         setting = MocapAdapter().load(inner, report)
         setting.name = manifest.name
-        setting.metric_depth = manifest.metric_depth
+        setting.metric_depth = manifest.metric_depth  # this manifest's source and options, not the generated one's
+        setting.metric_depth_options = dict(manifest.metric_depth_options)
         setting.meta.update({"manifest": str(manifest.path), "adapter": self.name, "generated_manifest": str(generated),
                              "world": world, "suite": suite, "seed": seed})
         return setting

@@ -87,8 +87,8 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
     net = NetTransport(robot, listen)  # binds now: a port in use fails before models load
     try:
         if plugins is None:
-            plugins, config, mconf = rp.cerpe_plugins_and_config(method, profile,
-                                                                 getattr(setting, "metric_depth", None))
+            plugins, config, mconf = rp.cerpe_plugins_and_config(
+                method, profile, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None))
         else:
             config = config if config is not None else CerpeConfig()
             mconf = {"cerpe": rp._as_dict(config), "preset": "given", "plugins": "given"}

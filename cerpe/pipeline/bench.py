@@ -69,9 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--preset", default="offline", help="backbone preset (offline | paper)")
     parser.add_argument("--depth", default=None, help="depth source (default: the manifest's metric_depth)")
-    parser.add_argument("--depth-conf", default="{}",
+    parser.add_argument("--depth-conf", default=None,
                         help='JSON options of the depth source, e.g. \'{"min_m": 0.5, "max_m": 40}\' for '
-                             'an outdoor stereo sensor on the CAD world (the default sensor sees 0.3-10 m)')
+                             'an outdoor stereo sensor (default: the manifest\'s metric_depth_options; the '
+                             'sensor without options sees 0.3-10 m)')
     parser.add_argument("--out", default=None, help="write the figures as JSON here")
 
 
@@ -326,14 +327,18 @@ def main(args: argparse.Namespace) -> int:
             encounters.append(render_encounter(world, seed=conf.get("seed", 0), index=int(index), conf=conf,
                                                progress=True))
         path, metric_depth = Path("<in-memory: " + " ".join(args.synth) + ">"), "sensor"
+        from ..synth import sensor_options
+
+        depth_options = sensor_options(encounters[0].meta.get("world", "")) if encounters else {}
     else:
         path = Path(args.manifest)
         if not path.is_file():
             raise BenchError(f"bench: manifest not found: {path} (generate it with `cerpe synth`)")
         setting = load_setting(path)
         encounters, metric_depth = setting.encounters, setting.metric_depth
+        depth_options = setting.metric_depth_options
     try:
-        depth_conf = json.loads(args.depth_conf)
+        depth_conf = depth_options if args.depth_conf is None else json.loads(args.depth_conf)
     except json.JSONDecodeError as exc:
         raise BenchError(f"bench: --depth-conf is not JSON: {exc}") from None
     def fresh() -> Any:  # new plug-in objects per run: no descriptor or match cached by an earlier run

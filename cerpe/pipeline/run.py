@@ -220,11 +220,12 @@ StepSource = Callable[[Any], Iterator[StepResult]]
 
 
 def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
-                   every: int = 1) -> tuple[dict, StepSource]:
+                   every: int = 1, depth_options: dict | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
-    the cerpe methods; None keeps the preset's default. ``every`` is the
+    the cerpe methods; None keeps the preset's default; ``depth_options`` its
+    keyword options (manifest ``metric_depth_options``). ``every`` is the
     setting's evaluation stride: per-frame baselines only compute evaluated steps
     (CERPE runs every step: its odometry and propagation need them).
 
@@ -236,7 +237,7 @@ def prepare_method(method: str, profile: str, seed: int, metric_depth: str | Non
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
     if method in CERPE_METHODS:
-        return _cerpe_steps(method, profile, seed, metric_depth)
+        return _cerpe_steps(method, profile, seed, metric_depth, depth_options)
     raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
 
 
@@ -255,7 +256,8 @@ def _as_dict(cfg: Any) -> dict:
     return {"repr": repr(cfg)}
 
 
-def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None) -> tuple[Any, Any, dict]:
+def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
+                             depth_options: dict | None = None) -> tuple[Any, Any, dict]:
     """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
 
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
@@ -265,7 +267,7 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     from .. import algorithm
     from ..backbones.build import build_plugins
 
-    plugins = build_plugins(profile, depth=metric_depth)
+    plugins = build_plugins(profile, {"depth_conf": dict(depth_options or {})}, depth=metric_depth)
     # Without any metric depth (e.g. RGB-only data) poses stay up to scale: evaluated at GT scale only.
     cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"),
                               unit_scale_without_depth=(metric_depth == "none"))
@@ -273,16 +275,18 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     conf = {
         "cerpe": _as_dict(cfg), "preset": profile,
         "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
-                    "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__)},
+                    "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__),
+                    "depth_options": dict(depth_options or {})},
     }
     return plugins, cfg, conf
 
 
-def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None) -> tuple[dict, StepSource]:
+def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
+                 depth_options: dict | None = None) -> tuple[dict, StepSource]:
     """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
     from .. import algorithm
 
-    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth)
+    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options)
 
     # Propagation feeds nothing back (anchors come only from direct estimates; the
     # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
@@ -512,7 +516,8 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     out = Path(out)
     setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
-    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every)
+    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
+                                  getattr(setting, "metric_depth_options", None))
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),

@@ -7,7 +7,7 @@ Public API (imported lazily so ``import cerpe.synth`` stays cheap)::
     generate_suite(world, out_dir, conf) -> manifest path
     generate_suites(name, out_root) -> {setting: manifest path}     # SUITES: fixture, paper-default
     render_encounter(world, seed, index, conf) -> cerpe.scene.Encounter   (in memory)
-    SensorDepthSim, MonoDepthSim                                     (MetricDepthSource simulations)
+    SensorDepthSim, MonoDepthSim, sensor_options                     (MetricDepthSource simulations)
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def __getattr__(name: str):
         from .worlds import WORLDS
 
         return WORLDS
-    if name in ("SensorDepthSim", "MonoDepthSim"):
+    if name in ("SensorDepthSim", "MonoDepthSim", "sensor_options"):
         from . import depthsim
 
         return getattr(depthsim, name)

@@ -73,7 +73,18 @@ class SensorDepthSim:
     @classmethod
     def outdoor(cls, **kw) -> "SensorDepthSim":
         """An outdoor stereo-like range: 0.5..40 m (other fields as given)."""
-        return cls(**{"min_m": 0.5, "max_m": 40.0, **kw})
+        return cls(**{**OUTDOOR_SENSOR, **kw})
+
+
+# A 0.3-10 m RGB-D range sees little of a street: most keypoints of the CAD world lie farther,
+# and scale alignment then starves (measured: 0-23 usable depth pixels per keyframe).
+OUTDOOR_SENSOR: dict[str, float] = {"min_m": 0.5, "max_m": 40.0}
+SENSOR_OPTIONS_BY_WORLD: dict[str, dict[str, float]] = {"cad-intersection": OUTDOOR_SENSOR}
+
+
+def sensor_options(world: str) -> dict[str, float]:
+    """``SensorDepthSim`` keyword options that suit ``world`` (``{}``: the indoor defaults)."""
+    return dict(SENSOR_OPTIONS_BY_WORLD.get(world, {}))
 
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         z = _exact(frame, "SensorDepthSim")

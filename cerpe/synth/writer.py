@@ -33,6 +33,7 @@ import numpy as np
 from ..scene import Encounter, RobotStream
 from .errors import SynthError
 from .groundtruth import has_transition, overlap_matrix, viewing_angle_matrix
+from .depthsim import sensor_options
 from .renderer import render
 from .worlds import WORLDS, EncounterPlan, check_conf, plan_encounter
 
@@ -237,6 +238,7 @@ def _manifest(setting: str, world: str, conf: dict, names: list[str], robots: di
         "enabled": True,
         "data_root": ".",
         "metric_depth": "sensor",
+        "metric_depth_options": sensor_options(world),
         "sync_tolerance_s": 0.02,
         "evaluation": {"every": 1},
         "encounters": [{
