@@ -16,7 +16,7 @@ from test_pipeline_run_eval import _fake_steps, _setting
 
 @pytest.fixture()
 def ctx(tmp_path, monkeypatch) -> paper.PaperContext:
-    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1: ({"fake": True}, _fake_steps()))
+    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1, depth_options=None: ({"fake": True}, _fake_steps()))
     m = tmp_path / "toy.yaml"
     m.write_text("name: toy\n")
     s = _setting(n_steps=8)

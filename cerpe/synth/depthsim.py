@@ -75,17 +75,6 @@ class SensorDepthSim:
         """An outdoor stereo-like range: 0.5..40 m (other fields as given)."""
         return cls(**{**OUTDOOR_SENSOR, **kw})
 
-
-# A 0.3-10 m RGB-D range sees little of a street: most keypoints of the CAD world lie farther,
-# and scale alignment then starves (measured: 0-23 usable depth pixels per keyframe).
-OUTDOOR_SENSOR: dict[str, float] = {"min_m": 0.5, "max_m": 40.0}
-SENSOR_OPTIONS_BY_WORLD: dict[str, dict[str, float]] = {"cad-intersection": OUTDOOR_SENSOR}
-
-
-def sensor_options(world: str) -> dict[str, float]:
-    """``SensorDepthSim`` keyword options that suit ``world`` (``{}``: the indoor defaults)."""
-    return dict(SENSOR_OPTIONS_BY_WORLD.get(world, {}))
-
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         z = _exact(frame, "SensorDepthSim")
         if z is None:
@@ -151,3 +140,14 @@ class MonoDepthSim:
             out = np.where(edges, blur * (1.0 + rng.normal(0.0, self.edge_sigma, z.shape)).astype(np.float32), out)
         out = np.clip(out, 0.0, self.max_m)
         return np.where(z > 0, out, 0.0).astype(np.float32)
+
+
+# A 0.3-10 m RGB-D range sees little of a street: most keypoints of the CAD world lie farther,
+# and scale alignment then starves (measured: 0-23 usable depth pixels per keyframe).
+OUTDOOR_SENSOR: dict[str, float] = {"min_m": 0.5, "max_m": 40.0}
+SENSOR_OPTIONS_BY_WORLD: dict[str, dict[str, float]] = {"cad-intersection": OUTDOOR_SENSOR}
+
+
+def sensor_options(world: str) -> dict[str, float]:
+    """``SensorDepthSim`` keyword options that suit ``world`` (``{}``: the indoor defaults)."""
+    return dict(SENSOR_OPTIONS_BY_WORLD.get(world, {}))
