@@ -29,36 +29,37 @@ import numpy as np
 from tqdm import tqdm
 
 
-def _images_from_manifest(path: str, every: int, limit: int):
-    from cerpe.datasets import load_setting
-
-    setting = load_setting(path)
+def _frames(encounters, every: int, limit: int):
+    """``(name, image)`` of every ``every``-th frame of each robot, at most ``limit`` in all."""
     n = 0
-    for enc in setting.encounters:
+    for enc in encounters:
         for r in enc.robots:
             for t in range(0, len(r), every):
                 if n >= limit:
                     return
                 n += 1
                 yield f"{enc.name}/{r.robot_id}/{t}", r.image(t)
+
+
+def _images_from_manifest(path: str, every: int, limit: int):
+    from cerpe.datasets import load_setting
+
+    yield from _frames(load_setting(path).encounters, every, limit)
 
 
 def _images_from_synth(specs: list[str], frames: int, every: int, limit: int):
     from cerpe.synth import SUITES, render_encounter
 
     eval_seeds = {conf.get("seed", 0) for suite in SUITES.values() for _, conf in suite.values()}
-    n = 0
-    for spec in specs:
-        world, seed = spec.split(":")[0], int(spec.split(":")[1])
-        if seed in eval_seeds:
-            raise SystemExit(f"fit_descriptor: seed {seed} is used by an evaluation suite; pick another")
-        enc = render_encounter(world, seed=seed, index=0, conf={"n_frames": frames}, progress=True)
-        for r in enc.robots:
-            for t in range(0, len(r), every):
-                if n >= limit:
-                    return
-                n += 1
-                yield f"{enc.name}/{r.robot_id}/{t}", r.image(t)
+
+    def rendered():
+        for spec in specs:
+            world, seed = spec.split(":")[0], int(spec.split(":")[1])
+            if seed in eval_seeds:
+                raise SystemExit(f"fit_descriptor: seed {seed} is used by an evaluation suite; pick another")
+            yield render_encounter(world, seed=seed, index=0, conf={"n_frames": frames}, progress=True)
+
+    yield from _frames(rendered(), every, limit)
 
 
 def _images_from_glob(pattern: str, limit: int):
