@@ -122,6 +122,13 @@ class CerpeConfig:
             source ``none``): use s = 1 instead of giving up, so poses are the
             backbone's up-to-scale ones (counted as ``scale:unit-no-depth``); such
             runs are evaluated with ground-truth-scale translation only.
+        track_previous: also hand the previous frame (with its metric depth as a
+            prior) to the joint pass and build the odometry from the
+            previous-to-current increment (METHOD.md 2: odometry composes metric
+            increments); the newest keyframe is the fallback when the previous
+            frame cannot be placed. Costs one more view per pass and a metric
+            depth map per frame. False is the paper's pass, ``[current] +
+            keyframes (+ collaborators)``, with ego-motion through a keyframe.
     """
 
     tau: float | None = None
@@ -134,6 +141,7 @@ class CerpeConfig:
     jpeg_quality: int = 90
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
+    track_previous: bool = True
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
@@ -232,6 +240,7 @@ class _StepState:
     collab_views: dict[str, View] = field(default_factory=dict)
     out: BackboneOutput | None = None
     collab_index: dict[str, int] = field(default_factory=dict)
+    prev_index: int | None = None
     scale: float = float("nan")
     ego_status: str = ""
     keyframe: bool = False
@@ -240,6 +249,15 @@ class _StepState:
     bytes_sent: Counter = field(default_factory=Counter)
     reply_cache: ImageReply | None = None
     depth_cache: tuple[bool, np.ndarray | None] = (False, None)
+
+
+@dataclass
+class _Previous:
+    """The last placed frame, a one-slot tracking reference (not a keyframe)."""
+
+    step: int
+    view: View
+    T_odom_cam: np.ndarray
 
 
 class RobotAgent:
@@ -267,6 +285,7 @@ class RobotAgent:
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
         self.last_step: int | None = None
         self.cur: _StepState | None = None
+        self.previous: _Previous | None = None
 
     # ---------------------------------------------------------------- helpers
     def _where(self, step: int | None = None) -> str:
@@ -418,7 +437,17 @@ class RobotAgent:
         """ONE backbone pass over ``[current] + keyframes (newest first) + collaborators``."""
         st = self._state()
         kfs = self.memory.newest_first()
-        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics) for kf in kfs]
+        # metric depth priors for backbones that use them: each keyframe's reference, and the
+        # current frame's when it is computed anyway (no keyframe yet: the scale needs it;
+        # track_previous: the next step needs it)
+        need_cur = not kfs or self.config.track_previous
+        cur = dataclasses.replace(st.view, depth_m=self._current_depth()) if need_cur else st.view
+        views = [cur] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m) for kf in kfs]
+        prev = self.previous
+        st.prev_index = None
+        if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
+            st.prev_index = len(views)
+            views.append(prev.view)
         for other, v in st.collab_views.items():
             st.collab_index[other] = len(views)
             views.append(v)
@@ -507,6 +536,11 @@ class RobotAgent:
         elif not np.isfinite(st.scale):
             st.ego_status = "no-scale"
         else:
+            p = st.prev_index
+            if p is not None and out.valid[p]:
+                self.X = ego_motion(self.previous.T_odom_cam, out.T_frame_cam[p], out.T_frame_cam[0], st.scale)
+                st.ego_status = "ok"
+                return self.X
             for k, kf in enumerate(kfs):
                 if out.valid[1 + k]:
                     self.X = ego_motion(kf.T_odom_cam, out.T_frame_cam[1 + k], out.T_frame_cam[0], st.scale)
@@ -579,7 +613,13 @@ class RobotAgent:
 
     # ---------------------------------------------------------------- 9. memory
     def manage_memory(self) -> bool:
-        """Keyframe rule; returns whether the current frame became a keyframe."""
+        """Keyframe rule and tracking reference; returns whether the current frame became a keyframe."""
+        st = self._state()
+        st.keyframe = self._keyframe_rule()
+        self._keep_previous()
+        return st.keyframe
+
+    def _keyframe_rule(self) -> bool:
         st = self._state()
         out = st.out
         if not st.descriptor_ok:
@@ -596,8 +636,18 @@ class RobotAgent:
             self.memory.insert(Keyframe(step=st.step, key=st.view.key, descriptor=st.descriptor,
                                         image=st.image, intrinsics=st.context.intrinsics,
                                         T_odom_cam=self.X.copy(), depth_ref_m=self._current_depth()))
-        st.keyframe = bool(insert)
-        return st.keyframe
+        return bool(insert)
+
+    def _keep_previous(self) -> None:
+        """Remember this frame as next step's tracking reference when its pose is an estimate."""
+        st = self._state()
+        self.previous = None
+        if not self.config.track_previous or not st.descriptor_ok:
+            return
+        placed = st.ego_status == "ok" or (st.ego_status == "first" and st.out is not None)
+        if placed:
+            view = dataclasses.replace(st.view, depth_m=self._current_depth())
+            self.previous = _Previous(step=st.step, view=view, T_odom_cam=self.X.copy())
 
     def record(self) -> RobotRecord:
         st = self._state()

@@ -38,11 +38,17 @@ class View:
         image: ``[H,W,3] uint8`` RGB.
         intrinsics: known intrinsics when the robot has them (collaborator images
             carry theirs in the image reply); a backbone may ignore them.
+        depth_m: optional metric depth prior ``[H*,W*] float32`` in metres (0 =
+            unknown; any resolution, resampled to the image by nearest neighbour),
+            e.g. a keyframe's sensor or metric-network depth. VGGT ignores it; the
+            offline geometry backbone anchors its points on it (see
+            :mod:`cerpe.backbones.offline`). Outputs stay "up to scale" either way.
     """
 
     key: Hashable
     image: np.ndarray
     intrinsics: CameraIntrinsics | None = None
+    depth_m: np.ndarray | None = None
 
 
 @dataclass

@@ -176,3 +176,65 @@ def test_single_view_and_input_errors(room, backbone):
         backbone.infer([View(("s", 4), img.astype(np.float32), K)])
     with pytest.raises(OfflineBackboneError):
         backbone.infer([])
+
+
+# ---------------------------------------------------------------------------- metric depth prior
+def test_keypoint_depths_median_edges_and_resolution():
+    from cerpe.backbones.offline import keypoint_depths
+
+    D = np.full((24, 32), 4.0, np.float32)
+    D[:, 16:] = 8.0  # a depth edge at column 16
+    D[2, 2] = 0.0  # one unknown pixel: the median of the 8 known ones still answers
+    uv = np.array([[2.0, 2.0], [8.0, 12.0], [15.6, 12.0], [24.0, 12.0], [0.0, 0.0]])
+    z = keypoint_depths(uv, D, (24, 32))
+    np.testing.assert_allclose(z, [4.0, 4.0, 0.0, 8.0, 0.0])  # on the edge and at the border: unknown
+    # a map at half the image resolution samples the pixel under each keypoint
+    z2 = keypoint_depths(uv * 2, D, (48, 64))
+    np.testing.assert_allclose(z2[[1, 3]], [4.0, 8.0])
+    assert keypoint_depths(np.zeros((0, 2)), D, (24, 32)).shape == (0,)
+
+
+def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone):
+    Tw = [pose((0, 0, 0)), pose((0.25, -0.05, 0.4), (1, -3, 0))]
+    v0 = _view(room, ("p", 1), Tw[1])
+    img, depth = room.render(Tw[0])
+    v1 = View(("p", 0), img, K, depth_m=depth)
+    out = backbone.infer([v0, v1])
+    assert out.valid.all(), out.reasons
+    T_gt = G.se3_inverse(Tw[1]) @ Tw[0]  # camera of view 1 in the current camera (the pass frame)
+    assert np.linalg.norm(out.T_frame_cam[1][:3, 3] - T_gt[:3, 3]) < 0.01  # metres, no scale step
+    assert G.rotation_angle(out.T_frame_cam[1][:3, :3].T @ T_gt[:3, :3]) < np.radians(0.2)
+    # pure rotation has no parallax for the essential matrix, but the prior places it
+    img, depth = room.render(pose((0.2, 0, 0.5)))
+    r0 = View(("q", 0), img, K, depth_m=depth)
+    r1 = _view(room, ("q", 1), pose((0.2, 0, 0.5), (0, 4, 1)))
+    out = backbone.infer([r1, r0])
+    assert out.valid[1], out.reasons
+    assert np.linalg.norm(out.T_frame_cam[1][:3, 3]) < 0.03  # walls 4-9 m away: rotation/translation trade
+    # image-only: the same pair is "no-parallax" (the reason test above)
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+
+    plain = OfflineGeometryBackbone({"depth_prior": False}, encoder=backbone.encoder)
+    out = plain.infer([r1, View(r0.key, r0.image, K)])
+    assert not out.valid[1] and out.reasons[1] == "no-parallax"
+
+
+def test_depth_prior_ignores_a_moving_object(room, backbone):
+    """A textured object that moves between the frames and holds many keypoints: the static
+    room still decides the pose (tight P3P threshold + a dense depth vote between motions)."""
+    T0, T1 = pose((0, 0, 0)), pose((0.05, 0, 0.03))
+    img0, d0 = room.render(T0)
+    img1, d1 = room.render(T1)
+    rng = np.random.default_rng(5)
+    patch = (rng.random((60, 80)) * 255).astype(np.uint8)
+    patch = np.repeat(np.kron(patch[::6, ::6], np.ones((6, 6), np.uint8))[:60, :80, None], 3, axis=2)
+    img0, img1 = img0.copy(), img1.copy()
+    d0, d1 = d0.copy(), d1.copy()
+    img0[100:160, 60:140] = patch  # the object at 2 m, then 20 px to the right
+    d0[100:160, 60:140] = 2.0
+    img1[100:160, 80:160] = patch
+    d1[100:160, 80:160] = 2.0
+    out = backbone.infer([View(("m", 1), img1, K, depth_m=d1), View(("m", 0), img0, K, depth_m=d0)])
+    assert out.valid[1], out.reasons
+    T_gt = G.se3_inverse(T1) @ T0
+    assert np.linalg.norm(out.T_frame_cam[1][:3, 3] - T_gt[:3, 3]) < 0.02

@@ -55,9 +55,10 @@ def expected_sources(windows: list[tuple[int, int]], n_steps: int, propagate: bo
     return src
 
 
-def test_two_robots_exact_with_gt_backbone():
+@pytest.mark.parametrize("track_previous", [True, False])
+def test_two_robots_exact_with_gt_backbone(track_previous):
     world = make_world(2, 40, seed=1)
-    team, bb, results = run(world)
+    team, bb, results = run(world, CerpeConfig(min_scale_pixels=20, track_previous=track_previous))
     errs = pair_errors(world, results)
     want = expected_sources([(5, 10), (25, 30)], 40)
     for step, ego, other, source, ep, er in errs:
@@ -77,7 +78,8 @@ def test_two_robots_exact_with_gt_backbone():
         # every pass used another frame and unit
         for k, r in enumerate(res.robots):
             np.testing.assert_allclose(r.T_odom_cam, world.gt_odometry(k, res.step), atol=1e-5)
-    # exactly one joint pass per robot per step: [current] + memory newest first + collaborator
+    # exactly one joint pass per robot per step: [current] + memory newest first (+ the previous
+    # frame when tracking and it is not the newest keyframe) + collaborator
     assert len(bb.calls) == 2 * 40
     kf_steps: dict[str, list[int]] = {"r0": [], "r1": []}
     calls = iter(bb.calls)
@@ -86,7 +88,9 @@ def test_two_robots_exact_with_gt_backbone():
             keys = next(calls)
             other = "r1" if r.robot == "r0" else "r0"
             collab = [(other, res.step, "jpeg")] if want[res.step] == "direct" else []
-            assert keys == [(r.robot, res.step)] + [(r.robot, s) for s in reversed(kf_steps[r.robot])] + collab
+            prev = ([(r.robot, res.step - 1)] if track_previous and res.step > 0
+                    and kf_steps[r.robot][-1] != res.step - 1 else [])
+            assert keys == [(r.robot, res.step)] + [(r.robot, s) for s in reversed(kf_steps[r.robot])] + prev + collab
             if r.keyframe:
                 kf_steps[r.robot] = (kf_steps[r.robot] + [res.step])[-5:]
             assert r.n_keyframes == len(kf_steps[r.robot])

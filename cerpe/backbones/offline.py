@@ -8,13 +8,25 @@ collaborators`` is classical structure from motion:
 2. Matching: mutual nearest neighbours of the 64-d descriptors with a minimum
    cosine similarity and Lowe's ratio test. Matches between two views seen
    before (e.g. two keyframes) come from an LRU cache keyed by both view keys.
-3. Reference pair: the current view (index 0, the pass's frame: ``T_frame_cam[0]
-   = I``) and the first candidate (newest keyframe, then older keyframes, then
-   collaborators) whose essential matrix (poselib 5-point RANSAC, known
-   intrinsics) has enough inliers and enough parallax. Its baseline defines the
-   unit of the pass (``||t|| = 1``).
-4. Triangulation of the reference inliers (linear, in the current camera frame);
-   points behind a camera, with large reprojection error or a small
+3. Points anchored on metric depth (``depth_prior``, the default): the first
+   view that carries a depth prior (:attr:`View.depth_m`; the algorithm attaches
+   each keyframe's metric depth reference, and the current frame's when the
+   memory is empty) gives 3D points by back-projecting its keypoints with that
+   depth (keypoints on a depth edge are dropped); the current view's own prior
+   comes first, then the view sharing most matches with it. The current view is placed on
+   them by absolute pose (P3P RANSAC); the unit of the pass is then the metre
+   and the algorithm's scale step returns about 1. This is how RGB-D odometry
+   uses a depth sensor; it replaces the two-view essential matrix, whose
+   translation direction is off by degrees over the short baselines between
+   consecutive frames, and it is not fooled by objects that move (they are
+   P3P outliers) or by pure rotation. VGGT never reads the prior.
+4. Otherwise (no prior, or too few points on it) a reference pair: the current
+   view (index 0, the pass's frame: ``T_frame_cam[0] = I``) and the first
+   candidate (newest keyframe, then older keyframes, then collaborators) whose
+   essential matrix (poselib 5-point RANSAC, known intrinsics) has enough
+   inliers and enough parallax. Its baseline defines the unit of the pass
+   (``||t|| = 1``). Its inliers are triangulated (linear, in the current camera
+   frame); points behind a camera, with large reprojection error or a small
    triangulation angle are dropped.
 5. Every other view: absolute pose (poselib P3P RANSAC + refinement) from 2D-3D
    correspondences obtained through its matches with the current view and with
@@ -177,6 +189,40 @@ def splat_depth(uv: np.ndarray, depth: np.ndarray, conf: np.ndarray, hw: tuple[i
     return D, C
 
 
+def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, int],
+                    edge_tol: float = 0.2, min_valid: int = 5) -> np.ndarray:
+    """Metric depth at keypoints ``uv [N,2]`` (image pixels) from a depth map of any size.
+
+    The map is sampled by nearest neighbour on pixel centres. Each keypoint takes
+    the median of the known pixels (> 0, finite) of its 3x3 neighbourhood, which
+    also damps per-pixel sensor noise. It gets 0 (unknown) when fewer than
+    ``min_valid`` of the 9 are known or when they spread by more than
+    ``edge_tol`` relative to that median: keypoints sit on corners and edges,
+    where one pixel off is the background.
+
+    Returns:
+        ``[N] float64`` depths in metres, 0 where unknown.
+    """
+    D = np.asarray(depth_m, np.float64)
+    if D.ndim != 2 or D.size == 0 or len(uv) == 0:
+        return np.zeros(len(uv))
+    H, W = image_hw
+    hd, wd = D.shape
+    u = np.clip(np.floor((uv[:, 0] + 0.5) * wd / W).astype(np.int64), 0, wd - 1) + 1
+    v = np.clip(np.floor((uv[:, 1] + 0.5) * hd / H).astype(np.int64), 0, hd - 1) + 1
+    P = np.pad(np.where(np.isfinite(D) & (D > 0), D, np.nan), 1, constant_values=np.nan)
+    win = np.stack([P[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)  # [N,9]
+    n = np.sum(np.isfinite(win), axis=1)
+    out = np.zeros(len(uv))
+    ok = n >= min_valid
+    if ok.any():
+        w = win[ok]
+        z = np.nanmedian(w, axis=1)
+        spread = (np.nanmax(w, axis=1) - np.nanmin(w, axis=1)) / z
+        out[np.flatnonzero(ok)] = np.where(spread <= edge_tol, z, 0.0)
+    return out
+
+
 # ---------------------------------------------------------------------------- the backbone
 @dataclass
 class _Recon:
@@ -238,6 +284,19 @@ class OfflineGeometryBackbone:
         ransac_min_iterations: poselib's lower bound on RANSAC iterations (its default,
             1000, is far more than the adaptive stopping rule needs at the inlier
             ratios of consecutive frames).
+        depth_prior: anchor the points on a view's metric depth prior when one is
+            given (False: image-only, the essential-matrix path for every pass).
+        depth_edge_tol: keypoints whose 3x3 prior depth spreads by more than this
+            fraction of its median are not used (see :func:`keypoint_depths`).
+        min_depth_points: a prior needs this many keypoints with depth.
+        depth_pnp_px: RANSAC threshold (px) of the current view on a depth prior; tighter
+            than ``pnp_px`` because with metric points a looser one lets a compromise
+            between the static scene and a moving object win.
+        motion_hypotheses: rigid motions RANSAC looks for when placing the current view
+            on a depth prior (2: the static scene and one moving object).
+        min_hypothesis_ratio: a later motion needs this fraction of the first one's inliers.
+        depth_agree_tol, depth_agree_stride: relative depth tolerance and pixel stride of
+            the dense vote that picks between them (see ``_depth_votes``).
     """
 
     default_conf: dict[str, Any] = {
@@ -260,12 +319,21 @@ class OfflineGeometryBackbone:
         "min_scale_points": 8,
         "min_texture_std": 2.0,
         "ransac_min_iterations": 100,
+        "depth_prior": True,
+        "depth_edge_tol": 0.2,
+        "min_depth_points": 50,
+        "depth_pnp_px": 2.0,
+        "motion_hypotheses": 2,
+        "min_hypothesis_ratio": 0.5,
+        "depth_agree_tol": 0.05,
+        "depth_agree_stride": 8,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
         self.conf = {**self.default_conf, **(conf or {})}
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         self._matches: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._metric = False
         self.n_match_computed = 0
         self.n_match_cached = 0
 
@@ -366,9 +434,116 @@ class OfflineGeometryBackbone:
                           obs={anchor: (ids, mi[:, 0]), s: (ids, mi[:, 1])}, pair=(anchor, s)), why
         return None, why
 
-    def _place_pnp(self, p: _Pass, s: int, anchors: Sequence[int], rec: _Recon) -> bool:
+    def _bootstrap_depth(self, p: _Pass) -> tuple[_Recon | None, dict[int, str]]:
+        """Points from a view with a usable metric depth prior, current view placed on them by
+        P3P (module docstring, step 3). Frame: the current camera; unit: metres."""
+        c = self.conf
+        why: dict[int, str] = {}
+        cands = [d for d in range(1, len(p.views)) if p.views[d].depth_m is not None and not p.low_tex[d]]
+        cands.sort(key=lambda d: -len(self._m(p, 0, d)))  # the view sharing most matches first
+        if p.views[0].depth_m is not None:
+            cands.append(0)  # the current view's own points: only when no other view can anchor
+        for d in cands:
+            kp_uv = p.feats[d].keypoints
+            z = keypoint_depths(kp_uv, p.views[d].depth_m, p.feats[d].image_hw, float(c["depth_edge_tol"]))
+            kp = np.flatnonzero(z > 0)
+            if len(kp) < c["min_depth_points"]:
+                why[d] = "few-depth-points"
+                continue
+            X_d = pixels_to_rays(kp_uv[kp], p.Ks[d]) * z[kp, None]
+            ids = np.arange(len(kp))
+            rec = _Recon(X=X_d, T={d: np.eye(4)}, obs={d: (ids, kp)}, pair=(0, d))
+            if d == 0:
+                return rec, why
+            if not self._place_pnp(p, 0, (d,), rec, min_inliers=int(c["min_inliers"]),
+                                   hypotheses=int(c["motion_hypotheses"]), ref_depth=d, px=float(c["depth_pnp_px"])):
+                why[d] = "few-inliers"
+                continue
+            # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
+            T_c0_d = _inv(rec.T.pop(0))
+            rec.X = rec.X @ T_c0_d[:3, :3].T + T_c0_d[:3, 3]
+            rec.T = {0: np.eye(4), d: T_c0_d}
+            self._add_current_prior_points(p, rec)
+            return rec, why
+        return None, why
+
+    def _add_current_prior_points(self, p: _Pass, rec: _Recon) -> None:
+        """Back-project the current view's own prior at its keypoints that have no point yet, so
+        views placed later (collaborators) find more 2D-3D correspondences."""
+        if p.views[0].depth_m is None:
+            return
+        kp_uv = p.feats[0].keypoints
+        z = keypoint_depths(kp_uv, p.views[0].depth_m, p.feats[0].image_hw, float(self.conf["depth_edge_tol"]))
+        has = rec.kp_to_pt(0, p.feats[0].n) >= 0
+        kp = np.flatnonzero((z > 0) & ~has)
+        if len(kp) == 0:
+            return
+        ids0, kp0 = rec.obs[0]
+        new_ids = np.arange(len(rec.X), len(rec.X) + len(kp))
+        rec.X = np.vstack([rec.X, pixels_to_rays(kp_uv[kp], p.Ks[0]) * z[kp, None]])
+        rec.obs[0] = (np.concatenate([ids0, new_ids]), np.concatenate([kp0, kp]))
+
+    def _depth_votes(self, p: _Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
+        """Votes of view ``d``'s prior depth pixels for the motion ``T_0_d[h]`` that best
+        predicts the current view's prior depth.
+
+        Each sampled pixel of ``d`` (every ``depth_agree_stride``-th) is moved by every
+        hypothesis into the current view and compared with the depth measured there; it
+        votes for the hypothesis with the smallest relative error when that error is below
+        ``depth_agree_tol`` and beats every other one by that tolerance (far pixels, whose
+        depth barely changes, do not vote). Dense, so it counts surfaces rather than
+        keypoints: a textured moving object can win RANSAC by keypoint count, but the
+        static scene covers more of the image.
+
+        Returns:
+            ``[len(T_0_d)]`` vote counts.
+        """
+        Dd = np.asarray(p.views[d].depth_m, np.float64)
+        D0 = np.asarray(p.views[0].depth_m, np.float64)
+        st = max(int(self.conf["depth_agree_stride"]), 1)
+        tol = float(self.conf["depth_agree_tol"])
+        Hd, Wd = Dd.shape
+        H, W = p.feats[d].image_hw
+        H0, W0 = p.feats[0].image_hw
+        h0, w0 = D0.shape
+        vv, uu = np.mgrid[st // 2:Hd:st, st // 2:Wd:st]
+        z = Dd[vv, uu].ravel()
+        ok = np.isfinite(z) & (z > 0)
+        uv = np.column_stack([(uu.ravel()[ok] + 0.5) * W / Wd - 0.5, (vv.ravel()[ok] + 0.5) * H / Hd - 0.5])
+        X = pixels_to_rays(uv, p.Ks[d]) * z[ok, None]
+        err = np.full((len(T_0_d), len(X)), np.inf)
+        for h, T in enumerate(T_0_d):
+            X0 = X @ T[:3, :3].T + T[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pr = X0 @ p.Ks[0].T
+                u0, v0 = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
+            inside = (X0[:, 2] > 0) & (u0 >= -0.5) & (u0 < W0 - 0.5) & (v0 >= -0.5) & (v0 < H0 - 0.5)
+            cu = np.clip(np.floor((u0[inside] + 0.5) * w0 / W0).astype(np.int64), 0, w0 - 1)
+            cv = np.clip(np.floor((v0[inside] + 0.5) * h0 / H0).astype(np.int64), 0, h0 - 1)
+            meas = D0[cv, cu]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                e = np.abs(X0[inside, 2] - meas) / meas
+            err[h, np.flatnonzero(inside)] = np.where(np.isfinite(meas) & (meas > 0), e, np.inf)
+        if err.shape[1] == 0:
+            return np.zeros(len(T_0_d), np.int64)
+        best = np.argmin(err, axis=0)
+        e_sorted = np.sort(err, axis=0)
+        with np.errstate(invalid="ignore"):  # inf - inf where no hypothesis lands on a measured pixel
+            decisive = (e_sorted[0] <= tol) & (e_sorted[1] - e_sorted[0] > tol) if len(T_0_d) > 1 else e_sorted[0] <= tol
+        return np.bincount(best[decisive], minlength=len(T_0_d))
+
+    def _place_pnp(self, p: _Pass, s: int, anchors: Sequence[int], rec: _Recon,
+                   min_inliers: int | None = None, hypotheses: int = 1, ref_depth: int | None = None,
+                   px: float | None = None) -> bool:
         """Absolute pose of view ``s`` from 2D-3D correspondences through its matches with
-        the placed ``anchors``; writes ``rec.T[s]`` and ``rec.obs[s]`` on success."""
+        the placed ``anchors``; writes ``rec.T[s]`` and ``rec.obs[s]`` on success (at least
+        ``min_inliers`` inliers, default ``conf['min_pnp_inliers']``).
+
+        With ``hypotheses > 1`` RANSAC runs again on the outliers of the previous runs
+        (a second rigid motion: a moving object, or the static scene when the object won).
+        When both ``s`` (must be view 0) and ``ref_depth`` carry depth priors, the hypothesis
+        whose motion makes the two depth maps agree best is kept (:meth:`_depth_agreement`);
+        otherwise the one with most inliers."""
         import poselib
 
         cand_kp, cand_pt = [], []
@@ -385,15 +560,36 @@ class OfflineGeometryBackbone:
         pt = np.concatenate(cand_pt)
         _, first = np.unique(kp, return_index=True)  # one 3D point per keypoint of view s
         kp, pt = kp[first], pt[first]
-        if len(kp) < self.conf["min_pnp_inliers"]:
+        need = int(self.conf["min_pnp_inliers"] if min_inliers is None else min_inliers)
+        if len(kp) < need:
             return False
-        pose, info = poselib.estimate_absolute_pose(
-            p.feats[s].keypoints[kp].astype(np.float64), rec.X[pt], p.cams[s],
-            self._ransac(max_reproj_error=float(self.conf["pnp_px"])), {})
-        inl = np.asarray(info["inliers"], bool)
-        T_s_f = _pose_to_T(pose.R, pose.t)
-        if inl.sum() < self.conf["min_pnp_inliers"] or not np.all(np.isfinite(T_s_f)):
+        uv = p.feats[s].keypoints[kp].astype(np.float64)
+        hyps: list[tuple[np.ndarray, np.ndarray]] = []
+        left = np.ones(len(kp), bool)
+        for _ in range(max(int(hypotheses), 1)):
+            if left.sum() < need:
+                break
+            idx = np.flatnonzero(left)
+            pose, info = poselib.estimate_absolute_pose(
+                uv[idx], rec.X[pt[idx]], p.cams[s],
+                self._ransac(max_reproj_error=float(self.conf["pnp_px"] if px is None else px)), {})
+            inl_sub = np.asarray(info["inliers"], bool)
+            T_h = _pose_to_T(pose.R, pose.t)
+            if inl_sub.sum() < need or not np.all(np.isfinite(T_h)):
+                break
+            inl_h = np.zeros(len(kp), bool)
+            inl_h[idx[inl_sub]] = True
+            hyps.append((T_h, inl_h))
+            left &= ~inl_h
+        if not hyps:
             return False
+        # a second motion is a contender only with a comparable number of inliers
+        hyps = [h for h in hyps if h[1].sum() >= self.conf["min_hypothesis_ratio"] * hyps[0][1].sum()]
+        T_s_f, inl = hyps[0]
+        if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
+            # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
+            votes = self._depth_votes(p, ref_depth, [T_h for T_h, _ in hyps])
+            T_s_f, inl = hyps[int(np.argmax(votes))]
         rec.T[s] = _inv(T_s_f)
         rec.obs[s] = (pt[inl], kp[inl])
         return True
@@ -412,7 +608,7 @@ class OfflineGeometryBackbone:
         cur_to_pt = rec.kp_to_pt(0, p.feats[0].n)
         shared = inl & (cur_to_pt[m0s[:, 0]] >= 0)
         if shared.sum() < self.conf["min_scale_points"]:
-            return "few-3d-points"
+            return self._two_view_prior_scale(p, s, rec, m0s, inl, T_s_0)
         X_unit, keep, _, _ = self._triangulate_pair(uv0[shared], uvs[shared], p.Ks[0], p.Ks[s], T_s_0)
         pt = cur_to_pt[m0s[shared, 0]]
         if keep.sum() < self.conf["min_scale_points"]:
@@ -426,6 +622,27 @@ class OfflineGeometryBackbone:
         T_s_0[:3, 3] *= scale
         rec.T[s] = rec.T[0] @ _inv(T_s_0)
         rec.obs[s] = (pt[keep], m0s[shared, 1][keep])
+        return ""
+
+    def _two_view_prior_scale(self, p: _Pass, s: int, rec: _Recon, m0s: np.ndarray, inl: np.ndarray,
+                              T_s_0: np.ndarray) -> str:
+        """Scale of a unit two-view pose with view 0 from view 0's own depth prior at the
+        triangulated inliers (too few points shared with the reconstruction); metric frames only."""
+        if p.views[0].depth_m is None or not self._metric:
+            return "few-3d-points"
+        uv0 = p.feats[0].keypoints[m0s[inl, 0]]
+        uvs = p.feats[s].keypoints[m0s[inl, 1]]
+        X_unit, keep, _, _ = self._triangulate_pair(uv0, uvs, p.Ks[0], p.Ks[s], T_s_0)
+        z = keypoint_depths(uv0, p.views[0].depth_m, p.feats[0].image_hw, float(self.conf["depth_edge_tol"]))
+        keep &= z > 0
+        if keep.sum() < self.conf["min_scale_points"]:
+            return "few-3d-points"
+        scale = float(np.median(z[keep] / X_unit[keep, 2]))
+        if not np.isfinite(scale) or scale <= 0:
+            return "few-3d-points"
+        T = T_s_0.copy()
+        T[:3, 3] *= scale
+        rec.T[s] = rec.T[0] @ _inv(T)
         return ""
 
     # ------------------------------------------------------------------ main entry
@@ -463,16 +680,34 @@ class OfflineGeometryBackbone:
                               intrinsics=list(intr), reasons=reasons, timings_s=timings)
 
     def _solve(self, p: _Pass, timings: dict[str, float]) -> tuple[_Recon | None, list[str]]:
-        """The reconstruction of this pass (None: nothing placed besides view 0) and reasons."""
+        """The reconstruction of this pass (None: nothing placed besides view 0) and reasons.
+
+        The depth-anchored reconstruction comes first; when it leaves views unplaced, the
+        image-only one is built too and the one that places more views is kept (the
+        depth one on a tie), so a prior never costs a direct estimate."""
         S = len(p.views)
-        reasons = [""] + ["no-reference"] * (S - 1)
         if S == 1:
-            return None, reasons
+            return None, [""]
         if p.low_tex[0] or p.feats[0].n < self.conf["min_matches"]:
             return None, [""] + ["low-texture" if p.low_tex[0] else "few-matches"] * (S - 1)
+        best: tuple[_Recon | None, list[str]] | None = None
+        for metric in ((True, False) if self.conf["depth_prior"] else (False,)):
+            rec, reasons = self._solve_once(p, timings, metric)
+            # nothing placed either way: the image-only attempt's reasons say more (parallax, texture)
+            if best is None or best[0] is None or (rec is not None and len(rec.T) > len(best[0].T)):
+                best = (rec, reasons)
+                self._metric = metric and rec is not None
+            if best[0] is not None and len(best[0].T) == S:
+                break
+        return best
+
+    def _solve_once(self, p: _Pass, timings: dict[str, float], metric: bool) -> tuple[_Recon | None, list[str]]:
+        S = len(p.views)
+        reasons = [""] + ["no-reference"] * (S - 1)
         tg = time.perf_counter()
-        rec, why = self._bootstrap(p, 0, range(1, S))
-        timings["two_view"] = time.perf_counter() - tg
+        rec, why = self._bootstrap_depth(p) if metric else self._bootstrap(p, 0, range(1, S))
+        self._metric = metric and rec is not None  # the pass's unit is the metre (a prior anchored it)
+        timings["two_view"] = timings.get("two_view", 0.0) + time.perf_counter() - tg
         if rec is None:
             return None, [""] + [why.get(s) or "no-reference" for s in range(1, S)]
         tp = time.perf_counter()
@@ -487,7 +722,7 @@ class OfflineGeometryBackbone:
                 reasons[s] = (why.get(s) or reasons[s]) if reasons[s] else ""
         for s in rec.T:
             reasons[s] = ""
-        timings["pnp"] = time.perf_counter() - tp
+        timings["pnp"] = timings.get("pnp", 0.0) + time.perf_counter() - tp
         return rec, reasons
 
     def _depth_maps(self, p: _Pass, rec: _Recon | None, valid: np.ndarray
