@@ -239,6 +239,7 @@ class _Recon:
     T: dict[int, np.ndarray] = field(default_factory=dict)
     obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     pair: tuple[int, int] = (0, 0)
+    metric: bool = False  # the unit is the metre: the points came from a depth prior
 
     def kp_to_pt(self, s: int, n_kp: int) -> np.ndarray:
         """``[n_kp]`` point id of each keypoint of view ``s`` (-1: none)."""
@@ -333,7 +334,6 @@ class OfflineGeometryBackbone:
         self.conf = {**self.default_conf, **(conf or {})}
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         self._matches: OrderedDict[tuple, np.ndarray] = OrderedDict()
-        self._metric = False
         self.n_match_computed = 0
         self.n_match_cached = 0
 
@@ -452,7 +452,7 @@ class OfflineGeometryBackbone:
                 continue
             X_d = pixels_to_rays(kp_uv[kp], p.Ks[d]) * z[kp, None]
             ids = np.arange(len(kp))
-            rec = _Recon(X=X_d, T={d: np.eye(4)}, obs={d: (ids, kp)}, pair=(0, d))
+            rec = _Recon(X=X_d, T={d: np.eye(4)}, obs={d: (ids, kp)}, pair=(0, d), metric=True)
             if d == 0:
                 return rec, why
             if not self._place_pnp(p, 0, (d,), rec, min_inliers=int(c["min_inliers"]),
@@ -628,7 +628,7 @@ class OfflineGeometryBackbone:
                               T_s_0: np.ndarray) -> str:
         """Scale of a unit two-view pose with view 0 from view 0's own depth prior at the
         triangulated inliers (too few points shared with the reconstruction); metric frames only."""
-        if p.views[0].depth_m is None or not self._metric:
+        if p.views[0].depth_m is None or not rec.metric:
             return "few-3d-points"
         uv0 = p.feats[0].keypoints[m0s[inl, 0]]
         uvs = p.feats[s].keypoints[m0s[inl, 1]]
@@ -696,7 +696,6 @@ class OfflineGeometryBackbone:
             # nothing placed either way: the image-only attempt's reasons say more (parallax, texture)
             if best is None or best[0] is None or (rec is not None and len(rec.T) > len(best[0].T)):
                 best = (rec, reasons)
-                self._metric = metric and rec is not None
             if best[0] is not None and len(best[0].T) == S:
                 break
         return best
@@ -706,7 +705,6 @@ class OfflineGeometryBackbone:
         reasons = [""] + ["no-reference"] * (S - 1)
         tg = time.perf_counter()
         rec, why = self._bootstrap_depth(p) if metric else self._bootstrap(p, 0, range(1, S))
-        self._metric = metric and rec is not None  # the pass's unit is the metre (a prior anchored it)
         timings["two_view"] = timings.get("two_view", 0.0) + time.perf_counter() - tg
         if rec is None:
             return None, [""] + [why.get(s) or "no-reference" for s in range(1, S)]
