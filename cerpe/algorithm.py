@@ -434,15 +434,16 @@ class RobotAgent:
 
     # ---------------------------------------------------------------- 4. joint pass
     def joint_pass(self) -> BackboneOutput:
-        """ONE backbone pass over ``[current] + keyframes (newest first) + collaborators``."""
+        """ONE backbone pass over ``[current] + keyframes (newest first) (+ previous frame) + collaborators``."""
         st = self._state()
         kfs = self.memory.newest_first()
         # metric depth priors for backbones that use them: each keyframe's reference, and the
         # current frame's when it is computed anyway (no keyframe yet: the scale needs it;
         # track_previous: the next step needs it)
         need_cur = not kfs or self.config.track_previous
-        cur = dataclasses.replace(st.view, depth_m=self._current_depth()) if need_cur else st.view
-        views = [cur] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m) for kf in kfs]
+        if need_cur:
+            st.view = dataclasses.replace(st.view, depth_m=self._current_depth())
+        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m) for kf in kfs]
         prev = self.previous
         st.prev_index = None
         if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
@@ -645,9 +646,8 @@ class RobotAgent:
         if not self.config.track_previous or not st.descriptor_ok:
             return
         placed = st.ego_status == "ok" or (st.ego_status == "first" and st.out is not None)
-        if placed:
-            view = dataclasses.replace(st.view, depth_m=self._current_depth())
-            self.previous = _Previous(step=st.step, view=view, T_odom_cam=self.X.copy())
+        if placed:  # joint_pass attached this frame's depth to st.view (track_previous)
+            self.previous = _Previous(step=st.step, view=st.view, T_odom_cam=self.X.copy())
 
     def record(self) -> RobotRecord:
         st = self._state()

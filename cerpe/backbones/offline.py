@@ -8,13 +8,15 @@ collaborators`` is classical structure from motion:
 2. Matching: mutual nearest neighbours of the 64-d descriptors with a minimum
    cosine similarity and Lowe's ratio test. Matches between two views seen
    before (e.g. two keyframes) come from an LRU cache keyed by both view keys.
-3. Points anchored on metric depth (``depth_prior``, the default): the first
-   view that carries a depth prior (:attr:`View.depth_m`; the algorithm attaches
-   each keyframe's metric depth reference, and the current frame's when the
-   memory is empty) gives 3D points by back-projecting its keypoints with that
-   depth (keypoints on a depth edge are dropped); the current view's own prior
-   comes first, then the view sharing most matches with it. The current view is placed on
-   them by absolute pose (P3P RANSAC); the unit of the pass is then the metre
+3. Points anchored on metric depth (``depth_prior``, the default): a view that
+   carries a depth prior (:attr:`View.depth_m`; the algorithm attaches each
+   keyframe's metric depth reference, the previous frame's and the current
+   frame's) gives 3D points by back-projecting its keypoints with that depth
+   (keypoints on a depth edge are dropped). The view sharing most matches with
+   the current one is tried first; the current view's own prior only when no
+   other view anchors. The current view is placed on them by absolute pose (P3P
+   RANSAC, two motion hypotheses decided by a dense depth vote); then the current
+   view's own prior adds its points too. The unit of the pass is then the metre
    and the algorithm's scale step returns about 1. This is how RGB-D odometry
    uses a depth sensor; it replaces the two-view essential matrix, whose
    translation direction is off by degrees over the short baselines between
@@ -189,6 +191,12 @@ def splat_depth(uv: np.ndarray, depth: np.ndarray, conf: np.ndarray, hw: tuple[i
     return D, C
 
 
+def _map_index(x: np.ndarray, n_map: int, n_img: int) -> np.ndarray:
+    """Index along one axis of a ``n_map``-pixel map under image coordinate ``x`` of an
+    ``n_img``-pixel image (nearest neighbour on pixel centres, clipped to the map)."""
+    return np.clip(np.floor((x + 0.5) * n_map / n_img).astype(np.int64), 0, n_map - 1)
+
+
 def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, int],
                     edge_tol: float = 0.2, min_valid: int = 5) -> np.ndarray:
     """Metric depth at keypoints ``uv [N,2]`` (image pixels) from a depth map of any size.
@@ -208,8 +216,8 @@ def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, in
         return np.zeros(len(uv))
     H, W = image_hw
     hd, wd = D.shape
-    u = np.clip(np.floor((uv[:, 0] + 0.5) * wd / W).astype(np.int64), 0, wd - 1) + 1
-    v = np.clip(np.floor((uv[:, 1] + 0.5) * hd / H).astype(np.int64), 0, hd - 1) + 1
+    u = _map_index(uv[:, 0], wd, W) + 1  # + 1: the padded border
+    v = _map_index(uv[:, 1], hd, H) + 1
     P = np.pad(np.where(np.isfinite(D) & (D > 0), D, np.nan), 1, constant_values=np.nan)
     win = np.stack([P[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)  # [N,9]
     n = np.sum(np.isfinite(win), axis=1)
@@ -518,9 +526,7 @@ class OfflineGeometryBackbone:
                 pr = X0 @ p.Ks[0].T
                 u0, v0 = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
             inside = (X0[:, 2] > 0) & (u0 >= -0.5) & (u0 < W0 - 0.5) & (v0 >= -0.5) & (v0 < H0 - 0.5)
-            cu = np.clip(np.floor((u0[inside] + 0.5) * w0 / W0).astype(np.int64), 0, w0 - 1)
-            cv = np.clip(np.floor((v0[inside] + 0.5) * h0 / H0).astype(np.int64), 0, h0 - 1)
-            meas = D0[cv, cu]
+            meas = D0[_map_index(v0[inside], h0, H0), _map_index(u0[inside], w0, W0)]
             with np.errstate(divide="ignore", invalid="ignore"):
                 e = np.abs(X0[inside, 2] - meas) / meas
             err[h, np.flatnonzero(inside)] = np.where(np.isfinite(meas) & (meas > 0), e, np.inf)
@@ -542,7 +548,7 @@ class OfflineGeometryBackbone:
         With ``hypotheses > 1`` RANSAC runs again on the outliers of the previous runs
         (a second rigid motion: a moving object, or the static scene when the object won).
         When both ``s`` (must be view 0) and ``ref_depth`` carry depth priors, the hypothesis
-        whose motion makes the two depth maps agree best is kept (:meth:`_depth_agreement`);
+        whose motion makes the two depth maps agree best is kept (:meth:`_depth_votes`);
         otherwise the one with most inliers."""
         import poselib
 
