@@ -169,3 +169,21 @@ def test_residual_descriptor_is_sensitive_to_content(descriptor, room):
     a = descriptor.describe(View(("c", 0), room.render(pose())[0], K))
     b = descriptor.describe(View(("c", 1), Room(5).render(pose((0.3, 0, 0), (0, 90, 0)))[0], K))
     assert a @ b < 0.99
+
+
+def test_nms_gives_kornias_keypoints():
+    """The OpenCV NMS returns exactly kornia XFeat's strict 5x5 peaks, in the same order
+    (a plateau has none; nothing within 2 px of the border)."""
+    import torch
+    from kornia.feature.xfeat import XFeat
+
+    from cerpe.backbones.xfeat import _nms
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1, 1, 120, 160, generator=g) ** 6
+    x[0, 0, 40:48, 40:48] = 0.5
+    x[0, 0, 0, 80] = x[0, 0, 60, 1] = 0.99
+    want = XFeat._nms(x, threshold=0.05, kernel_size=5)
+    got = _nms(x, 0.05, 5)
+    assert want.shape[1] > 100
+    assert torch.equal(got, want)
