@@ -129,6 +129,11 @@ class CerpeConfig:
             frame cannot be placed. Costs one more view per pass and a metric
             depth map per frame. False is the paper's pass, ``[current] +
             keyframes (+ collaborators)``, with ego-motion through a keyframe.
+        backbone_metric_unit: when a pass says its unit is already the metre
+            (:attr:`BackboneOutput.metric_unit`: the backbone anchored it on the
+            views' metric depth), use s = 1 rather than estimating it again from the
+            memory: the estimate would be 1 up to the keyframes' pose noise, which
+            only adds error to every translation. False always runs METHOD.md step 4.
     """
 
     tau: float | None = None
@@ -142,6 +147,7 @@ class CerpeConfig:
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
+    backbone_metric_unit: bool = True
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
@@ -493,6 +499,10 @@ class RobotAgent:
         out = st.out
         if out is None:
             raise AlgorithmError(f"{self._where()}: estimate_scale before joint_pass")
+        if out.metric_unit and self.config.backbone_metric_unit:
+            # not kept as last_scale: that is the fallback of later up-to-scale passes
+            st.scale = 1.0
+            return st.scale
         kfs = self.memory.newest_first()
         if kfs:
             metric = [kf.depth_ref_m for kf in kfs]

@@ -68,6 +68,10 @@ class BackboneOutput:
         timings_s: stage name -> seconds spent in this pass.
         extra: other per-pass figures a backbone reports (e.g. peak VRAM bytes),
             name -> number; may be empty.
+        metric_unit: True when the translation unit of this pass is already the metre
+            (the backbone anchored it on the views' metric depth priors); the scale
+            step then has nothing to recover (``CerpeConfig.backbone_metric_unit``).
+            Up-to-scale backbones (VGGT) leave it False.
     """
 
     T_frame_cam: np.ndarray
@@ -78,6 +82,7 @@ class BackboneOutput:
     reasons: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     extra: dict[str, float] = field(default_factory=dict)
+    metric_unit: bool = False
 
     def __post_init__(self) -> None:
         S = len(self.valid)

@@ -156,12 +156,16 @@ class GTBackbone:
         invalid_keys: views reported as not placed.
         invalid: optional ``(current_key, view_key) -> bool``; True reports the view
             as not placed in a pass whose first (current) view is ``current_key``.
+        claim_metric: set ``BackboneOutput.metric_unit`` (true only when ``unit_range``
+            is ``(1, 1)``; other units make a backbone that claims metres wrongly).
     """
 
     def __init__(self, world: World, unit_range: tuple[float, float] = (0.2, 5.0), rot_noise_rad: float = 0.0,
                  trans_noise: float = 0.0, invalid_keys: Sequence[Hashable] = (),
-                 invalid: Callable[[Hashable, Hashable], bool] | None = None, seed: int = 0) -> None:
+                 invalid: Callable[[Hashable, Hashable], bool] | None = None, seed: int = 0,
+                 claim_metric: bool = False) -> None:
         self.world = world
+        self.claim_metric = claim_metric
         self.unit_range = unit_range
         self.rot_noise_rad = rot_noise_rad
         self.trans_noise = trans_noise
@@ -192,7 +196,8 @@ class GTBackbone:
             Ts[:3, 3] *= unit
             T[s], valid[s] = Ts, True
             reasons.append("")
-        return BackboneOutput(T, valid, depth, conf, [v.intrinsics for v in views], reasons)
+        return BackboneOutput(T, valid, depth, conf, [v.intrinsics for v in views], reasons,
+                              metric_unit=self.claim_metric)
 
 
 class OverlapDescriptor:

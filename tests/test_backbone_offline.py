@@ -221,7 +221,7 @@ def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone)
 
 def test_depth_prior_ignores_a_moving_object(room, backbone):
     """A textured object that moves between the frames and holds many keypoints: the static
-    room still decides the pose (tight P3P threshold + a dense depth vote between motions)."""
+    room still decides the pose (tight P3P threshold + a dense depth and grey-level vote between motions)."""
     T0, T1 = pose((0, 0, 0)), pose((0.05, 0, 0.03))
     img0, d0 = room.render(T0)
     img1, d1 = room.render(T1)
@@ -238,3 +238,25 @@ def test_depth_prior_ignores_a_moving_object(room, backbone):
     assert out.valid[1], out.reasons
     T_gt = G.se3_inverse(T1) @ T0
     assert np.linalg.norm(out.T_frame_cam[1][:3, 3] - T_gt[:3, 3]) < 0.02
+
+
+def test_depth_prior_ignores_an_object_moving_along(room, backbone):
+    """Forward motion with a large textured object that moves with the camera (a car ahead
+    at the same speed): the object says "no motion" with many keypoints, and the floor's
+    depth at a pixel does not change under forward motion either, so only grey levels
+    tell the room's motion from standing still."""
+    T0, T1 = pose((0, 0, 0)), pose((0, 0, 0.35))
+    img0, d0 = room.render(T0)
+    img1, d1 = room.render(T1)
+    rng = np.random.default_rng(7)
+    patch = (rng.random((110, 170)) * 255).astype(np.uint8)
+    patch = np.repeat(np.kron(patch[::5, ::5], np.ones((5, 5), np.uint8))[:110, :170, None], 3, axis=2)
+    img0, img1, d0, d1 = img0.copy(), img1.copy(), d0.copy(), d1.copy()
+    for img, d in ((img0, d0), (img1, d1)):
+        img[60:170, 75:245] = patch  # the same place in both images: it moved with the camera
+        d[60:170, 75:245] = 2.5
+    out = backbone.infer([View(("a", 1), img1, K, depth_m=d1), View(("a", 0), img0, K, depth_m=d0)])
+    assert out.valid[1], out.reasons
+    T_gt = G.se3_inverse(T1) @ T0
+    assert np.linalg.norm(out.T_frame_cam[1][:3, 3] - T_gt[:3, 3]) < 0.02
+    assert out.metric_unit

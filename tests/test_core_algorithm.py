@@ -97,6 +97,27 @@ def test_two_robots_exact_with_gt_backbone(track_previous):
     assert all(1 <= len(v) <= 5 for v in kf_steps.values())
 
 
+
+@pytest.mark.parametrize("trust", [True, False])
+def test_backbone_metric_unit_skips_the_scale_step_only_when_configured(trust):
+    """A backbone that says its pass is in metres (metric_unit) but is off by 2x: with
+    backbone_metric_unit the algorithm takes s = 1 (and inherits the error), without it
+    METHOD.md step 4 recovers s = 0.5 and the odometry is exact."""
+    world = make_world(2, 12, seed=3)
+    bb = GTBackbone(world, unit_range=(2.0, 2.0), claim_metric=True, seed=1)
+    _, _, results = run(world, CerpeConfig(min_scale_pixels=20, backbone_metric_unit=trust), backbone=bb)
+    last = results[-1].robots[0]
+    scales = {r.scale for res in results[1:] for r in res.robots}
+    moved = np.linalg.norm(world.gt_odometry(0, results[-1].step)[:3, 3])
+    got = np.linalg.norm(last.T_odom_cam[:3, 3])
+    assert moved > 0.1
+    if trust:
+        assert scales == {1.0}
+        assert got == pytest.approx(2 * moved, rel=1e-6)
+    else:
+        assert np.allclose(sorted(scales), 0.5, atol=1e-9)
+        np.testing.assert_allclose(last.T_odom_cam, world.gt_odometry(0, results[-1].step), atol=1e-6)
+
 def test_bytes_and_records():
     world = make_world(2, 12, seed=2)
     team, _, results = run(world)

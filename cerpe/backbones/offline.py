@@ -15,9 +15,10 @@ collaborators`` is classical structure from motion:
    (keypoints on a depth edge are dropped). The view sharing most matches with
    the current one is tried first; the current view's own prior only when no
    other view anchors. The current view is placed on them by absolute pose (P3P
-   RANSAC, two motion hypotheses decided by a dense depth vote); then the current
-   view's own prior adds its points too. The unit of the pass is then the metre
-   and the algorithm's scale step returns about 1. This is how RGB-D odometry
+   RANSAC, up to three motion hypotheses decided by a dense vote of depth and
+   grey-level consistency); then the current view's own prior adds its points
+   too. The unit of the pass is then the metre (``BackboneOutput.metric_unit``),
+   so the algorithm has no scale to recover. This is how RGB-D odometry
    uses a depth sensor; it replaces the two-view essential matrix, whose
    translation direction is off by degrees over the short baselines between
    consecutive frames, and it is not fooled by objects that move (they are
@@ -293,6 +294,9 @@ class OfflineGeometryBackbone:
         ransac_min_iterations: poselib's lower bound on RANSAC iterations (its default,
             1000, is far more than the adaptive stopping rule needs at the inlier
             ratios of consecutive frames).
+        ransac_max_iterations: poselib's upper bound (its default, 100000, is what a pair
+            that does not overlap costs: a few hundred milliseconds for nothing; 10000
+            still finds a 5-point model at a 25 % inlier ratio with probability 0.9999).
         depth_prior: anchor the points on a view's metric depth prior when one is
             given (False: image-only, the essential-matrix path for every pass).
         depth_edge_tol: keypoints whose 3x3 prior depth spreads by more than this
@@ -302,10 +306,12 @@ class OfflineGeometryBackbone:
             than ``pnp_px`` because with metric points a looser one lets a compromise
             between the static scene and a moving object win.
         motion_hypotheses: rigid motions RANSAC looks for when placing the current view
-            on a depth prior (2: the static scene and one moving object).
-        min_hypothesis_ratio: a later motion needs this fraction of the first one's inliers.
-        depth_agree_tol, depth_agree_stride: relative depth tolerance and pixel stride of
-            the dense vote that picks between them (see ``_depth_votes``).
+            on a depth prior (each on the previous ones' outliers, each with at least
+            ``min_inliers``): the static scene, moving objects, a facade matched one
+            window off.
+        vote_stride, vote_depth_tol, vote_grey_tol, vote_blur_sigma: pixel stride, relative
+            depth tolerance, grey-level tolerance (0-255) and blur of the dense vote that
+            picks between them (see ``_motion_votes``).
     """
 
     default_conf: dict[str, Any] = {
@@ -328,14 +334,16 @@ class OfflineGeometryBackbone:
         "min_scale_points": 8,
         "min_texture_std": 2.0,
         "ransac_min_iterations": 100,
+        "ransac_max_iterations": 10000,
         "depth_prior": True,
         "depth_edge_tol": 0.2,
         "min_depth_points": 50,
         "depth_pnp_px": 2.0,
-        "motion_hypotheses": 2,
-        "min_hypothesis_ratio": 0.5,
-        "depth_agree_tol": 0.05,
-        "depth_agree_stride": 8,
+        "motion_hypotheses": 3,
+        "vote_stride": 4,
+        "vote_depth_tol": 0.05,
+        "vote_grey_tol": 6.0,
+        "vote_blur_sigma": 1.0,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
@@ -377,7 +385,8 @@ class OfflineGeometryBackbone:
         return self._match(p.views[a].key, p.feats[a], p.views[b].key, p.feats[b])
 
     def _ransac(self, **extra: float) -> dict[str, float]:
-        return {"min_iterations": int(self.conf["ransac_min_iterations"]), **extra}
+        return {"min_iterations": int(self.conf["ransac_min_iterations"]),
+                "max_iterations": int(self.conf["ransac_max_iterations"]), **extra}
 
     # ------------------------------------------------------------------ two-view geometry
     def _relative_pose(self, uv0: np.ndarray, uv1: np.ndarray, cam0: dict, cam1: dict
@@ -491,52 +500,68 @@ class OfflineGeometryBackbone:
         rec.X = np.vstack([rec.X, pixels_to_rays(kp_uv[kp], p.Ks[0]) * z[kp, None]])
         rec.obs[0] = (np.concatenate([ids0, new_ids]), np.concatenate([kp0, kp]))
 
-    def _depth_votes(self, p: _Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
-        """Votes of view ``d``'s prior depth pixels for the motion ``T_0_d[h]`` that best
-        predicts the current view's prior depth.
+    def _motion_votes(self, p: _Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
+        """Dense votes of view ``d``'s prior depth pixels for the motions ``T_0_d[h]``
+        (camera-``d`` points into the current camera).
 
-        Each sampled pixel of ``d`` (every ``depth_agree_stride``-th) is moved by every
-        hypothesis into the current view and compared with the depth measured there; it
-        votes for the hypothesis with the smallest relative error when that error is below
-        ``depth_agree_tol`` and beats every other one by that tolerance (far pixels, whose
-        depth barely changes, do not vote). Dense, so it counts surfaces rather than
-        keypoints: a textured moving object can win RANSAC by keypoint count, but the
-        static scene covers more of the image.
+        Each sampled pixel of ``d`` (every ``vote_stride``-th) is back-projected with its
+        prior depth, moved by every hypothesis into the current view and, if it lands in
+        the image under all of them, counts for each hypothesis under which it is
+        *consistent*: its depth agrees with the current view's prior there within
+        ``vote_depth_tol`` (relative) and its grey level (images blurred with
+        ``vote_blur_sigma``) within ``vote_grey_tol``. Both tests matter: depth alone
+        cannot tell forward motion over a flat road from standing still (the road's depth
+        at a pixel does not change), and grey level alone cannot tell apart motions over
+        untextured walls. Dense, so it counts surfaces rather than keypoints: a textured
+        moving object, or a facade of repeated windows matched one period off, can win
+        RANSAC by keypoint count, while the static scene covers more of the image.
 
         Returns:
-            ``[len(T_0_d)]`` vote counts.
+            ``[len(T_0_d)]`` counts of consistent pixels.
         """
+        import cv2
+
+        c = self.conf
+        if not T_0_d:
+            return np.zeros(0, np.int64)
         Dd = np.asarray(p.views[d].depth_m, np.float64)
         D0 = np.asarray(p.views[0].depth_m, np.float64)
-        st = max(int(self.conf["depth_agree_stride"]), 1)
-        tol = float(self.conf["depth_agree_tol"])
-        Hd, Wd = Dd.shape
+        st = max(int(c["vote_stride"]), 1)
+        sigma = float(c["vote_blur_sigma"])
+        grey = [cv2.GaussianBlur(np.asarray(p.views[k].image, np.float32).mean(axis=2), (0, 0), sigma)
+                if sigma > 0 else np.asarray(p.views[k].image, np.float32).mean(axis=2) for k in (d, 0)]
         H, W = p.feats[d].image_hw
         H0, W0 = p.feats[0].image_hw
         h0, w0 = D0.shape
-        vv, uu = np.mgrid[st // 2:Hd:st, st // 2:Wd:st]
-        z = Dd[vv, uu].ravel()
+        vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
+        vv, uu = vv.ravel(), uu.ravel()
+        z = Dd[_map_index(vv.astype(np.float64), Dd.shape[0], H), _map_index(uu.astype(np.float64), Dd.shape[1], W)]
         ok = np.isfinite(z) & (z > 0)
-        uv = np.column_stack([(uu.ravel()[ok] + 0.5) * W / Wd - 0.5, (vv.ravel()[ok] + 0.5) * H / Hd - 0.5])
+        uv = np.column_stack([uu[ok], vv[ok]]).astype(np.float64)
+        g_d = grey[0][vv[ok], uu[ok]]
         X = pixels_to_rays(uv, p.Ks[d]) * z[ok, None]
-        err = np.full((len(T_0_d), len(X)), np.inf)
+        inside = np.zeros((len(T_0_d), len(X)), bool)
+        consistent = np.zeros((len(T_0_d), len(X)), bool)
+        g0 = grey[1]
         for h, T in enumerate(T_0_d):
             X0 = X @ T[:3, :3].T + T[:3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):
                 pr = X0 @ p.Ks[0].T
                 u0, v0 = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
-            inside = (X0[:, 2] > 0) & (u0 >= -0.5) & (u0 < W0 - 0.5) & (v0 >= -0.5) & (v0 < H0 - 0.5)
-            meas = D0[_map_index(v0[inside], h0, H0), _map_index(u0[inside], w0, W0)]
+            ins = (X0[:, 2] > 0) & (u0 >= 0) & (u0 <= W0 - 1) & (v0 >= 0) & (v0 <= H0 - 1)
+            inside[h] = ins
+            u0, v0, zi, gi = u0[ins], v0[ins], X0[ins, 2], g_d[ins]
+            meas = D0[_map_index(v0, h0, H0), _map_index(u0, w0, W0)]
+            x0, y0 = np.minimum(u0.astype(np.int64), W0 - 2), np.minimum(v0.astype(np.int64), H0 - 2)
+            ax, ay = u0 - x0, v0 - y0
+            g = ((1 - ax) * (1 - ay) * g0[y0, x0] + ax * (1 - ay) * g0[y0, x0 + 1]
+                 + (1 - ax) * ay * g0[y0 + 1, x0] + ax * ay * g0[y0 + 1, x0 + 1])
             with np.errstate(divide="ignore", invalid="ignore"):
-                e = np.abs(X0[inside, 2] - meas) / meas
-            err[h, np.flatnonzero(inside)] = np.where(np.isfinite(meas) & (meas > 0), e, np.inf)
-        if err.shape[1] == 0:
-            return np.zeros(len(T_0_d), np.int64)
-        best = np.argmin(err, axis=0)
-        e_sorted = np.sort(err, axis=0)
-        with np.errstate(invalid="ignore"):  # inf - inf where no hypothesis lands on a measured pixel
-            decisive = (e_sorted[0] <= tol) & (e_sorted[1] - e_sorted[0] > tol) if len(T_0_d) > 1 else e_sorted[0] <= tol
-        return np.bincount(best[decisive], minlength=len(T_0_d))
+                depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
+            consistent[h, ins] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
+        # only pixels every hypothesis keeps in view vote: the road just below a camera that
+        # moves forward leaves the image, and would otherwise count for standing still only
+        return np.count_nonzero(consistent & inside.all(axis=0), axis=1).astype(np.int64)
 
     def _place_pnp(self, p: _Pass, s: int, anchors: Sequence[int], rec: _Recon,
                    min_inliers: int | None = None, hypotheses: int = 1, ref_depth: int | None = None,
@@ -546,10 +571,10 @@ class OfflineGeometryBackbone:
         ``min_inliers`` inliers, default ``conf['min_pnp_inliers']``).
 
         With ``hypotheses > 1`` RANSAC runs again on the outliers of the previous runs
-        (a second rigid motion: a moving object, or the static scene when the object won).
+        (another rigid motion: a moving object, or the static scene when the object won).
         When both ``s`` (must be view 0) and ``ref_depth`` carry depth priors, the hypothesis
-        whose motion makes the two depth maps agree best is kept (:meth:`_depth_votes`);
-        otherwise the one with most inliers."""
+        under which most of ``ref_depth``'s pixels land on consistent depth and grey level
+        is kept (:meth:`_motion_votes`); otherwise the one with most inliers."""
         import poselib
 
         cand_kp, cand_pt = [], []
@@ -589,12 +614,10 @@ class OfflineGeometryBackbone:
             left &= ~inl_h
         if not hyps:
             return False
-        # a second motion is a contender only with a comparable number of inliers
-        hyps = [h for h in hyps if h[1].sum() >= self.conf["min_hypothesis_ratio"] * hyps[0][1].sum()]
         T_s_f, inl = hyps[0]
         if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
             # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
-            votes = self._depth_votes(p, ref_depth, [T_h for T_h, _ in hyps])
+            votes = self._motion_votes(p, ref_depth, [T_h for T_h, _ in hyps])
             T_s_f, inl = hyps[int(np.argmax(votes))]
         rec.T[s] = _inv(T_s_f)
         rec.obs[s] = (pt[inl], kp[inl])
@@ -683,14 +706,16 @@ class OfflineGeometryBackbone:
         depth, conf = self._depth_maps(p, rec, valid)
         timings["total"] = time.perf_counter() - t0
         return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
-                              intrinsics=list(intr), reasons=reasons, timings_s=timings)
+                              intrinsics=list(intr), reasons=reasons, timings_s=timings,
+                              metric_unit=rec is not None and rec.metric)
 
     def _solve(self, p: _Pass, timings: dict[str, float]) -> tuple[_Recon | None, list[str]]:
         """The reconstruction of this pass (None: nothing placed besides view 0) and reasons.
 
-        The depth-anchored reconstruction comes first; when it leaves views unplaced, the
-        image-only one is built too and the one that places more views is kept (the
-        depth one on a tie), so a prior never costs a direct estimate."""
+        The depth-anchored reconstruction comes first; when it leaves out a view that shares
+        enough matches with the current one, the image-only one is built too and the one
+        that places more views is kept (the depth one on a tie), so a prior never costs a
+        direct estimate."""
         S = len(p.views)
         if S == 1:
             return None, [""]
@@ -702,9 +727,19 @@ class OfflineGeometryBackbone:
             # nothing placed either way: the image-only attempt's reasons say more (parallax, texture)
             if best is None or best[0] is None or (rec is not None and len(rec.T) > len(best[0].T)):
                 best = (rec, reasons)
-            if best[0] is not None and len(best[0].T) == S:
+            if best[0] is not None and not self._retry_image_only(p, best[0]):
                 break
         return best
+
+    def _retry_image_only(self, p: _Pass, rec: _Recon) -> bool:
+        """Whether the image-only solve could place a view ``rec`` left out: one with at
+        least ``min_pnp_inliers`` matches with the current view (the 2D-3D correspondences
+        an absolute pose needs come mostly through them). A collaborator image the gate let
+        through without overlap has fewer, and re-solving for it would only double the
+        pass's cost."""
+        need = int(self.conf["min_pnp_inliers"])
+        return any(s not in rec.T and not p.low_tex[s] and len(self._m(p, 0, s)) >= need
+                   for s in range(1, len(p.views)))
 
     def _solve_once(self, p: _Pass, timings: dict[str, float], metric: bool) -> tuple[_Recon | None, list[str]]:
         S = len(p.views)
