@@ -81,7 +81,7 @@ from typing import Any, Hashable
 import numpy as np
 
 from ..protocols import BackboneError, View
-from .xfeat import XFeatEncoder, XFeatFeatures, check_image, shared_encoder
+from .xfeat import XFeatEncoder, XFeatFeatures, check_image, grey_std, shared_encoder
 
 logger = logging.getLogger(__name__)
 
@@ -229,7 +229,7 @@ class XFeatSaladDescriptor:
             self._cache.move_to_end(ck)
             self.last_timings_s["descriptor"] = time.perf_counter() - t0
             return d.copy()
-        if float(np.std(image.mean(axis=2))) < self.conf["min_texture_std"]:
+        if grey_std(image) < self.conf["min_texture_std"]:
             self.low_texture_keys.add(view.key)
             d = self._placeholder(view.key)
             self.last_timings_s["descriptor"] = time.perf_counter() - t0

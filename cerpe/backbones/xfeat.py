@@ -84,6 +84,8 @@ class XFeatFeatures:
         image_hw: ``(H, W)`` of the input image.
         fingerprint: crc32 of the pixels (0 when not computed); caches keyed by
             view key use it to tell a JPEG-decoded copy from the original.
+        grey_std: standard deviation of the image's grey levels (:func:`grey_std`),
+            kept so that texture checks need not read the pixels again.
     """
 
     keypoints: np.ndarray
@@ -93,6 +95,7 @@ class XFeatFeatures:
     reliability: np.ndarray
     image_hw: tuple[int, int]
     fingerprint: int = 0
+    grey_std: float = float("nan")
 
     @property
     def n(self) -> int:
@@ -224,7 +227,17 @@ class XFeatEncoder:
             dense=dense[0].numpy().astype(np.float32),
             reliability=rel[0, 0].numpy().astype(np.float32),
             image_hw=(int(image.shape[0]), int(image.shape[1])),
+            grey_std=grey_std(image),
         )
+
+
+def grey_std(image: np.ndarray) -> float:
+    """Standard deviation of the grey level (mean of the channels) of an ``[H,W,C]`` image."""
+    import cv2
+
+    img = np.ascontiguousarray(image, np.float32)
+    grey = cv2.transform(img, np.full((1, img.shape[2]), 1.0 / img.shape[2], np.float32)) if img.ndim == 3 else img
+    return float(cv2.meanStdDev(grey)[1][0, 0])
 
 
 def _nms(heat: "torch.Tensor", threshold: float, kernel_size: int) -> "torch.Tensor":
