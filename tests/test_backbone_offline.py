@@ -219,15 +219,21 @@ def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone)
     assert not out.valid[1] and out.reasons[1] == "no-parallax"
 
 
+def _blocks(seed: int, hw: tuple[int, int], cell: int) -> np.ndarray:
+    """``[h,w,3] uint8`` grey texture of random ``cell``-pixel blocks (a textured object)."""
+    h, w = hw
+    grey = (np.random.default_rng(seed).random(hw) * 255).astype(np.uint8)
+    grey = np.kron(grey[::cell, ::cell], np.ones((cell, cell), np.uint8))[:h, :w]
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
 def test_depth_prior_ignores_a_moving_object(room, backbone):
     """A textured object that moves between the frames and holds many keypoints: the static
     room still decides the pose (tight P3P threshold + a dense depth and grey-level vote between motions)."""
     T0, T1 = pose((0, 0, 0)), pose((0.05, 0, 0.03))
     img0, d0 = room.render(T0)
     img1, d1 = room.render(T1)
-    rng = np.random.default_rng(5)
-    patch = (rng.random((60, 80)) * 255).astype(np.uint8)
-    patch = np.repeat(np.kron(patch[::6, ::6], np.ones((6, 6), np.uint8))[:60, :80, None], 3, axis=2)
+    patch = _blocks(5, (60, 80), 6)
     img0, img1 = img0.copy(), img1.copy()
     d0, d1 = d0.copy(), d1.copy()
     img0[100:160, 60:140] = patch  # the object at 2 m, then 20 px to the right
@@ -248,9 +254,7 @@ def test_depth_prior_ignores_an_object_moving_along(room, backbone):
     T0, T1 = pose((0, 0, 0)), pose((0, 0, 0.35))
     img0, d0 = room.render(T0)
     img1, d1 = room.render(T1)
-    rng = np.random.default_rng(7)
-    patch = (rng.random((110, 170)) * 255).astype(np.uint8)
-    patch = np.repeat(np.kron(patch[::5, ::5], np.ones((5, 5), np.uint8))[:110, :170, None], 3, axis=2)
+    patch = _blocks(7, (110, 170), 5)
     img0, img1, d0, d1 = img0.copy(), img1.copy(), d0.copy(), d1.copy()
     for img, d in ((img0, d0), (img1, d1)):
         img[60:170, 75:245] = patch  # the same place in both images: it moved with the camera
