@@ -235,9 +235,9 @@ def grey_std(image: np.ndarray) -> float:
     """Standard deviation of the grey level (mean of the channels) of an ``[H,W,C]`` image."""
     import cv2
 
-    img = np.ascontiguousarray(image, np.float32)
-    grey = cv2.transform(img, np.full((1, img.shape[2]), 1.0 / img.shape[2], np.float32)) if img.ndim == 3 else img
-    return float(cv2.meanStdDev(grey)[1][0, 0])
+    from .rgbd_align import grey_image
+
+    return float(cv2.meanStdDev(grey_image(image))[1][0, 0])
 
 
 def _nms(heat: "torch.Tensor", threshold: float, kernel_size: int) -> "torch.Tensor":

@@ -1,0 +1,408 @@
+"""Dense RGB-D alignment: refine a relative pose on every pixel instead of a few hundred keypoints.
+
+A pose from 2D-3D keypoint correspondences is limited by keypoint localisation
+(XFeat: about 0.5 px) and, with a narrow field of view, by the near-ambiguity of a
+small rotation and a sideways translation (0.03 deg of yaw looks like 2 mm of
+translation at 4 m). Consecutive frames of a robot with a depth source carry far
+more evidence: every pixel of the reference with a metric depth predicts the grey
+level and the depth the current frame should see there. This module minimises both
+residuals over the rigid motion, in the manner of dense visual odometry (Kerl et
+al., "Robust odometry estimation for RGB-D cameras", ICRA 2013) with a depth term
+(as in their DVO-SLAM follow-up):
+
+    r_I(p) = I_cur(pi(T X_p)) - I_ref(p)            grey levels (0-255)
+    r_Z(p) = Z_cur(pi(T X_p)) - [T X_p]_z           metres
+
+with ``X_p`` the reference pixel ``p`` back-projected with its depth, Gauss-Newton
+on a left perturbation of ``T = T_cur_ref``, Tukey biweights on residuals normalised
+by their robust (MAD) spread, so a moving object or an occlusion is down-weighted
+rather than averaged in. It only *refines*: the caller gives a pose that is already
+right to well within a pixel (the P3P motion chosen by the vote), and the result is
+refused (the caller keeps its own) when it moves far from it, when too few pixels
+take part, or when it does not lower the robust cost.
+
+Pure numpy + OpenCV (remap, blur, Sobel); no files, no models.
+Conventions: images ``[H,W]`` or ``[H,W,C]`` (any dtype, grey = mean of the channels),
+depth ``[h,w]`` metres (0 / non-finite = no depth; resized to the image by nearest
+neighbour when its size differs), ``K`` ``[3,3]`` pinhole, pixel centres at integer
+coordinates, ``T_cur_ref`` ``[4,4]`` maps reference-camera points into the current camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import CerpeError
+__all__ = ["RGBDAlignError", "AlignResult", "default_conf", "grey_image", "align_rgbd"]
+
+
+class RGBDAlignError(CerpeError, ValueError):
+    """Bad input to the dense alignment (shapes, intrinsics, a non-finite initial pose)."""
+
+
+default_conf: dict[str, Any] = {
+    # every stride-th reference pixel (in both directions) with a depth takes part
+    "stride": 8,
+    # the same on the coarser pyramid levels (fewer pixels there: a coarse level only
+    # has to bring the pose within the next level's basin)
+    "coarse_stride": 4,
+    # Gauss-Newton steps per pyramid level
+    "iterations": 6,
+    # pyramid levels (1: full resolution only); each coarser level halves the image and
+    # doubles the basin, for an initial pose a few pixels off
+    "levels": 3,
+    # Gaussian blur (px) of the grey images: a wider basin, less aliasing
+    "blur_sigma": 1.0,
+    # blur (px) of the current depth for its gradient (sensor noise is per pixel)
+    "depth_blur_sigma": 2.0,
+    # weight the depth residual at all (False: photometric only)
+    "use_depth": True,
+    # Tukey biweight threshold on MAD-normalised residuals
+    "tukey_k": 3.0,
+    # reference pixels whose depth changes by more than this fraction of itself to a
+    # neighbour sit on a depth edge: their warp is ill-defined, they are left out
+    "edge_tol": 0.05,
+    "min_pixels": 500,
+    # refused when fewer than this fraction of the used pixels is within 3 sigma at the end
+    "min_inlier_ratio": 0.3,
+    # refused when the refinement moves the pose by more than this (the input is a
+    # pose that is right to well within a pixel; a big move is a wrong basin)
+    "max_change_m": 0.05,
+    "max_change_deg": 1.0,
+    # stop a level when an update moves the pixels by less than this on average (px)
+    "converged_px": 0.005,
+    # refused when the last update on the finest level still moved them by more than this:
+    # the pose was on its way somewhere else (a start outside the basin)
+    "max_final_px": 0.1,
+}
+
+
+@dataclass
+class AlignResult:
+    """Outcome of :func:`align_rgbd`.
+
+    ``T_cur_ref``: the refined pose ``[4,4]`` when ``ok``, else the initial one;
+    ``reason``: why it was refused (``""`` when ok); ``n_pixels``: pixels used in the
+    last iteration; ``inlier_ratio``: their fraction within 3 robust sigmas;
+    ``cost0``, ``cost``: mean robust cost before and after (on the same normalisation);
+    ``iterations``: Gauss-Newton steps taken (all levels); ``change_m``, ``change_deg``:
+    how far the result is from the initial pose.
+    """
+
+    T_cur_ref: np.ndarray
+    ok: bool
+    reason: str = ""
+    n_pixels: int = 0
+    inlier_ratio: float = 0.0
+    cost0: float = float("nan")
+    cost: float = float("nan")
+    iterations: int = 0
+    change_m: float = 0.0
+    change_deg: float = 0.0
+
+
+def grey_image(image: np.ndarray) -> np.ndarray:
+    """``[H,W]`` float32 grey level (mean of the channels) of an ``[H,W]`` or ``[H,W,C]`` image."""
+    import cv2
+
+    img = np.ascontiguousarray(image, np.float32)
+    if img.ndim == 2:
+        return img
+    if img.ndim != 3 or img.shape[2] < 1:
+        raise RGBDAlignError(f"grey_image: expected [H,W] or [H,W,C], got shape {img.shape}")
+    if img.shape[2] == 1:
+        return np.ascontiguousarray(img[:, :, 0])
+    return cv2.transform(img, np.full((1, img.shape[2]), 1.0 / img.shape[2], np.float32))
+
+
+def _depth_at_image(depth_m: np.ndarray, hw: tuple[int, int], what: str) -> np.ndarray:
+    import cv2
+
+    d = np.asarray(depth_m, np.float32)
+    if d.ndim != 2 or d.size == 0:
+        raise RGBDAlignError(f"align_rgbd: {what} depth must be [H,W], got shape {d.shape}")
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    if d.shape != hw:
+        d = cv2.resize(d, (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST)
+    return d
+
+
+def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at float pixel positions (``[N]`` each)."""
+    import cv2
+
+    return cv2.remap(img, u.astype(np.float32)[None], v.astype(np.float32)[None], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)[0]
+
+
+def _robust_sigma(r: np.ndarray, floor: float) -> float:
+    return max(1.4826 * float(np.median(np.abs(r - np.median(r)))), floor)
+
+
+def _robust_w(x: np.ndarray, k: float) -> np.ndarray:
+    """IRLS weights of :func:`_robust_cost`."""
+    return np.maximum(1.0 - (x / k) ** 2, 0.0) ** 2
+
+
+def _robust_cost(x: np.ndarray, k: float) -> np.ndarray:
+    """Tukey's biweight: a residual beyond ``k`` sigmas costs the same as any other, so a
+    moving object that covers a third of the image adds a constant instead of pulling
+    the pose its way (Huber's linear tail still lets it pull)."""
+    a = np.minimum((x / k) ** 2, 1.0)
+    return (k * k / 6.0) * (1.0 - (1.0 - a) ** 3)
+
+
+def _half(g_ref, D_ref, g_cur, D_cur, Kr, Kc):
+    """One pyramid level down: images by ``pyrDown``, depth by taking every other pixel
+    (averaging would blend across depth edges), intrinsics for pixel centres at integers."""
+    import cv2
+
+    def K2(K: np.ndarray) -> np.ndarray:
+        K = K.copy()
+        K[0, 0] /= 2
+        K[1, 1] /= 2
+        K[0, 2] = (K[0, 2] + 0.5) / 2 - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) / 2 - 0.5
+        return K
+
+    def D2(D: np.ndarray | None) -> np.ndarray | None:
+        return None if D is None else np.ascontiguousarray(D[::2, ::2][:(D.shape[0] + 1) // 2, :(D.shape[1] + 1) // 2])
+
+    g_r, g_c = cv2.pyrDown(g_ref), cv2.pyrDown(g_cur)
+    D_r, D_c = D2(D_ref), D2(D_cur)
+    # pyrDown rounds sizes up like the slicing above; keep the depth at the image size
+    D_r = _depth_at_image(D_r, g_r.shape, "reference")
+    D_c = None if D_c is None else _depth_at_image(D_c, g_c.shape, "current")
+    return g_r, D_r, g_c, D_c, K2(Kr), K2(Kc)
+
+
+class _Level:
+    """One pyramid level: the reference points and the current view's sampled maps."""
+
+    def __init__(self, g_ref: np.ndarray, D_ref: np.ndarray, g_cur: np.ndarray, D_cur: np.ndarray | None,
+                 Kr: np.ndarray, Kc: np.ndarray, c: dict[str, Any], stride: int) -> None:
+        import cv2
+
+        sigma = float(c["blur_sigma"])
+        if sigma > 0:
+            g_ref = cv2.GaussianBlur(g_ref, (0, 0), sigma)
+            g_cur = cv2.GaussianBlur(g_cur, (0, 0), sigma)
+        H, W = g_ref.shape
+        self.Hc, self.Wc = g_cur.shape
+        # reference points: every stride-th pixel with a depth, off depth edges
+        st = max(int(stride), 1)
+        vv, uu = np.mgrid[st // 2:H - 1:st, st // 2:W - 1:st]
+        vv, uu = vv.ravel(), uu.ravel()
+        z = D_ref[vv, uu]
+        zr = D_ref[vv, np.minimum(uu + 1, W - 1)]
+        zd = D_ref[np.minimum(vv + 1, H - 1), uu]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            smooth = (np.abs(zr - z) <= c["edge_tol"] * z) & (np.abs(zd - z) <= c["edge_tol"] * z)
+        keep = (z > 0) & smooth
+        uu, vv, z = uu[keep], vv[keep], z[keep].astype(np.float64)
+        self.n = len(z)
+        self.X_ref = np.column_stack([(uu - Kr[0, 2]) / Kr[0, 0] * z, (vv - Kr[1, 2]) / Kr[1, 1] * z, z])
+        self.I_ref = g_ref[vv, uu].astype(np.float64)
+        self.g_cur = g_cur
+        self.gx = cv2.Sobel(g_cur, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8)
+        self.gy = cv2.Sobel(g_cur, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8)
+        self.use_depth = D_cur is not None
+        if self.use_depth:
+            # the residual reads the raw depth (a blurred one is biased at creases, where a
+            # wall meets the floor); only the gradient, i.e. the Jacobian, reads a smoothed one
+            m = (D_cur > 0).astype(np.float32)
+            self.D_raw = D_cur
+            ds = float(c["depth_blur_sigma"])
+            if ds > 0:  # normalised convolution: holes do not drag the depth towards 0
+                num = cv2.GaussianBlur(D_cur * m, (0, 0), ds)
+                den = cv2.GaussianBlur(m, (0, 0), ds)
+                has = den > 0.5
+                D_s = np.where(has, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
+            else:
+                has, D_s = D_cur > 0, D_cur
+            # a gradient across the border of a region without depth is a jump to 0, not a slope
+            self.valid_cur = m * cv2.erode(has.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
+            self.dx = cv2.Sobel(D_s, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8)
+            self.dy = cv2.Sobel(D_s, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8)
+        self.fx, self.fy, self.cx, self.cy = Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]
+
+    def residuals(self, R: np.ndarray, t: np.ndarray, with_jac: bool):
+        """``(idx, rI, rZ, JI, JZ, zc)`` of the points that land inside the current image."""
+        fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
+        Xc = self.X_ref @ R.T + t
+        x, y, zc = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = 1.0 / zc
+            u, v = fx * x * iz + cx, fy * y * iz + cy
+        ok = (zc > 1e-6) & (u >= 1) & (u <= self.Wc - 2) & (v >= 1) & (v <= self.Hc - 2)
+        idx = np.flatnonzero(ok)
+        u, v = u[idx], v[idx]
+        rI = _sample(self.g_cur, u, v).astype(np.float64) - self.I_ref[idx]
+        rZ = None
+        if self.use_depth:
+            vz = _sample(self.valid_cur, u, v) > 0.999
+            rZ = np.where(vz, _sample(self.D_raw, u, v).astype(np.float64) - zc[idx], np.nan)
+        if not with_jac:
+            return idx, rI, rZ, None, None, zc[idx], None
+        x, y, iz = x[idx], y[idx], iz[idx]
+        xz, yz = x * iz, y * iz
+        zero = np.zeros_like(iz)
+        du = np.column_stack([fx * iz, zero, -fx * xz * iz, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz])
+        dv = np.column_stack([zero, fy * iz, -fy * yz * iz, -fy * (1 + yz * yz), fy * xz * yz, fy * xz])
+        JI = _sample(self.gx, u, v).astype(np.float64)[:, None] * du + _sample(self.gy, u, v).astype(np.float64)[:, None] * dv
+        JZ = None
+        if self.use_depth:
+            dz = np.column_stack([zero, zero, np.ones_like(iz), y, -x, zero])
+            JZ = (_sample(self.dx, u, v).astype(np.float64)[:, None] * du
+                  + _sample(self.dy, u, v).astype(np.float64)[:, None] * dv - dz)
+        return idx, rI, rZ, JI, JZ, zc[idx], (du, dv)
+
+    @staticmethod
+    def scales(r: tuple, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+        """Robust spreads of the grey residual and of the depth residual over ``z^2``."""
+        _, rI, rZ, _, _, zc, _ = r
+        sZ = 1e-3
+        if rZ is not None and np.isfinite(rZ).sum() >= 10:
+            okz = np.isfinite(rZ)
+            sZ = _robust_sigma(rZ[okz] / zc[okz] ** 2, 1e-4)
+        return _robust_sigma(rI, 0.5), sZ
+
+    @staticmethod
+    def cost(r: tuple, R: np.ndarray, t: np.ndarray, sc: tuple[float, float], k: float) -> float:
+        """Mean robust cost of the normalised residuals."""
+        _, rI, rZ, _, _, zc, _ = r
+        total = float(np.sum(_robust_cost(rI / sc[0], k)))
+        n = len(rI)
+        if rZ is not None:
+            okz = np.isfinite(rZ)
+            total += float(np.sum(_robust_cost(rZ[okz] / (sc[1] * zc[okz] ** 2), k)))
+            n += int(okz.sum())
+        return total / max(n, 1)
+
+    def step(self, R: np.ndarray, t: np.ndarray, sc: tuple[float, float] | None, k: float, min_pixels: int):
+        """One Gauss-Newton step: ``(R, t, scales, px)`` with ``px`` the mean image motion (px)
+        of the step, or None (too few pixels, singular)."""
+        from ..geometry import so3_exp
+
+        r = self.residuals(R, t, True)
+        idx, rI, rZ, JI, JZ, zc, (du, dv) = r
+        if len(idx) < max(min_pixels, 6):
+            return None
+        if sc is None:
+            sc = self.scales(r, R, t)
+        wI = _robust_w(rI / sc[0], k) / sc[0] ** 2
+        Hm = (JI * wI[:, None]).T @ JI
+        b = (JI * wI[:, None]).T @ rI
+        if rZ is not None:
+            okz = np.isfinite(rZ)
+            s_z = sc[1] * zc[okz] ** 2
+            wZ = _robust_w(rZ[okz] / s_z, k) / s_z ** 2
+            Jz = JZ[okz]
+            Hm += (Jz * wZ[:, None]).T @ Jz
+            b += (Jz * wZ[:, None]).T @ rZ[okz]
+        try:
+            delta = -np.linalg.solve(Hm, b)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(delta)):
+            return None
+        dR = so3_exp(delta[3:])
+        px = float(np.mean(np.hypot(du @ delta, dv @ delta)))
+        return dR @ R, dR @ t + delta[:3], sc, px
+
+
+def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.ndarray,
+               depth_cur_m: np.ndarray | None, K_ref: np.ndarray, K_cur: np.ndarray,
+               T_cur_ref: np.ndarray, conf: dict[str, Any] | None = None) -> AlignResult:
+    """Refine ``T_cur_ref`` by dense photometric (+ depth) alignment; see the module docstring.
+
+    Args:
+        image_ref, image_cur: ``[H,W]`` / ``[H,W,C]`` images (grey = channel mean).
+        depth_ref_m: ``[h,w]`` metric depth of the reference (required: it gives the 3D points).
+        depth_cur_m: ``[h,w]`` metric depth of the current view, or None (photometric only).
+        K_ref, K_cur: ``[3,3]`` intrinsics at the images' resolutions.
+        T_cur_ref: ``[4,4]`` initial pose (reference-camera points into the current camera).
+        conf: overrides of :data:`default_conf`.
+
+    Returns:
+        :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
+        reason), only for malformed input.
+    """
+    c = {**default_conf, **(conf or {})}
+    T0 = np.asarray(T_cur_ref, np.float64)
+    if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
+        raise RGBDAlignError(f"align_rgbd: T_cur_ref must be a finite [4,4], got {T0.shape}")
+    Kr, Kc = np.asarray(K_ref, np.float64), np.asarray(K_cur, np.float64)
+    if Kr.shape != (3, 3) or Kc.shape != (3, 3) or not (np.all(np.isfinite(Kr)) and np.all(np.isfinite(Kc))):
+        raise RGBDAlignError("align_rgbd: K_ref and K_cur must be finite [3,3]")
+    g_ref, g_cur = grey_image(image_ref), grey_image(image_cur)
+    D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference")
+    use_depth = bool(c["use_depth"]) and depth_cur_m is not None
+    D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current") if use_depth else None
+    result = AlignResult(T_cur_ref=T0.copy(), ok=False)
+    k = float(c["tukey_k"])
+    n_levels = max(int(c["levels"]), 1)
+    pyramid = [(g_ref, D_ref, g_cur, D_cur, Kr, Kc)]
+    for _ in range(n_levels - 1):
+        pyramid.append(_half(*pyramid[-1]))
+    fine = _Level(*pyramid[0], c, stride=int(c["stride"]))
+    if fine.n < c["min_pixels"]:
+        result.reason = "few-pixels"
+        return result
+    # noise levels and starting cost on the finest level at the initial pose: the final
+    # cost is measured on the same normalisation, so the two compare
+    r0 = fine.residuals(T0[:3, :3], T0[:3, 3], False)
+    if len(r0[0]) < c["min_pixels"]:
+        result.reason = "few-pixels"
+        return result
+    fine_scales = fine.scales(r0, T0[:3, :3], T0[:3, 3])
+    result.cost0 = fine.cost(r0, T0[:3, :3], T0[:3, 3], fine_scales, k)
+    R, t = T0[:3, :3].copy(), T0[:3, 3].copy()
+    last_px = float("inf")
+    for lev in range(n_levels - 1, -1, -1):
+        L = fine if lev == 0 else _Level(*pyramid[lev], c, stride=max(int(c["coarse_stride"]), 1))
+        if L.n < c["min_pixels"] // (4 ** lev):
+            continue
+        sc = fine_scales if lev == 0 else None
+        for _ in range(int(c["iterations"])):
+            out = L.step(R, t, sc, k, int(c["min_pixels"]) // (4 ** lev))
+            if out is None:
+                result.reason = "degenerate" if lev == 0 else "few-pixels"
+                if lev == 0:
+                    return result
+                break
+            R, t, sc, last_px = out
+            result.iterations += 1
+            if last_px < c["converged_px"]:
+                break
+
+    rr = fine.residuals(R, t, False)
+    idx, rI = rr[0], rr[1]
+    result.n_pixels = int(len(idx))
+    if len(idx) < c["min_pixels"]:
+        result.reason = "few-pixels"
+        return result
+    result.cost = fine.cost(rr, R, t, fine_scales, k)
+    result.inlier_ratio = float(np.mean(np.abs(rI / fine_scales[0]) <= 3.0))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    D = T @ np.linalg.inv(T0)
+    result.change_m = float(np.linalg.norm(D[:3, 3]))
+    result.change_deg = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    if not np.all(np.isfinite(T)):
+        result.reason = "degenerate"
+    elif result.change_m > c["max_change_m"] or result.change_deg > c["max_change_deg"]:
+        result.reason = "moved-too-far"
+    elif last_px > c["max_final_px"]:
+        result.reason = "not-converged"
+    elif result.inlier_ratio < c["min_inlier_ratio"]:
+        result.reason = "few-inliers"
+    elif not result.cost < result.cost0:
+        result.reason = "no-improvement"
+    else:
+        result.ok = True
+        result.T_cur_ref = T
+    return result
