@@ -169,7 +169,7 @@ def _half(g_ref, D_ref, g_cur, D_cur, Kr, Kc):
         return K
 
     def D2(D: np.ndarray | None) -> np.ndarray | None:
-        return None if D is None else np.ascontiguousarray(D[::2, ::2][:(D.shape[0] + 1) // 2, :(D.shape[1] + 1) // 2])
+        return None if D is None else np.ascontiguousarray(D[::2, ::2])
 
     g_r, g_c = cv2.pyrDown(g_ref), cv2.pyrDown(g_cur)
     D_r, D_c = D2(D_ref), D2(D_cur)
@@ -261,7 +261,7 @@ class _Level:
         return idx, rI, rZ, JI, JZ, zc[idx], (du, dv)
 
     @staticmethod
-    def scales(r: tuple, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+    def scales(r: tuple) -> tuple[float, float]:
         """Robust spreads of the grey residual and of the depth residual over ``z^2``."""
         _, rI, rZ, _, _, zc, _ = r
         sZ = 1e-3
@@ -271,7 +271,7 @@ class _Level:
         return _robust_sigma(rI, 0.5), sZ
 
     @staticmethod
-    def cost(r: tuple, R: np.ndarray, t: np.ndarray, sc: tuple[float, float], k: float) -> float:
+    def cost(r: tuple, sc: tuple[float, float], k: float) -> float:
         """Mean robust cost of the normalised residuals."""
         _, rI, rZ, _, _, zc, _ = r
         total = float(np.sum(_robust_cost(rI / sc[0], k)))
@@ -292,7 +292,7 @@ class _Level:
         if len(idx) < max(min_pixels, 6):
             return None
         if sc is None:
-            sc = self.scales(r, R, t)
+            sc = self.scales(r)
         wI = _robust_w(rI / sc[0], k) / sc[0] ** 2
         Hm = (JI * wI[:, None]).T @ JI
         b = (JI * wI[:, None]).T @ rI
@@ -358,8 +358,8 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     if len(r0[0]) < c["min_pixels"]:
         result.reason = "few-pixels"
         return result
-    fine_scales = fine.scales(r0, T0[:3, :3], T0[:3, 3])
-    result.cost0 = fine.cost(r0, T0[:3, :3], T0[:3, 3], fine_scales, k)
+    fine_scales = fine.scales(r0)
+    result.cost0 = fine.cost(r0, fine_scales, k)
     R, t = T0[:3, :3].copy(), T0[:3, 3].copy()
     last_px = float("inf")
     for lev in range(n_levels - 1, -1, -1):
@@ -385,7 +385,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     if len(idx) < c["min_pixels"]:
         result.reason = "few-pixels"
         return result
-    result.cost = fine.cost(rr, R, t, fine_scales, k)
+    result.cost = fine.cost(rr, fine_scales, k)
     result.inlier_ratio = float(np.mean(np.abs(rI / fine_scales[0]) <= 3.0))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
