@@ -187,3 +187,31 @@ def test_nms_gives_kornias_keypoints():
     got = _nms(x, 0.05, 5)
     assert want.shape[1] > 100
     assert torch.equal(got, want)
+
+
+def test_fast_cpu_network_is_the_same_function(encoder, room):
+    """Batch norms folded into the convolutions, channels-last layout: the same outputs up to
+    float rounding, so the same keypoints, descriptors and dense map."""
+    import torch
+
+    from cerpe.backbones.xfeat import XFeatEncoder, fold_batchnorm
+
+    net = encoder.model.net
+    folded = fold_batchnorm(net)
+    n_bn = sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    assert n_bn > 10 and not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    x = torch.rand(1, 3, 64, 96, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        for a, b in zip(net(x), folded(x)):
+            assert a.shape == b.shape and float((a - b).abs().max()) < 1e-4
+    assert encoder.conf["fast_cpu"] and encoder.net is not net
+    img = room.render(pose((0.2, 0, 0.1), (0, 10, 0)))[0]
+    fast = encoder.encode_image(img)
+    slow = XFeatEncoder({"fast_cpu": False}).encode_image(img)
+    assert fast.n == slow.n and fast.dense.flags["C_CONTIGUOUS"]
+    assert np.abs(fast.dense - slow.dense).max() < 1e-3
+    # near-equal scores may swap places in the ranking: compare each keypoint with its nearest
+    d = np.linalg.norm(fast.keypoints[:, None] - slow.keypoints[None], axis=2)
+    nn = d.argmin(1)
+    assert np.mean(d.min(1) < 0.05) > 0.99
+    assert np.median(np.sum(fast.descriptors * slow.descriptors[nn], axis=1)) > 0.9999

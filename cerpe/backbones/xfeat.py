@@ -115,6 +115,11 @@ class XFeatEncoder:
         subpixel: refine keypoints by a 1-D parabola fit of the keypoint heatmap in x and y
             (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly
             biases two-view translation directions at 640x480).
+        fast_cpu: run a copy of the network with every batch norm folded into the
+            convolution before it (:func:`fold_batchnorm`; exact algebra, outputs
+            differ by float rounding, ~1e-5) in channels-last memory layout, which
+            oneDNN's CPU convolutions prefer. On 2 cores at 640x480 the forward pass
+            takes ~25 ms instead of ~35-55 ms (``cerpe bench`` shows the encode stage).
     """
 
     default_conf: dict[str, Any] = {
@@ -125,6 +130,7 @@ class XFeatEncoder:
         "min_size": 32,
         "num_threads": None,
         "subpixel": True,
+        "fast_cpu": True,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
@@ -150,6 +156,9 @@ class XFeatEncoder:
         except Exception as exc:
             raise XFeatError(f"XFeat weights: {path} does not match the XFeat network: {exc}") from None
         self.model = model.eval()
+        # the network the encoder runs; the model keeps the original for anyone reading it
+        self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last) if self.conf["fast_cpu"] \
+            else model.net
         self._cache: OrderedDict[Hashable, XFeatFeatures] = OrderedDict()
         self._lock = threading.Lock()
         self.n_encoded = 0  # network passes actually run (cache misses)
@@ -204,7 +213,9 @@ class XFeatEncoder:
         with torch.inference_mode():
             x, rh, rw = m._preprocess_tensor(x)
             _, _, Hr, Wr = x.shape
-            dense, kpt_logits, rel = m.net(x)
+            if self.conf["fast_cpu"]:
+                x = x.contiguous(memory_format=torch.channels_last)
+            dense, kpt_logits, rel = (t.contiguous() for t in self.net(x))
             dense_n = F.normalize(dense, dim=1)
             heat = m._get_kpts_heatmap(kpt_logits)
             pos = _nms(heat, float(self.conf["detection_threshold"]), 5)
@@ -229,6 +240,26 @@ class XFeatEncoder:
             image_hw=(int(image.shape[0]), int(image.shape[1])),
             grey_std=grey_std(image),
         )
+
+
+def fold_batchnorm(net: "torch.nn.Module") -> "torch.nn.Module":
+    """A copy of ``net`` (eval mode) in which every ``BatchNorm2d`` that directly follows a
+    ``Conv2d`` in the same container is folded into that convolution's weight and bias
+    and replaced by an identity. The same function as ``net`` in eval mode, one layer
+    fewer per block."""
+    import copy
+
+    import torch
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    net = copy.deepcopy(net).eval()
+    for module in list(net.modules()):
+        children = list(module.named_children())
+        for (name_a, a), (name_b, b) in zip(children, children[1:]):
+            if isinstance(a, torch.nn.Conv2d) and isinstance(b, torch.nn.BatchNorm2d):
+                setattr(module, name_a, fuse_conv_bn_eval(a, b))
+                setattr(module, name_b, torch.nn.Identity())
+    return net
 
 
 def grey_std(image: np.ndarray) -> float:
