@@ -152,6 +152,7 @@ class _Conn:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.closed = threading.Event()
+        self._close_lock = threading.Lock()
         self.said_bye = False
         self.thread = threading.Thread(target=self._read_loop, name=f"cerpe-net-{net.robot_id}<-{peer}", daemon=True)
 
@@ -192,16 +193,20 @@ class _Conn:
         self.close(why)
 
     def close(self, why: str) -> None:
-        if self.closed.is_set():
-            return
-        self.closed.set()
+        with self._close_lock:  # the reader and a failed send may both get here
+            if self.closed.is_set():
+                return
+            # the "down" event is queued before the connection reads as closed: a runner that
+            # stops waiting for this peer because it is not connected finds the event at its
+            # next look (the other order lost it when the runner finished first)
+            self.net._on_closed(self, why)
+            self.closed.set()
         self.stop.set()
         try:
             self.sock.shutdown(socket.SHUT_RDWR)
         except OSError:
             pass
         self.sock.close()
-        self.net._on_closed(self, why)
 
 
 class NetTransport:
