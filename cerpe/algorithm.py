@@ -15,9 +15,11 @@ One call of :meth:`Team.step` is one synchronous round (``docs/ARCHITECTURE.md``
 5. recovers the metric scale from the memory keyframes' depth references
    (:func:`cerpe.scale.recover_scale`; the current frame only while the memory is
    empty) (``scale``);
-6. composes its metric odometry pose through the newest keyframe the pass could
-   place: ``X_t = X_kf @ S(inv(T_frame_kf) @ T_frame_cur)``. Only differences
-   within one pass are used, so a new backbone frame never makes ``X`` jump;
+6. composes its metric odometry pose through the view the backbone measured the
+   current one against (``BackboneOutput.reference``: a keyframe or the previous
+   frame), else the previous frame, else the newest keyframe the pass could place:
+   ``X_t = X_kf @ S(inv(T_frame_kf) @ T_frame_cur)``. Only differences within one
+   pass are used, so a new backbone frame never makes ``X`` jump;
 7. broadcasts a :class:`~cerpe.messages.PoseMessage` with ``X_t``;
 8. per other robot: gate open and the collaborator view placed -> direct
    ``T_cj_ci = S(inv(T_frame_cj) @ T_frame_ci)``, stored as the pair's anchor
@@ -548,6 +550,16 @@ class RobotAgent:
             st.ego_status = "no-scale"
         else:
             p = st.prev_index
+            ref = out.reference
+            # the view the backbone measured the current one against directly comes first:
+            # chaining through a view it placed from there adds that placement's error
+            if ref is not None and 0 < ref < len(out.valid) and out.valid[ref]:
+                start = (self.previous.T_odom_cam if ref == p
+                         else kfs[ref - 1].T_odom_cam if 1 <= ref <= len(kfs) else None)
+                if start is not None:
+                    self.X = ego_motion(start, out.T_frame_cam[ref], out.T_frame_cam[0], st.scale)
+                    st.ego_status = "ok"
+                    return self.X
             if p is not None and out.valid[p]:
                 self.X = ego_motion(self.previous.T_odom_cam, out.T_frame_cam[p], out.T_frame_cam[0], st.scale)
                 st.ego_status = "ok"

@@ -72,6 +72,11 @@ class BackboneOutput:
             (the backbone anchored it on the views' metric depth priors); the scale
             step then has nothing to recover (``CerpeConfig.backbone_metric_unit``).
             Up-to-scale backbones (VGGT) leave it False.
+        reference: index of the view against which the current view (index 0) was
+            measured most directly (the offline backbone's depth-prior view, whose
+            relative pose it refines densely), or None when the pass places all views
+            jointly (VGGT). Ego-motion chains through this view when it is a keyframe
+            or the previous frame.
     """
 
     T_frame_cam: np.ndarray
@@ -83,6 +88,7 @@ class BackboneOutput:
     timings_s: dict[str, float] = field(default_factory=dict)
     extra: dict[str, float] = field(default_factory=dict)
     metric_unit: bool = False
+    reference: int | None = None
 
     def __post_init__(self) -> None:
         S = len(self.valid)

@@ -305,3 +305,30 @@ def test_module_level_run_encounter_and_rerun_resets():
         for pa, pb in zip(ra.pairs, rb.pairs):
             assert pa.source == pb.source
         np.testing.assert_allclose(ra.robots[0].T_odom_cam, rb.robots[0].T_odom_cam, atol=1e-6)
+
+
+class _ReferenceBackbone(GTBackbone):
+    """Exact pose for the current view and its oldest own keyframe (the ``reference``);
+    every other own view of the pass 30 cm off."""
+
+    def infer(self, views):
+        out = super().infer(views)
+        own = [s for s in range(1, len(views)) if views[s].key[0] == views[0].key[0] and len(views[s].key) == 2]
+        if own:
+            out.reference = min(own, key=lambda s: views[s].key[1])  # the oldest keyframe
+            for s in own:
+                if s != out.reference and out.valid[s]:
+                    out.T_frame_cam[s][:3, 3] += 0.3 * np.linalg.norm(out.T_frame_cam[s][:3, 3]) + 0.3
+        return out
+
+
+def test_ego_motion_chains_through_the_backbones_reference_view():
+    """The pass's reference view (what the backbone measured the current view against) is
+    used for the odometry even when the previous frame and newer keyframes are placed too."""
+    world = make_world(2, 25, seed=4)
+    bb = _ReferenceBackbone(world)
+    team, _, results = run(world, CerpeConfig(min_scale_pixels=20, track_previous=True), backbone=bb)
+    assert any(len(c) > 3 for c in bb.calls)  # passes with several own views did happen
+    for res in results:
+        for k, r in enumerate(res.robots):
+            np.testing.assert_allclose(r.T_odom_cam, world.gt_odometry(k, res.step), atol=1e-5)

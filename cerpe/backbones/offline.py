@@ -16,7 +16,10 @@ collaborators`` is classical structure from motion:
    the current one is tried first; the current view's own prior only when no
    other view anchors. The current view is placed on them by absolute pose (P3P
    RANSAC, up to three motion hypotheses and the previous motion decided by a
-   dense vote of depth and grey-level consistency), its pose refined by dense
+   dense vote of depth and grey-level consistency, cast by the prior's view and
+   by up to two older keyframes reached through the stored motions; pixels of the
+   prior's view that its own motion did not explain, a moving object, do not
+   vote), its pose refined by dense
    photometric + depth alignment (:mod:`cerpe.backbones.rgbd_align`); then the
    current view's own prior adds its points too. The unit of the pass is then the metre (``BackboneOutput.metric_unit``),
    so the algorithm has no scale to recover. This is how RGB-D odometry
@@ -36,7 +39,9 @@ collaborators`` is classical structure from motion:
    correspondences obtained through its matches with the current view and with
    the reference view; if too few, a two-view fallback (essential matrix with
    the current view; translation scale from the depths of the shared
-   triangulated points).
+   triangulated points). When the depth-anchored pass leaves out a view that the
+   image-only one (step 4) places, that view joins the metric pass at the scale
+   of the views both placed, if the two agree on them (``_merge_image_only``).
 6. Per-view sparse depth: the inlier points' camera-frame depths splatted at
    their pixels (0 elsewhere), confidence ``n_obs / (1 + reprojection error px)``.
 
@@ -271,6 +276,9 @@ class _Pass:
     cams: list[dict]
     low_tex: list[bool]
     timings: dict[str, float] = field(default_factory=dict)
+    # (a, b) -> essential-matrix result of views a and b (the depth-anchored and the
+    # image-only solves of one pass ask for the same pairs)
+    relative: dict[tuple[int, int], tuple[np.ndarray | None, np.ndarray, str]] = field(default_factory=dict)
 
 
 class OfflineGeometryBackbone:
@@ -317,7 +325,14 @@ class OfflineGeometryBackbone:
             depth tolerance, grey-level tolerance (0-255) and blur of the dense vote that
             picks between them (see ``_motion_votes``).
         motion_prior: offer the motion that placed the depth-prior view on its own prior
-            (constant velocity) as one more hypothesis to the vote (see ``_place_pnp``).
+            (constant velocity; no motion when there is none yet) as one more hypothesis to
+            the vote (see ``_place_pnp``).
+        vote_views, vote_chain_hops: older views of the pass (keyframes) that vote too, at
+            most this many, reached by following each view's stored motion to its anchor
+            for at most this many steps (see ``_chained_views``).
+        mask_moving: pixels of a view that its chosen motion did not explain (depth or grey
+            level off: a moving object) do not vote when that view is the next pass's prior
+            (see ``_note_moving``).
         dense_refine, dense: refine the current view's pose on the depth-prior view by
             dense photometric + depth alignment (:func:`cerpe.backbones.rgbd_align.align_rgbd`,
             ``dense`` overrides its ``default_conf``). Keypoints place the current view to
@@ -325,6 +340,10 @@ class OfflineGeometryBackbone:
             2-3 mm a step (6 % of the path), every pixel brings it to about 0.2 mm. A
             refinement the aligner refuses leaves the P3P pose as it is (counted in
             ``n_dense_refused``).
+        merge_max_rot_px, merge_max_dir_deg, merge_max_ratio_spread, merge_min_baseline_m:
+            when the image-only reconstruction places views the depth one left out, they
+            join it only if the two agree this well on the views both placed (see
+            ``_merge_image_only``; refusals counted in ``n_merge_refused``).
     """
 
     default_conf: dict[str, Any] = {
@@ -358,8 +377,15 @@ class OfflineGeometryBackbone:
         "vote_grey_tol": 6.0,
         "vote_blur_sigma": 1.0,
         "motion_prior": True,
+        "vote_views": 2,
+        "vote_chain_hops": 12,
+        "mask_moving": True,
         "dense_refine": True,
         "dense": {"stride": 8, "iterations": 6},
+        "merge_max_rot_px": 3.0,
+        "merge_max_dir_deg": 10.0,
+        "merge_max_ratio_spread": 1.25,
+        "merge_min_baseline_m": 0.05,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
@@ -370,14 +396,20 @@ class OfflineGeometryBackbone:
         self.n_match_cached = 0
         self.n_dense_refined = 0
         self.n_dense_refused: dict[str, int] = {}
+        self.n_merged = 0  # views the image-only reconstruction added to a metric one
+        self.n_merge_refused: dict[str, int] = {}
         # key of a view placed on a depth prior -> (key of that prior's view, T_view_prior):
         # the previous motion, offered as a hypothesis when the view is itself the prior
         self._motions: OrderedDict[Hashable, tuple[Hashable, np.ndarray]] = OrderedDict()
+        # key of a view placed on a depth prior -> its vote-grid pixels that the chosen motion
+        # did not explain (``_note_moving``); they do not vote when the view is itself the prior
+        self._moving: OrderedDict[Hashable, np.ndarray] = OrderedDict()
 
     def clear_caches(self) -> None:
         """Forget cached matches and motions (a cold start; features live in the encoder's cache)."""
         self._matches.clear()
         self._motions.clear()
+        self._moving.clear()
 
     # ------------------------------------------------------------------ matching with cache
     def _match(self, ka: Hashable, fa: XFeatFeatures, kb: Hashable, fb: XFeatFeatures) -> np.ndarray:
@@ -431,6 +463,14 @@ class OfflineGeometryBackbone:
         T[:3, 3] /= np.linalg.norm(T[:3, 3])
         return T, inl, ""
 
+    def _pair_pose(self, p: _Pass, a: int, b: int) -> tuple[np.ndarray | None, np.ndarray, str]:
+        """:meth:`_relative_pose` of views ``a`` and ``b`` over their matches, once per pass."""
+        if (a, b) not in p.relative:
+            m = self._m(p, a, b)
+            p.relative[(a, b)] = self._relative_pose(p.feats[a].keypoints[m[:, 0]], p.feats[b].keypoints[m[:, 1]],
+                                                     p.cams[a], p.cams[b])
+        return p.relative[(a, b)]
+
     def _triangulate_pair(self, uv0: np.ndarray, uv1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
                           T_1_0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Points in camera 0, a keep mask, mean reprojection error (px) and triangulation angle (deg)."""
@@ -455,7 +495,7 @@ class OfflineGeometryBackbone:
                 continue
             m = self._m(p, anchor, s)
             uva, uvs = p.feats[anchor].keypoints[m[:, 0]], p.feats[s].keypoints[m[:, 1]]
-            T_s_a, inl, reason = self._relative_pose(uva, uvs, p.cams[anchor], p.cams[s])
+            T_s_a, inl, reason = self._pair_pose(p, anchor, s)
             if T_s_a is None:
                 why[s] = reason
                 continue
@@ -494,14 +534,16 @@ class OfflineGeometryBackbone:
             rec = _Recon(X=X_d, T={d: np.eye(4)}, obs={d: (ids, kp)}, pair=(0, d), metric=True)
             if d == 0:
                 return rec, why
-            # constant velocity: the motion that placed d on its own prior, if d was placed so
+            # constant velocity: the motion that placed d on its own prior, if d was placed so;
+            # otherwise standing still (a sequence starts at rest: no velocity known yet)
             prior = self._motions.get(p.views[d].key) if c["motion_prior"] else None
             if not self._place_pnp(p, 0, (d,), rec, min_inliers=int(c["min_inliers"]),
                                    hypotheses=int(c["motion_hypotheses"]), ref_depth=d, px=float(c["depth_pnp_px"]),
-                                   priors=[prior[1]] if prior is not None else ()):
+                                   priors=[prior[1] if prior is not None else np.eye(4)]):
                 why[d] = "few-inliers"
                 continue
             self._refine_dense(p, d, rec)
+            self._note_moving(p, d, rec.T[0])
             self._motions[p.views[0].key] = (p.views[d].key, _inv(rec.T[0]))
             while len(self._motions) > int(c["match_cache_size"]):
                 self._motions.popitem(last=False)
@@ -551,61 +593,86 @@ class OfflineGeometryBackbone:
         Each sampled pixel of ``d`` (every ``vote_stride``-th) is back-projected with its
         prior depth, moved by every hypothesis into the current view and, if it lands in
         the image under all of them, counts for each hypothesis under which it is
-        *consistent*: its depth agrees with the current view's prior there within
-        ``vote_depth_tol`` (relative) and its grey level (images blurred with
-        ``vote_blur_sigma``) within ``vote_grey_tol``. Both tests matter: depth alone
-        cannot tell forward motion over a flat road from standing still (the road's depth
-        at a pixel does not change), and grey level alone cannot tell apart motions over
-        untextured walls. Dense, so it counts surfaces rather than keypoints: a textured
-        moving object, or a facade of repeated windows matched one period off, can win
-        RANSAC by keypoint count, while the static scene covers more of the image.
+        *consistent* (:meth:`_consistency`). Both tests matter: depth alone cannot tell
+        forward motion over a flat road from standing still (the road's depth at a pixel
+        does not change), and grey level alone cannot tell apart motions over untextured
+        walls. Dense, so it counts surfaces rather than keypoints: a textured moving
+        object, or a facade of repeated windows matched one period off, can win RANSAC by
+        keypoint count, while the static scene covers more of the image. Pixels of ``d``
+        found moving when ``d`` itself was placed (:attr:`_moving`) do not vote.
 
         Returns:
             ``[len(T_0_d)]`` counts of consistent pixels.
         """
-        import cv2
-
-        c = self.conf
         if not T_0_d:
             return np.zeros(0, np.int64)
-        Dd = np.asarray(p.views[d].depth_m, np.float64)
-        D0 = np.asarray(p.views[0].depth_m, np.float64)
-        st = max(int(c["vote_stride"]), 1)
-        sigma = float(c["vote_blur_sigma"])
-        grey = [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
-                else grey_image(p.views[k].image) for k in (d, 0)]
-        H, W = p.feats[d].image_hw
-        H0, W0 = p.feats[0].image_hw
-        h0, w0 = D0.shape
-        vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
-        vv, uu = vv.ravel(), uu.ravel()
-        z = Dd[_map_index(vv.astype(np.float64), Dd.shape[0], H), _map_index(uu.astype(np.float64), Dd.shape[1], W)]
-        ok = np.isfinite(z) & (z > 0)
-        uv = np.column_stack([uu[ok], vv[ok]]).astype(np.float64)
-        g_d = grey[0][vv[ok], uu[ok]]
-        X = pixels_to_rays(uv, p.Ks[d]) * z[ok, None]
-        inside = np.zeros((len(T_0_d), len(X)), bool)
-        consistent = np.zeros((len(T_0_d), len(X)), bool)
-        g0 = grey[1]
-        for h, T in enumerate(T_0_d):
-            X0 = X @ T[:3, :3].T + T[:3, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pr = X0 @ p.Ks[0].T
-                u0, v0 = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
-            ins = (X0[:, 2] > 0) & (u0 >= 0) & (u0 <= W0 - 1) & (v0 >= 0) & (v0 <= H0 - 1)
-            inside[h] = ins
-            u0, v0, zi, gi = u0[ins], v0[ins], X0[ins, 2], g_d[ins]
-            meas = D0[_map_index(v0, h0, H0), _map_index(u0, w0, W0)]
-            x0, y0 = np.minimum(u0.astype(np.int64), W0 - 2), np.minimum(v0.astype(np.int64), H0 - 2)
-            ax, ay = u0 - x0, v0 - y0
-            g = ((1 - ax) * (1 - ay) * g0[y0, x0] + ax * (1 - ay) * g0[y0, x0 + 1]
-                 + (1 - ax) * ay * g0[y0 + 1, x0] + ax * ay * g0[y0 + 1, x0 + 1])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
-            consistent[h, ins] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
+        inside, consistent = self._consistency(p, d, 0, T_0_d, exclude=self._moving.get(p.views[d].key))
         # only pixels every hypothesis keeps in view vote: the road just below a camera that
         # moves forward leaves the image, and would otherwise count for standing still only
         return np.count_nonzero(consistent & inside.all(axis=0), axis=1).astype(np.int64)
+
+    def _consistency(self, p: _Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
+                     exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """View ``a``'s prior depth pixels on the ``vote_stride`` grid, moved into view ``b``
+        by each ``T_b_a[h]``: ``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool.
+
+        ``inside``: in front of ``b`` and within its image; ``consistent``: also ``b``'s prior
+        depth there within ``vote_depth_tol`` (relative) and its grey level (both images
+        blurred with ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a
+        prior depth, or set in ``exclude`` (``[n_grid]`` bool), are neither."""
+        import cv2
+
+        c = self.conf
+        Da = np.asarray(p.views[a].depth_m, np.float64)
+        Db = np.asarray(p.views[b].depth_m, np.float64)
+        st = max(int(c["vote_stride"]), 1)
+        sigma = float(c["vote_blur_sigma"])
+        grey = [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
+                else grey_image(p.views[k].image) for k in (a, b)]
+        H, W = p.feats[a].image_hw
+        Hb, Wb = p.feats[b].image_hw
+        hb, wb = Db.shape
+        vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
+        vv, uu = vv.ravel(), uu.ravel()
+        z = Da[_map_index(vv.astype(np.float64), Da.shape[0], H), _map_index(uu.astype(np.float64), Da.shape[1], W)]
+        ok = np.isfinite(z) & (z > 0)
+        if exclude is not None and exclude.shape == ok.shape:
+            ok &= ~exclude
+        sel = np.flatnonzero(ok)
+        uv = np.column_stack([uu[sel], vv[sel]]).astype(np.float64)
+        g_a = grey[0][vv[sel], uu[sel]]
+        X = pixels_to_rays(uv, p.Ks[a]) * z[sel, None]
+        inside = np.zeros((len(T_b_a), len(ok)), bool)
+        consistent = np.zeros((len(T_b_a), len(ok)), bool)
+        g_b = grey[1]
+        for h, T in enumerate(T_b_a):
+            Xb = X @ T[:3, :3].T + T[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pr = Xb @ p.Ks[b].T
+                ub, vb = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
+            ins = (Xb[:, 2] > 0) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
+            inside[h, sel] = ins
+            ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
+            meas = Db[_map_index(vb, hb, Hb), _map_index(ub, wb, Wb)]
+            x0, y0 = np.minimum(ub.astype(np.int64), Wb - 2), np.minimum(vb.astype(np.int64), Hb - 2)
+            ax, ay = ub - x0, vb - y0
+            g = ((1 - ax) * (1 - ay) * g_b[y0, x0] + ax * (1 - ay) * g_b[y0, x0 + 1]
+                 + (1 - ax) * ay * g_b[y0 + 1, x0] + ax * ay * g_b[y0 + 1, x0 + 1])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
+            consistent[h, sel[ins]] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
+        return inside, consistent
+
+    def _note_moving(self, p: _Pass, d: int, T_d_0: np.ndarray) -> None:
+        """Remember which of the current view's grid pixels the chosen motion does not
+        explain against its depth-prior view ``d`` (a moving object, most of them), so that
+        they do not vote when the current view is the prior of the next pass."""
+        if not self.conf["mask_moving"] or p.views[0].depth_m is None:
+            return
+        inside, consistent = self._consistency(p, 0, d, [T_d_0])
+        self._moving[p.views[0].key] = inside[0] & ~consistent[0]
+        while len(self._moving) > int(self.conf["match_cache_size"]):
+            self._moving.popitem(last=False)
 
     def _place_pnp(self, p: _Pass, s: int, anchors: Sequence[int], rec: _Recon,
                    min_inliers: int | None = None, hypotheses: int = 1, ref_depth: int | None = None,
@@ -671,10 +738,40 @@ class OfflineGeometryBackbone:
         if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
             # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
             votes = self._motion_votes(p, ref_depth, [T_h for T_h, _ in hyps])
+            for k, T_d_k in self._chained_views(p, ref_depth):
+                votes = votes + self._motion_votes(p, k, [T_h @ T_d_k for T_h, _ in hyps])
             T_s_f, inl = hyps[int(np.argmax(votes))]
         rec.T[s] = _inv(T_s_f)
         rec.obs[s] = (pt[inl], kp[inl])
         return True
+
+    def _chained_views(self, p: _Pass, d: int) -> list[tuple[int, np.ndarray]]:
+        """Other views of the pass with a depth prior whose pose relative to view ``d`` the
+        stored motions give: ``[(k, T_d_k)]``, at most ``conf['vote_views']``.
+
+        Each placed view's motion relative to its anchor is kept (``_motions``); following
+        the anchors from ``d`` back reaches older keyframes. Their votes let the static
+        scene outvote an object that moved with the camera since the last frame: such an
+        object agrees with a wrong motion in the newest frame only, not in frames that
+        were placed on the static scene before."""
+        want = int(self.conf["vote_views"])
+        if want <= 0:
+            return []
+        index = {p.views[k].key: k for k in range(1, len(p.views))
+                 if k != d and p.views[k].depth_m is not None and not p.low_tex[k]}
+        out: list[tuple[int, np.ndarray]] = []
+        key, T_d_key = p.views[d].key, np.eye(4)
+        for _ in range(int(self.conf["vote_chain_hops"])):
+            step = self._motions.get(key)
+            if step is None:
+                break
+            key, T_key_anchor = step
+            T_d_key = T_d_key @ T_key_anchor
+            if key in index:
+                out.append((index[key], T_d_key.copy()))
+                if len(out) >= want:
+                    break
+        return out
 
     @staticmethod
     def _prior_hypothesis(uv: np.ndarray, X: np.ndarray, cam: dict, K: np.ndarray, T_prior: np.ndarray,
@@ -711,7 +808,7 @@ class OfflineGeometryBackbone:
         m0s = self._m(p, 0, s)
         uv0 = p.feats[0].keypoints[m0s[:, 0]]
         uvs = p.feats[s].keypoints[m0s[:, 1]]
-        T_s_0, inl, why = self._relative_pose(uv0, uvs, p.cams[0], p.cams[s])
+        T_s_0, inl, why = self._pair_pose(p, 0, s)
         if T_s_0 is None:
             return why
         cur_to_pt = rec.kp_to_pt(0, p.feats[0].n)
@@ -785,31 +882,85 @@ class OfflineGeometryBackbone:
                 valid[s] = True
         depth, conf = self._depth_maps(p, rec, valid)
         timings["total"] = time.perf_counter() - t0
+        reference = rec.pair[1] if rec is not None and rec.metric and rec.pair[1] != 0 else None
         return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
                               intrinsics=list(intr), reasons=reasons, timings_s=timings,
-                              metric_unit=rec is not None and rec.metric)
+                              metric_unit=rec is not None and rec.metric, reference=reference)
 
     def _solve(self, p: _Pass, timings: dict[str, float]) -> tuple[_Recon | None, list[str]]:
         """The reconstruction of this pass (None: nothing placed besides view 0) and reasons.
 
-        The depth-anchored reconstruction comes first; when it leaves out a view that shares
-        enough matches with the current one, the image-only one is built too and the one
-        that places more views is kept (the depth one on a tie), so a prior never costs a
-        direct estimate."""
+        The depth-anchored reconstruction comes first. When it leaves out a view that shares
+        enough matches with the current one, the image-only one is built too, and the views
+        only it placed join the depth one (:meth:`_merge_image_only`) when the two agree on
+        the views both placed; so a prior never costs a direct estimate that the images
+        support, and an image-only pass never replaces the metric one (its two-view poses
+        over forward motion are off by a degree or more: 50 cm of ego error per step on
+        CAD). Without a depth reconstruction, the image-only one is the pass."""
         S = len(p.views)
         if S == 1:
             return None, [""]
         if p.low_tex[0] or p.feats[0].n < self.conf["min_matches"]:
             return None, [""] + ["low-texture" if p.low_tex[0] else "few-matches"] * (S - 1)
-        best: tuple[_Recon | None, list[str]] | None = None
-        for metric in ((True, False) if self.conf["depth_prior"] else (False,)):
-            rec, reasons = self._solve_once(p, timings, metric)
+        if not self.conf["depth_prior"]:
+            return self._solve_once(p, timings, metric=False)
+        rec, reasons = self._solve_once(p, timings, metric=True)
+        if rec is not None and not self._retry_image_only(p, rec):
+            return rec, reasons
+        rec_i, reasons_i = self._solve_once(p, timings, metric=False)
+        if rec is None:
             # nothing placed either way: the image-only attempt's reasons say more (parallax, texture)
-            if best is None or best[0] is None or (rec is not None and len(rec.T) > len(best[0].T)):
-                best = (rec, reasons)
-            if best[0] is not None and not self._retry_image_only(p, best[0]):
-                break
-        return best
+            return rec_i, reasons_i
+        if rec_i is not None:
+            for s in self._merge_image_only(rec, rec_i, float(p.Ks[0][0, 0])):
+                reasons[s] = ""
+        return rec, reasons
+
+    def _merge_image_only(self, rec: _Recon, rec_i: _Recon, focal_px: float) -> list[int]:
+        """Add to the metric ``rec`` the views that only the image-only ``rec_i`` placed.
+
+        Both frames are the current camera's. ``rec_i``'s unit is set by the ratio of the
+        translations of the views both placed (those at least ``merge_min_baseline_m`` away),
+        and nothing is added unless the two agree on those views: rotations within
+        ``merge_max_rot_px`` pixels at the current view's focal length ``focal_px`` (what
+        two-view geometry can resolve depends on it), translation directions within
+        ``merge_max_dir_deg``,
+        ratios within a factor ``merge_max_ratio_spread``. Each added view brings its
+        observed points of ``rec_i``, scaled. Returns the added view indices."""
+        c = self.conf
+        extra = [s for s in rec_i.T if s not in rec.T]
+        common = [s for s in rec.T if s in rec_i.T and s != 0]
+        ratios = []
+        for s in common:
+            Tm, Ti = rec.T[s], rec_i.T[s]
+            cos = (np.trace(Tm[:3, :3].T @ Ti[:3, :3]) - 1.0) / 2.0
+            if np.arccos(np.clip(cos, -1.0, 1.0)) * focal_px > c["merge_max_rot_px"]:
+                self.n_merge_refused["rotation"] = self.n_merge_refused.get("rotation", 0) + 1
+                return []
+            tm, ti = Tm[:3, 3], Ti[:3, 3]
+            nm, ni = float(np.linalg.norm(tm)), float(np.linalg.norm(ti))
+            if nm < c["merge_min_baseline_m"] or ni <= 0:
+                continue
+            if np.degrees(np.arccos(np.clip(tm @ ti / (nm * ni), -1.0, 1.0))) > c["merge_max_dir_deg"]:
+                self.n_merge_refused["direction"] = self.n_merge_refused.get("direction", 0) + 1
+                return []
+            ratios.append(nm / ni)
+        if not extra:
+            return []
+        if not ratios or max(ratios) > c["merge_max_ratio_spread"] * min(ratios):
+            reason = "no-baseline" if not ratios else "scale"
+            self.n_merge_refused[reason] = self.n_merge_refused.get(reason, 0) + 1
+            return []
+        scale = float(np.median(ratios))
+        for s in extra:
+            T = rec_i.T[s].copy()
+            T[:3, 3] *= scale
+            ids, kp = rec_i.obs[s]
+            new = np.arange(len(rec.X), len(rec.X) + len(ids))
+            rec.X = np.vstack([rec.X, rec_i.X[ids] * scale])
+            rec.T[s], rec.obs[s] = T, (new, kp)
+        self.n_merged += len(extra)
+        return extra
 
     def _retry_image_only(self, p: _Pass, rec: _Recon) -> bool:
         """Whether the image-only solve could place a view ``rec`` left out: one with at
