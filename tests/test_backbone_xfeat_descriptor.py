@@ -215,3 +215,18 @@ def test_fast_cpu_network_is_the_same_function(encoder, room):
     nn = d.argmin(1)
     assert np.mean(d.min(1) < 0.05) > 0.99
     assert np.median(np.sum(fast.descriptors * slow.descriptors[nn], axis=1)) > 0.9999
+
+
+def test_keep_freed_memory_on_glibc():
+    """The encoder asks glibc to keep freed blocks (set once per process); elsewhere it says no.
+    How many page faults that saves depends on the heap's history, so ``cerpe bench`` shows
+    the effect, not a test."""
+    import platform
+    import sys
+
+    from cerpe.backbones import xfeat
+
+    glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert xfeat.XFeatEncoder.default_conf["keep_heap"]
+    assert xfeat.keep_freed_memory() is glibc and xfeat.keep_freed_memory() is glibc
+    assert xfeat._HEAP_KEPT is glibc

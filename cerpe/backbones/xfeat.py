@@ -120,6 +120,13 @@ class XFeatEncoder:
             differ by float rounding, ~1e-5) in channels-last memory layout, which
             oneDNN's CPU convolutions prefer. On 2 cores at 640x480 the forward pass
             takes ~25 ms instead of ~35-55 ms (``cerpe bench`` shows the encode stage).
+        keep_heap: ask glibc's allocator to keep freed memory for reuse
+            (:func:`keep_freed_memory`). Each pass allocates ~20 MB of feature maps; by
+            default glibc hands blocks that large back to the system when freed and
+            maps fresh zeroed pages for the next pass: measured ~5000 page faults per
+            image over a sequence and 27 ms per encode, against none and 18 ms with the
+            setting (``cerpe bench``, 3 robots: team step median 699 -> 651 ms). No
+            effect off glibc.
     """
 
     default_conf: dict[str, Any] = {
@@ -131,6 +138,7 @@ class XFeatEncoder:
         "num_threads": None,
         "subpixel": True,
         "fast_cpu": True,
+        "keep_heap": True,
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
@@ -138,6 +146,8 @@ class XFeatEncoder:
         import torch
         import kornia.feature as KF
 
+        if self.conf["keep_heap"]:
+            keep_freed_memory()
         threads = self.conf["num_threads"] or os.environ.get("OMP_NUM_THREADS")
         if threads:
             torch.set_num_threads(int(threads))
@@ -240,6 +250,37 @@ class XFeatEncoder:
             image_hw=(int(image.shape[0]), int(image.shape[1])),
             grey_std=grey_std(image),
         )
+
+
+_HEAP_KEPT = False
+
+
+def keep_freed_memory(mmap_threshold: int = 256 << 20, trim_threshold: int = 512 << 20) -> bool:
+    """Raise glibc malloc's mmap and trim thresholds (``mallopt``) once per process, so freed
+    blocks up to ``mmap_threshold`` bytes stay in the heap for the next allocation instead
+    of being unmapped and faulted in again (the ``MALLOC_MMAP_THRESHOLD_`` /
+    ``MALLOC_TRIM_THRESHOLD_`` environment variables do the same at process start). Returns
+    whether the setting is in effect (False off Linux/glibc)."""
+    global _HEAP_KEPT
+    if _HEAP_KEPT:
+        return True
+    import ctypes
+    import platform
+    import sys
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # <malloc.h>
+        ok = bool(libc.mallopt(M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(
+            libc.mallopt(M_TRIM_THRESHOLD, int(trim_threshold)))
+    except (OSError, AttributeError):
+        return False
+    if ok:
+        logger.debug("glibc malloc keeps freed blocks up to %d MiB", mmap_threshold >> 20)
+    _HEAP_KEPT = ok
+    return ok
 
 
 def fold_batchnorm(net: "torch.nn.Module") -> "torch.nn.Module":
