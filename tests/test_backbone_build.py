@@ -67,3 +67,19 @@ def test_offline_preset_through_team_with_metric_depth():
         # keypoints drift 8.4 % here (2048 stayed under 8 %: the latency/accuracy trade-off in build.py)
         assert np.linalg.norm(est_rel[:3, 3] - gt_rel[:3, 3]) < 0.10 * path
         assert G.rotation_angle(est_rel[:3, :3].T @ gt_rel[:3, :3]) < np.radians(1.0)
+
+
+@pytest.mark.parametrize("given", [None, "ACTIVE"])
+def test_importing_cerpe_sets_a_passive_openmp_wait_policy_unless_chosen(given):
+    """Idle OpenMP threads must not spin on the few cores the rest of a step needs; a
+    policy the caller set is kept."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given:
+        env["OMP_WAIT_POLICY"] = given
+    out = subprocess.run([sys.executable, "-c", "import os, cerpe; print(os.environ['OMP_WAIT_POLICY'])"],
+                         env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert out == (given or "PASSIVE")
