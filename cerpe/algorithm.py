@@ -533,7 +533,8 @@ class RobotAgent:
 
     # ---------------------------------------------------------------- 6. ego-motion
     def update_odometry(self) -> np.ndarray:
-        """``X_t`` through the newest keyframe the pass placed; see module doc."""
+        """``X_t`` through the reference view, the previous frame or the newest keyframe the
+        pass placed; see module doc."""
         st = self._state()
         out = st.out
         if out is None:
@@ -549,26 +550,22 @@ class RobotAgent:
         elif not np.isfinite(st.scale):
             st.ego_status = "no-scale"
         else:
-            p = st.prev_index
-            ref = out.reference
-            # the view the backbone measured the current one against directly comes first:
-            # chaining through a view it placed from there adds that placement's error
-            if ref is not None and 0 < ref < len(out.valid) and out.valid[ref]:
-                start = (self.previous.T_odom_cam if ref == p
-                         else kfs[ref - 1].T_odom_cam if 1 <= ref <= len(kfs) else None)
-                if start is not None:
-                    self.X = ego_motion(start, out.T_frame_cam[ref], out.T_frame_cam[0], st.scale)
-                    st.ego_status = "ok"
-                    return self.X
-            if p is not None and out.valid[p]:
-                self.X = ego_motion(self.previous.T_odom_cam, out.T_frame_cam[p], out.T_frame_cam[0], st.scale)
-                st.ego_status = "ok"
-                return self.X
+            # pass index -> odometry pose of that view, in the order they are tried: the view
+            # the backbone measured the current one against (chaining through a view it placed
+            # from there adds that placement's error), the previous frame, keyframes newest first
+            starts: dict[int, np.ndarray] = {}
+            p, ref = st.prev_index, out.reference
+            if ref is not None and (ref == p or 1 <= ref <= len(kfs)):
+                starts[ref] = self.previous.T_odom_cam if ref == p else kfs[ref - 1].T_odom_cam
+            if p is not None:
+                starts.setdefault(p, self.previous.T_odom_cam)
             for k, kf in enumerate(kfs):
-                if out.valid[1 + k]:
-                    self.X = ego_motion(kf.T_odom_cam, out.T_frame_cam[1 + k], out.T_frame_cam[0], st.scale)
+                starts.setdefault(1 + k, kf.T_odom_cam)
+            for s, X_s in starts.items():
+                if out.valid[s]:
+                    self.X = ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale)
                     st.ego_status = "ok"
-                    if k > 0:
+                    if s != ref and s != p and s > 1:
                         self._degrade("ego:older-keyframe")
                     return self.X
             st.ego_status = "keyframes-invalid"

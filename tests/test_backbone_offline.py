@@ -2,6 +2,8 @@
 degenerate inputs (pure rotation, blank, black, tiny, wrong channels, unrelated images)."""
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 import pytest
 
@@ -284,7 +286,7 @@ def test_image_only_views_join_the_metric_pass_scaled(seed):
     rng = np.random.default_rng(seed)
     bb = OfflineGeometryBackbone.__new__(OfflineGeometryBackbone)
     bb.conf = dict(OfflineGeometryBackbone.default_conf)
-    bb.n_merged, bb.n_merge_refused = 0, {}
+    bb.n_merged, bb.n_merge_refused = 0, Counter()
     T1, T2 = G.random_se3(rng), G.random_se3(rng)
     T1[:3, 3] *= 0.5 / np.linalg.norm(T1[:3, 3])
     unit = float(rng.uniform(0.2, 5.0))  # metres per image-only unit

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Hashable, Sequence
 
@@ -397,7 +397,7 @@ class OfflineGeometryBackbone:
         self.n_dense_refined = 0
         self.n_dense_refused: dict[str, int] = {}
         self.n_merged = 0  # views the image-only reconstruction added to a metric one
-        self.n_merge_refused: dict[str, int] = {}
+        self.n_merge_refused: Counter[str] = Counter()
         # key of a view placed on a depth prior -> (key of that prior's view, T_view_prior):
         # the previous motion, offered as a hypothesis when the view is itself the prior
         self._motions: OrderedDict[Hashable, tuple[Hashable, np.ndarray]] = OrderedDict()
@@ -935,21 +935,21 @@ class OfflineGeometryBackbone:
             Tm, Ti = rec.T[s], rec_i.T[s]
             cos = (np.trace(Tm[:3, :3].T @ Ti[:3, :3]) - 1.0) / 2.0
             if np.arccos(np.clip(cos, -1.0, 1.0)) * focal_px > c["merge_max_rot_px"]:
-                self.n_merge_refused["rotation"] = self.n_merge_refused.get("rotation", 0) + 1
+                self.n_merge_refused["rotation"] += 1
                 return []
             tm, ti = Tm[:3, 3], Ti[:3, 3]
             nm, ni = float(np.linalg.norm(tm)), float(np.linalg.norm(ti))
             if nm < c["merge_min_baseline_m"] or ni <= 0:
                 continue
             if np.degrees(np.arccos(np.clip(tm @ ti / (nm * ni), -1.0, 1.0))) > c["merge_max_dir_deg"]:
-                self.n_merge_refused["direction"] = self.n_merge_refused.get("direction", 0) + 1
+                self.n_merge_refused["direction"] += 1
                 return []
             ratios.append(nm / ni)
         if not extra:
             return []
         if not ratios or max(ratios) > c["merge_max_ratio_spread"] * min(ratios):
             reason = "no-baseline" if not ratios else "scale"
-            self.n_merge_refused[reason] = self.n_merge_refused.get(reason, 0) + 1
+            self.n_merge_refused[reason] += 1
             return []
         scale = float(np.median(ratios))
         for s in extra:
