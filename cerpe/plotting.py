@@ -271,7 +271,8 @@ def gate_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], table: pd.D
 
     Args:
         curves: ``{setting: (fpr, tpr)}``.
-        table: rows with ``setting, roc_auc, tau, precision, recall``.
+        table: rows with ``setting, roc_auc, tau, precision, recall`` (and, when
+            present, ``roc_auc_ceiling``: the best AUC any symmetric score can reach).
         points: rows with ``setting, gate_score, overlap_gt``.
         overlap: the overlap ratio that counts as overlapping.
     """
@@ -280,7 +281,10 @@ def gate_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], table: pd.D
     ax = axes[0]
     for s, (fpr, tpr) in curves.items():
         r = table[table["setting"] == s].iloc[0]
-        ax.plot(fpr, tpr, lw=1.3, label=f"{s}: AUC {r['roc_auc']:.3f}, P {r['precision']:.2f} / R {r['recall']:.2f} at tau")
+        ceiling = r.get("roc_auc_ceiling", float("nan"))
+        bound = f" (symmetric-score ceiling {ceiling:.3f})" if np.isfinite(ceiling) else ""
+        ax.plot(fpr, tpr, lw=1.3,
+                label=f"{s}: AUC {r['roc_auc']:.3f}{bound}, P {r['precision']:.2f} / R {r['recall']:.2f} at tau")
     ax.plot([0, 1], [0, 1], color="0.6", lw=0.7, ls=":")
     ax.set_xlabel("false positive rate")
     ax.set_ylabel("true positive rate")

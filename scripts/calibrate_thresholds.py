@@ -6,7 +6,11 @@ On a synthetic evaluation suite with ground-truth overlap (Encounter.overlap [T,
 * tau: over all ordered cross-robot pairs (t, i, j), the score s = cos(d_i^t, d_j^t)
   (descriptors quantised as fp16, as on the wire) against the label
   "overlap ratio >= 0.2"; prints the ROC AUC and picks the tau that maximises F1
-  (precision and recall at it printed too).
+  (precision and recall at it printed too). The overlap ratio is directional (the
+  fraction of i's pixels that j sees) and the cosine is not, so it also prints the
+  best AUC any symmetric score could reach on these pairs (roc_auc_ceiling), the
+  share of pairs whose two directions disagree, and the AUC on the pairs whose two
+  directions agree (pipeline.evaluate.symmetric_bound).
 * tau_m: the --q-m quantile (default 0.10) of the similarity of consecutive frames of
   one robot: a frame less similar to the last keyframe than 90 % of consecutive
   frames are to each other has moderately changed viewpoint.
@@ -50,11 +54,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
     from cerpe.datasets import load_setting
-    from cerpe.pipeline.evaluate import best_f1, roc_auc
+    from cerpe.pipeline.evaluate import best_f1, roc_auc, symmetric_bound
     from cerpe.protocols import View
 
     desc = XFeatSaladDescriptor({"thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
-    cross_s, cross_y, consec = [], [], []
+    cross_s, cross_y, cross_rev, consec = [], [], [], []
 
     def _encounters():
         if a.manifest:
@@ -89,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
                         if i != j and np.isfinite(enc.overlap[t, i, j]):
                             cross_s.append(float(D[t, i] @ D[t, j]))
                             cross_y.append(bool(enc.overlap[t, i, j] >= a.overlap))
+                            cross_rev.append(bool(enc.overlap[t, j, i] >= a.overlap))
     s, y, c = np.asarray(cross_s), np.asarray(cross_y, bool), np.asarray(consec)
     if len(s) == 0 or y.all() or (~y).all():
         print("calibrate: need overlapping and non-overlapping cross-robot pairs", file=sys.stderr)
@@ -99,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     tau_k = float(min(np.quantile(c, a.q_k), tau_m))
     result = {
         "thresholds": {"tau": round(f1["tau"], 4), "tau_m": round(tau_m, 4), "tau_k": round(tau_k, 4)},
-        "gate": {"roc_auc": auc, **f1, "n_pairs": int(len(s)), "n_overlapping": int(y.sum()),
+        "gate": {"roc_auc": auc, **f1, **symmetric_bound(s, y, np.asarray(cross_rev, bool)),
+                 "n_pairs": int(len(s)), "n_overlapping": int(y.sum()),
                  "overlap_threshold": a.overlap},
         "consecutive": {"n": int(len(c)), "q_m": a.q_m, "q_k": a.q_k, "median": float(np.median(c))},
         "sources": a.manifest or [f"paper-default {x} seed {a.seed}" for x in a.synth], "descriptor_dim": desc.dim, "descriptor_conf": {

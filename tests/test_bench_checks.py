@@ -52,3 +52,21 @@ def test_no_motion_or_missing_ground_truth_gives_nan_not_an_error():
     gt = _traj(4)
     gt[2] = np.nan
     assert np.isnan(ego_summary([_ego_steps(list(_traj(4)), gt)])["rpe_trans_pct"])
+
+
+def test_suite_printout_carries_the_gate_figures():
+    import pandas as pd
+
+    from cerpe.pipeline.bench import _fmt_acc, _stats
+    from cerpe.pipeline.evaluate import gate_quality
+
+    rows = []
+    for step, score, o01, o10 in [(0, 0.9, 0.5, 0.5), (1, 0.6, 0.5, 0.1), (2, 0.3, 0.0, 0.0), (3, 0.7, 0.0, 0.0)]:
+        rows += [{"encounter": "e", "step": step, "ego": "r0", "other": "r1", "gate_score": score, "overlap_gt": o01},
+                 {"encounter": "e", "step": step, "ego": "r1", "other": "r0", "gate_score": score, "overlap_gt": o10}]
+    gate = gate_quality(pd.DataFrame(rows), tau=0.65)
+    text = "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([0.01]), "ego_per_robot": {}, "gate": gate}))
+    assert f"ROC AUC {gate['roc_auc']:.3f}" in text and "at tau 0.6500" in text
+    assert f"precision {gate['precision']:.3f}, recall {gate['recall']:.3f}" in text
+    assert "symmetric score can reach 0.967" in text and "25 % of ordered pairs" in text
+    assert "gate" not in "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([]), "ego_per_robot": {}}))

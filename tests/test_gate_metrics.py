@@ -51,3 +51,41 @@ def test_gate_quality_from_steps_rows():
     assert q["precision"] == pytest.approx(0.5) and q["recall"] == pytest.approx(0.5)
     assert q["open_rate"] == pytest.approx(0.5) and q["tau"] == 0.5
     assert np.isnan(gate_quality(steps, tau=None)["precision"])
+
+
+def _two_robot_steps(rows):
+    """steps.csv-like rows from ``(step, score, overlap r0->r1, overlap r1->r0)``."""
+    out = []
+    for step, score, o01, o10 in rows:
+        out.append({"encounter": "e", "step": step, "ego": "r0", "other": "r1", "gate_score": score, "overlap_gt": o01})
+        out.append({"encounter": "e", "step": step, "ego": "r1", "other": "r0", "gate_score": score, "overlap_gt": o10})
+    return pd.DataFrame(out)
+
+
+def test_symmetric_ceiling_known_answer():
+    # step 0 overlaps both ways, step 1 one way only (mixed), steps 2-3 neither
+    steps = _two_robot_steps([(0, 0.9, 0.5, 0.5), (1, 0.6, 0.5, 0.1), (2, 0.3, 0.0, 0.0), (3, 0.7, 0.0, 0.0)])
+    q = gate_quality(steps, tau=0.5)
+    # positives ranked 2, 2, 1 against negatives 1, 0, 0, 0, 0: 14.5 of 15 comparisons won
+    assert q["roc_auc_ceiling"] == pytest.approx(14.5 / 15)
+    assert q["mixed_share"] == pytest.approx(2 / 8)
+    assert q["roc_auc_consistent"] == pytest.approx(1.0)  # 0.9 above 0.3 and 0.7
+    assert q["roc_auc"] < q["roc_auc_ceiling"]
+
+
+def test_symmetric_ceiling_without_pair_columns_is_nan():
+    q = gate_quality(pd.DataFrame({"gate_score": [0.9, 0.1], "overlap_gt": [0.5, 0.0]}), tau=0.5)
+    assert np.isnan(q["roc_auc_ceiling"]) and np.isnan(q["mixed_share"])
+
+
+@given(st.integers(0, 10_000))
+@settings(max_examples=60, deadline=None)
+def test_no_symmetric_score_beats_the_ceiling(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 30))
+    o = rng.uniform(0, 0.5, (n, 2))
+    sym = rng.uniform(0, 1, n)
+    steps = _two_robot_steps([(t, sym[t], o[t, 0], o[t, 1]) for t in range(n)])
+    q = gate_quality(steps, tau=0.5)
+    if np.isfinite(q["roc_auc"]):
+        assert q["roc_auc"] <= q["roc_auc_ceiling"] + 1e-12

@@ -14,7 +14,9 @@ and 3 robots, and reports:
 * accuracy figures of the same run (issue 4's checks): direct inter-robot rotation
   error (rad) on overlapping pairs, and per robot the per-step relative pose error
   (sum of per-step translation errors / path length, median per-step rotation
-  error) and the end drift; ``--all-encounters`` adds them over the whole suite.
+  error) and the end drift; ``--all-encounters`` adds them over the whole suite,
+  with the descriptor gate's ROC AUC against ground-truth overlap (and the best
+  AUC any symmetric score could reach on the same pairs).
 
 Every team size starts cold: the plug-ins' caches (XFeat features, matches) are
 cleared first, and the table prints how many XFeat passes ran per robot-step.
@@ -187,6 +189,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
     bytes_total: list[int] = []
     gate_open = pairs = robot_steps = all_robot_steps = 0
     rot_direct: list[float] = []
+    gate_rows: list[dict[str, Any]] = []
     ego: dict[str, list[dict[str, Any]]] = {}
     for enc in encounters:
         robots = enc.robots[:n_robots]
@@ -207,8 +210,11 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             for rec in res.robots:
                 X[rec.robot].append(rec.T_odom_cam)
             for p in res.pairs:
+                i, j = enc.robot_ids.index(p.ego), enc.robot_ids.index(p.other)
+                if enc.overlap is not None:
+                    gate_rows.append({"encounter": enc.name, "step": t, "ego": p.ego, "other": p.other,
+                                      "gate_score": p.gate_score, "overlap_gt": float(enc.overlap[t, i, j])})
                 if p.source == "direct" and p.T_cj_ci is not None:
-                    i, j = enc.robot_ids.index(p.ego), enc.robot_ids.index(p.other)
                     gt = enc.gt_T_cj_ci(t, i, j)
                     if gt is not None and _overlapping(enc, t, i, j):
                         rot_direct.append(float(e_rot(p.T_cj_ci, gt)))
@@ -229,6 +235,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             ego.setdefault(r.robot_id, []).append(_ego_steps(X[r.robot_id], r.T_world_cam[:T]))
     return {"team_ms": team_ms, "stage_ms": stage_ms, "robot_ms": robot_ms, "bytes_kind": bytes_kind,
             "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs, "rot_direct": rot_direct,
+            "gate_rows": gate_rows,
             "ego": ego, "xfeat_passes": _n_encoded(plugins) - enc0, "robot_steps": robot_steps,
             "all_robot_steps": all_robot_steps}
 
@@ -262,16 +269,29 @@ def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int | None,
 
 
 def suite_accuracy(encounters: list, plugins: Any, width: int, height: int) -> dict[str, Any]:
-    """Accuracy checks over every encounter, every step, with all of each encounter's robots."""
-    merged: dict[str, Any] = {"rot_direct": [], "ego": {}}
+    """Accuracy checks over every encounter, every step, with all of each encounter's robots.
+
+    ``gate`` is :func:`~cerpe.pipeline.evaluate.gate_quality` of the descriptor gate over
+    every ordered pair and step with ground-truth overlap, at the descriptor's ``tau``
+    (None when the suite has no overlap ground truth).
+    """
+    import pandas as pd
+
+    from .evaluate import gate_quality
+
+    merged: dict[str, Any] = {"rot_direct": [], "ego": {}, "gate_rows": []}
     for enc in encounters:
         w = walk([enc], len(enc.robots), plugins, None, 0, width, height)
         merged["rot_direct"] += w["rot_direct"]
+        merged["gate_rows"] += w["gate_rows"]
         for r, v in w["ego"].items():
             merged["ego"].setdefault(r, []).extend(v)
+    tau = getattr(plugins.descriptor, "thresholds", {}).get("tau")
+    gate = gate_quality(pd.DataFrame(merged["gate_rows"]), tau) if merged["gate_rows"] else None
     return {"n_encounters": len(encounters),
             "accuracy": {"direct_rot_err_rad": _stats(merged["rot_direct"]),
-                         "ego_per_robot": {r: ego_summary(v) for r, v in sorted(merged["ego"].items())}}}
+                         "ego_per_robot": {r: ego_summary(v) for r, v in sorted(merged["ego"].items())},
+                         "gate": gate}}
 
 
 def _fmt_acc(a: dict[str, Any]) -> list[str]:
@@ -283,6 +303,18 @@ def _fmt_acc(a: dict[str, Any]) -> list[str]:
     for r, e in a["ego_per_robot"].items():
         lines.append(f"   {r:<22}{e['rpe_trans_pct']:>12.2f}{e['rpe_rot_deg_median']:>12.3f}"
                      f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}")
+    g = a.get("gate")
+    if g:
+        from .evaluate import GATE_OVERLAP
+
+        lines.append(f"   descriptor gate vs GT overlap >= {GATE_OVERLAP} over {g['n_pairs']} ordered pairs "
+                     f"({g['n_overlapping']} overlapping): ROC AUC {g['roc_auc']:.3f} (target >= 0.90); at tau "
+                     f"{g['tau']:.4f} precision {g['precision']:.3f}, recall {g['recall']:.3f}, open "
+                     f"{100 * g['open_rate']:.0f} %")
+        lines.append(f"   the overlap ratio is directional, the cosine symmetric: {100 * g['mixed_share']:.0f} % "
+                     f"of ordered pairs overlap one way only; best AUC any symmetric score can reach "
+                     f"{g['roc_auc_ceiling']:.3f}; descriptor AUC on pairs whose directions agree "
+                     f"{g['roc_auc_consistent']:.3f}")
     return lines
 
 

@@ -190,6 +190,44 @@ def precision_recall(scores: np.ndarray, labels: np.ndarray, tau: float) -> dict
             "recall": tp / (tp + fn) if tp + fn else float("nan")}
 
 
+def symmetric_bound(scores: np.ndarray, labels: np.ndarray, labels_rev: np.ndarray) -> dict[str, float]:
+    """What a symmetric score (the gate's cosine) can reach against direction-dependent labels.
+
+    The overlap ratio of an ordered pair ``(i, j)`` is the fraction of *i's* pixels
+    that j sees, so ``(i, j)`` and ``(j, i)`` can carry different labels, while
+    ``cos(d_i, d_j)`` scores both the same: one of the two is always ranked wrong.
+
+    Args:
+        scores: ``[n]`` score of each ordered pair.
+        labels: ``[n]`` bool label of each ordered pair.
+        labels_rev: ``[n]`` bool label of the same pair in the other direction.
+
+    Returns:
+        ``roc_auc_ceiling``: the ROC AUC of the best possible symmetric score (pairs that
+        overlap both ways first, mixed pairs next, the rest last; no symmetric score can
+        do better); ``mixed_share``: fraction of ordered pairs whose reverse has the
+        other label; ``roc_auc_consistent``: AUC of ``scores`` on the pairs whose two
+        directions agree (NaN where a class is empty).
+    """
+    scores = np.asarray(scores, float)
+    labels, labels_rev = np.asarray(labels, bool), np.asarray(labels_rev, bool)
+    both = labels.astype(float) + labels_rev.astype(float)  # 2: both ways, 1: one way, 0: neither
+    consistent = labels == labels_rev
+    return {"roc_auc_ceiling": roc_auc(both, labels),
+            "mixed_share": float(np.mean(~consistent)) if len(labels) else float("nan"),
+            "roc_auc_consistent": roc_auc(scores[consistent], labels[consistent])}
+
+
+def _reverse_overlap(rows: pd.DataFrame) -> np.ndarray:
+    """``overlap_gt`` of each row's reverse pair (same encounter and step, ego and other swapped); NaN if absent."""
+    key = ["encounter", "step", "ego", "other"]
+    if not all(c in rows.columns for c in key):
+        return np.full(len(rows), np.nan)
+    rev = rows[key + ["overlap_gt"]].rename(columns={"ego": "other", "other": "ego", "overlap_gt": "_rev"})
+    rev = rev.drop_duplicates(key)
+    return rows[key].merge(rev, on=key, how="left")["_rev"].to_numpy(float)
+
+
 def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_OVERLAP) -> dict[str, float]:
     """How well the descriptor gate predicts overlap, over all ordered pairs and steps of ``steps``.
 
@@ -198,7 +236,10 @@ def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_O
 
     Returns:
         ``n_pairs``, ``n_overlapping`` (``overlap_gt >= overlap``), ``roc_auc``, ``tau``
-        (the run's threshold), ``precision`` and ``recall`` at it, ``open_rate``.
+        (the run's threshold), ``precision`` and ``recall`` at it, ``open_rate``, and
+        :func:`symmetric_bound`'s ``roc_auc_ceiling``, ``mixed_share`` and
+        ``roc_auc_consistent`` over the pairs whose reverse is present (NaN when
+        ``encounter, step, ego, other`` are missing).
     """
     ok = np.isfinite(pd.to_numeric(steps.get("gate_score"), errors="coerce")) & np.isfinite(
         pd.to_numeric(steps.get("overlap_gt"), errors="coerce"))
@@ -206,6 +247,10 @@ def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_O
     y = steps.loc[ok, "overlap_gt"].to_numpy(float) >= overlap
     out = {"n_pairs": int(len(s)), "n_overlapping": int(y.sum()), "roc_auc": roc_auc(s, y),
            "tau": float("nan") if tau is None else float(tau)}
+    rev = _reverse_overlap(steps.loc[ok])
+    has_rev = np.isfinite(rev)
+    out.update(symmetric_bound(s[has_rev], y[has_rev], rev[has_rev] >= overlap) if has_rev.any() else
+               {"roc_auc_ceiling": float("nan"), "mixed_share": float("nan"), "roc_auc_consistent": float("nan")})
     out.update(precision_recall(s, y, out["tau"]) if tau is not None and len(s) else
                {"precision": float("nan"), "recall": float("nan")})
     out["open_rate"] = float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")
