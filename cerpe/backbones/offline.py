@@ -395,7 +395,7 @@ class OfflineGeometryBackbone:
         self.n_match_computed = 0
         self.n_match_cached = 0
         self.n_dense_refined = 0
-        self.n_dense_refused: dict[str, int] = {}
+        self.n_dense_refused: Counter[str] = Counter()
         self.n_merged = 0  # views the image-only reconstruction added to a metric one
         self.n_merge_refused: Counter[str] = Counter()
         # key of a view placed on a depth prior -> (key of that prior's view, T_view_prior):
@@ -567,7 +567,7 @@ class OfflineGeometryBackbone:
             rec.T[0] = _inv(res.T_cur_ref)
             self.n_dense_refined += 1
         else:
-            self.n_dense_refused[res.reason] = self.n_dense_refused.get(res.reason, 0) + 1
+            self.n_dense_refused[res.reason] += 1
         p.timings["dense"] = p.timings.get("dense", 0.0) + time.perf_counter() - t0
 
     def _add_current_prior_points(self, p: _Pass, rec: _Recon) -> None:

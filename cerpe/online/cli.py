@@ -91,7 +91,7 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
                 method, profile, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None))
         else:
             config = config if config is not None else CerpeConfig()
-            mconf = {"cerpe": rp._as_dict(config), "preset": "given", "plugins": "given"}
+            mconf = {"cerpe": rp.config_dict(config), "preset": "given", "plugins": "given"}
         nconf = {**node_defaults, **(node_conf or {})}
         run_conf = {"format": rp.RUN_FORMAT, "method": method, "profile": profile, "seed": int(seed),
                     "setting": setting.name, "encounters": [enc.name], "method_config": mconf,

@@ -245,10 +245,12 @@ def _conf_of(obj: Any) -> Any:
     conf = getattr(obj, "conf", None)
     if conf is None:
         conf = getattr(obj, "config", None)
-    return _as_dict(conf) if conf is not None else type(obj).__name__
+    return config_dict(conf) if conf is not None else type(obj).__name__
 
 
-def _as_dict(cfg: Any) -> dict:
+def config_dict(cfg: Any) -> dict:
+    """A configuration (dataclass or dict) as plain JSON types, as ``run.json`` records it
+    (paths, tuples and numpy values turned into JSON ones); ``{"repr": ...}`` for anything else."""
     if is_dataclass(cfg):
         return json.loads(json.dumps(asdict(cfg), default=_json_default))
     if isinstance(cfg, dict):
@@ -273,7 +275,7 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
                               unit_scale_without_depth=(metric_depth == "none"))
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
-        "cerpe": _as_dict(cfg), "preset": profile,
+        "cerpe": config_dict(cfg), "preset": profile,
         "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
                     "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__),
                     "depth_options": dict(depth_options or {})},
