@@ -337,9 +337,12 @@ class OfflineGeometryBackbone:
             dense photometric + depth alignment (:func:`cerpe.backbones.rgbd_align.align_rgbd`,
             ``dense`` overrides its ``default_conf``). Keypoints place the current view to
             about 0.5 px; consecutive frames 4 cm apart then show ego-motion errors of
-            2-3 mm a step (6 % of the path), every pixel brings it to about 0.2 mm. A
-            refinement the aligner refuses leaves the P3P pose as it is (counted in
-            ``n_dense_refused``).
+            2-3 mm a step (6 % of the path), every pixel brings it to about 0.2 mm. Up to
+            12 Gauss-Newton steps per level (the aligner's default is 6): when the keypoints
+            sit on a far wall and a moving object, the keypoint pose can be off by a
+            sideways shift plus a turn (4 cm and 0.5 degrees on indoor e00 r0), which the
+            floor's texture corrects only over more steps. A refinement the aligner refuses
+            leaves the P3P pose as it is (counted in ``n_dense_refused``).
         merge_max_rot_px, merge_max_dir_deg, merge_max_ratio_spread, merge_min_baseline_m:
             when the image-only reconstruction places views the depth one left out, they
             join it only if the two agree this well on the views both placed (see
@@ -381,7 +384,7 @@ class OfflineGeometryBackbone:
         "vote_chain_hops": 12,
         "mask_moving": True,
         "dense_refine": True,
-        "dense": {"stride": 8, "iterations": 6},
+        "dense": {"stride": 8, "iterations": 12},
         "merge_max_rot_px": 3.0,
         "merge_max_dir_deg": 10.0,
         "merge_max_ratio_spread": 1.25,
