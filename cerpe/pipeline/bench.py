@@ -43,6 +43,7 @@ import numpy as np
 from ..errors import CerpeError
 from ..geometry import e_rot, se3_inverse
 from ..records import STAGES
+from .evaluate import GATE_OVERLAP, gate_quality
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,8 @@ def _stats(x: list[float]) -> dict[str, float]:
             "n": int(a.size)}
 
 
-OVERLAP_MIN = 0.2  # a pair "overlaps" at a step when the ground-truth overlap ratio (either way) reaches this
+# a pair "overlaps" at a step when the ground-truth overlap ratio (either way) reaches the gate check's threshold
+OVERLAP_MIN = GATE_OVERLAP
 
 
 def _ego_steps(X: list[np.ndarray], T_world_cam: np.ndarray) -> dict[str, Any]:
@@ -277,8 +279,6 @@ def suite_accuracy(encounters: list, plugins: Any, width: int, height: int) -> d
     """
     import pandas as pd
 
-    from .evaluate import gate_quality
-
     merged: dict[str, Any] = {"rot_direct": [], "ego": {}, "gate_rows": []}
     for enc in encounters:
         w = walk([enc], len(enc.robots), plugins, None, 0, width, height)
@@ -305,8 +305,6 @@ def _fmt_acc(a: dict[str, Any]) -> list[str]:
                      f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}")
     g = a.get("gate")
     if g:
-        from .evaluate import GATE_OVERLAP
-
         lines.append(f"   descriptor gate vs GT overlap >= {GATE_OVERLAP} over {g['n_pairs']} ordered pairs "
                      f"({g['n_overlapping']} overlapping): ROC AUC {g['roc_auc']:.3f} (target >= 0.90); at tau "
                      f"{g['tau']:.4f} precision {g['precision']:.3f}, recall {g['recall']:.3f}, open "
