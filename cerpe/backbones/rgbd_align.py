@@ -130,6 +130,18 @@ def _depth_at_image(depth_m: np.ndarray, hw: tuple[int, int], what: str) -> np.n
     return d
 
 
+def _mask_at_image(mask: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    m = np.asarray(mask)
+    if m.ndim != 2 or m.size == 0:
+        raise RGBDAlignError(f"align_rgbd: mask_ref must be [H,W], got shape {m.shape}")
+    m = m.astype(bool)
+    if m.shape != hw:
+        m = cv2.resize(m.astype(np.uint8), (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST) > 0
+    return m
+
+
 def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``img`` at float pixel positions (``[N]`` each)."""
     import cv2
@@ -316,7 +328,8 @@ class _Level:
 
 def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.ndarray,
                depth_cur_m: np.ndarray | None, K_ref: np.ndarray, K_cur: np.ndarray,
-               T_cur_ref: np.ndarray, conf: dict[str, Any] | None = None) -> AlignResult:
+               T_cur_ref: np.ndarray, conf: dict[str, Any] | None = None,
+               mask_ref: np.ndarray | None = None) -> AlignResult:
     """Refine ``T_cur_ref`` by dense photometric (+ depth) alignment; see the module docstring.
 
     Args:
@@ -326,6 +339,12 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         K_ref, K_cur: ``[3,3]`` intrinsics at the images' resolutions.
         T_cur_ref: ``[4,4]`` initial pose (reference-camera points into the current camera).
         conf: overrides of :data:`default_conf`.
+        mask_ref: ``[h,w]`` bool, reference pixels to leave out (True), e.g. a moving object
+            found earlier; resized to the image by nearest neighbour. A textured object
+            close to the camera that moves a few centimetres per frame is small in the
+            residuals (its flat face keeps its depth, its grey levels change slowly), so the
+            robust weights keep it, and it holds the pose centimetres off; leaving out
+            what is known to move is what keeps it out.
 
     Returns:
         :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
@@ -340,6 +359,8 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         raise RGBDAlignError("align_rgbd: K_ref and K_cur must be finite [3,3]")
     g_ref, g_cur = grey_image(image_ref), grey_image(image_cur)
     D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference")
+    if mask_ref is not None:
+        D_ref[_mask_at_image(mask_ref, g_ref.shape)] = 0.0  # no depth: the pixel takes no part
     use_depth = bool(c["use_depth"]) and depth_cur_m is not None
     D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current") if use_depth else None
     result = AlignResult(T_cur_ref=T0.copy(), ok=False)
