@@ -346,3 +346,41 @@ def test_object_filling_the_prior_view_does_not_win(room, guarded):
         assert err < 0.04
     else:
         assert err > 0.15
+
+
+def test_dense_refinement_leaves_out_the_pixels_found_moving(room, monkeypatch):
+    """With ``dense_mask_moving``, the object's pixels remembered when frame 1 was placed
+    are left out of the dense alignment of frame 2 on frame 1 (``mask_ref``), and only
+    those (one grid cell around); by default nothing is left out."""
+    import cerpe.backbones.offline as off
+
+    seen = []
+
+    def spy(*args, mask_ref=None, **kw):
+        seen.append(mask_ref)
+        return align(*args, mask_ref=mask_ref, **kw)
+
+    align = off.align_rgbd
+    monkeypatch.setattr(off, "align_rgbd", spy)
+    bb = off.OfflineGeometryBackbone({"dense_mask_moving": True})
+    Tw = [pose((0.05 * k, 0, 0.02 * k)) for k in range(3)]
+    patch = _blocks(11, (100, 120), 6)
+    views = []
+    for k, T in enumerate(Tw):
+        img, d = (a.copy() for a in room.render(T))
+        if k > 0:  # 2 m away, 24 px further right in frame 2: its own motion
+            x0 = 60 + 24 * (k - 1)
+            img[60:160, x0:x0 + 120], d[60:160, x0:x0 + 120] = patch, 2.0
+        views.append(View(("mv", k), img, K, depth_m=d))
+    bb.infer([views[1], views[0]])
+    bb.infer([views[2], views[1], views[0]])
+    assert seen[0] is None  # frame 0 was nobody's current view: nothing known to move
+    mask = seen[-1]
+    assert mask is not None and mask.shape == (K.height, K.width)
+    assert mask[70:150, 70:170].mean() > 0.9  # the object where frame 1 saw it
+    assert mask[:40].mean() < 0.1 and mask[200:].mean() < 0.1  # the room above and below it
+    seen.clear()
+    plain = off.OfflineGeometryBackbone()
+    plain.infer([views[1], views[0]])
+    plain.infer([views[2], views[1], views[0]])
+    assert seen and all(m is None for m in seen)
