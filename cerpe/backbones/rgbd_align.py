@@ -119,27 +119,17 @@ def grey_image(image: np.ndarray) -> np.ndarray:
 
 
 def _depth_at_image(depth_m: np.ndarray, hw: tuple[int, int], what: str) -> np.ndarray:
+    """``[H,W]`` float32 map of ``depth_m`` at the image size ``hw`` (nearest neighbour),
+    0 where not finite or not positive; ``what`` names the argument in the error."""
     import cv2
 
     d = np.asarray(depth_m, np.float32)
     if d.ndim != 2 or d.size == 0:
-        raise RGBDAlignError(f"align_rgbd: {what} depth must be [H,W], got shape {d.shape}")
+        raise RGBDAlignError(f"align_rgbd: {what} must be [H,W], got shape {d.shape}")
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
     if d.shape != hw:
         d = cv2.resize(d, (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST)
     return d
-
-
-def _mask_at_image(mask: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
-    import cv2
-
-    m = np.asarray(mask)
-    if m.ndim != 2 or m.size == 0:
-        raise RGBDAlignError(f"align_rgbd: mask_ref must be [H,W], got shape {m.shape}")
-    m = m.astype(bool)
-    if m.shape != hw:
-        m = cv2.resize(m.astype(np.uint8), (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST) > 0
-    return m
 
 
 def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -186,8 +176,8 @@ def _half(g_ref, D_ref, g_cur, D_cur, Kr, Kc):
     g_r, g_c = cv2.pyrDown(g_ref), cv2.pyrDown(g_cur)
     D_r, D_c = D2(D_ref), D2(D_cur)
     # pyrDown rounds sizes up like the slicing above; keep the depth at the image size
-    D_r = _depth_at_image(D_r, g_r.shape, "reference")
-    D_c = None if D_c is None else _depth_at_image(D_c, g_c.shape, "current")
+    D_r = _depth_at_image(D_r, g_r.shape, "reference depth")
+    D_c = None if D_c is None else _depth_at_image(D_c, g_c.shape, "current depth")
     return g_r, D_r, g_c, D_c, K2(Kr), K2(Kc)
 
 
@@ -358,11 +348,12 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     if Kr.shape != (3, 3) or Kc.shape != (3, 3) or not (np.all(np.isfinite(Kr)) and np.all(np.isfinite(Kc))):
         raise RGBDAlignError("align_rgbd: K_ref and K_cur must be finite [3,3]")
     g_ref, g_cur = grey_image(image_ref), grey_image(image_cur)
-    D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference")
+    D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference depth")
     if mask_ref is not None:
-        D_ref[_mask_at_image(mask_ref, g_ref.shape)] = 0.0  # no depth: the pixel takes no part
+        left_out = _depth_at_image(np.asarray(mask_ref, bool), g_ref.shape, "mask_ref") > 0
+        D_ref[left_out] = 0.0  # no depth: the pixel takes no part
     use_depth = bool(c["use_depth"]) and depth_cur_m is not None
-    D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current") if use_depth else None
+    D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current depth") if use_depth else None
     result = AlignResult(T_cur_ref=T0.copy(), ok=False)
     k = float(c["tukey_k"])
     n_levels = max(int(c["levels"]), 1)
