@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from .errors import CerpeError
 from dataclasses import dataclass, field
-from typing import Hashable, Protocol, Sequence, runtime_checkable
+from typing import Any, Hashable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -43,12 +43,19 @@ class View:
             e.g. a keyframe's sensor or metric-network depth. VGGT ignores it; the
             offline geometry backbone anchors its points on it (see
             :mod:`cerpe.backbones.offline`). Outputs stay "up to scale" either way.
+        memo: what the backbone said about this view when it was the current view of
+            an earlier pass (:attr:`BackboneOutput.memos`), handed back unchanged by
+            the robot that keeps the view (keyframe, previous frame); None when there
+            is none. Opaque to the algorithm. A backbone keeps no state between calls:
+            what it needs to remember about a robot's past goes out in a memo and
+            comes back in with the view, so a pass depends on its views alone.
     """
 
     key: Hashable
     image: np.ndarray
     intrinsics: CameraIntrinsics | None = None
     depth_m: np.ndarray | None = None
+    memo: Mapping[str, Any] | None = None
 
 
 @dataclass
@@ -77,6 +84,9 @@ class BackboneOutput:
             relative pose it refines densely), or None when the pass places all views
             jointly (VGGT). Ego-motion chains through this view when it is a keyframe
             or the previous frame.
+        memos: per view, what the backbone wants handed back with that view in later
+            passes (:attr:`View.memo`), or None; the algorithm stores the current
+            view's (index 0) with the frame it keeps. Empty: no memos.
     """
 
     T_frame_cam: np.ndarray
@@ -89,6 +99,7 @@ class BackboneOutput:
     extra: dict[str, float] = field(default_factory=dict)
     metric_unit: bool = False
     reference: int | None = None
+    memos: list[Mapping[str, Any] | None] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         S = len(self.valid)
@@ -100,6 +111,10 @@ class BackboneOutput:
             self.reasons = ["" for _ in range(S)]
         if not self.intrinsics:
             self.intrinsics = [None for _ in range(S)]
+        if not self.memos:
+            self.memos = [None for _ in range(S)]
+        elif len(self.memos) != S:
+            raise BackboneError(f"BackboneOutput: {len(self.memos)} memos for {S} views")
 
 
 @runtime_checkable
@@ -109,11 +124,11 @@ class DescriptorEncoder(Protocol):
     ``describe`` returns ``[dim] float32``, L2-normalised. Thresholds calibrated
     for this descriptor live in ``thresholds`` (keys ``tau``, ``tau_m``, ``tau_k``).
 
-    Images without usable texture (blank, black): an encoder returns either the
-    zero vector (the algorithm counts ``descriptor:zero-norm``) or, like the
-    offline descriptor, a unit vector seeded by ``View.key`` that is nearly
-    orthogonal to every other descriptor (it cannot open the gate) and reports
-    ``flags(key) -> {"low-texture"}`` when it has such a method.
+    Images without usable texture (blank, black, constant grey): an encoder may
+    define ``flags(view) -> frozenset[str]``, called by the algorithm right after
+    ``describe(view)``; ``"low-texture"`` in it marks the frame blank (the gate
+    stays closed, the frame is never a keyframe nor a tracking reference, and it
+    is counted). A zero descriptor is treated the same way.
     """
 
     dim: int
