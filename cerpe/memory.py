@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Hashable, Iterator, Literal
+from typing import Any, Hashable, Iterator, Literal, Mapping
 
 import numpy as np
 
@@ -123,6 +123,9 @@ class Keyframe:
         T_odom_cam: ``[4,4]`` the robot's metric odometry pose ``X`` at that step.
         depth_ref_m: ``[H',W'] float32`` metric depth reference (0 = unknown), or
             None when the depth source had nothing for this frame.
+        memo: what the backbone said about this frame when it was the current view
+            (:attr:`cerpe.protocols.BackboneOutput.memos`), handed back as
+            :attr:`cerpe.protocols.View.memo`; None when it said nothing.
     """
 
     step: int
@@ -132,6 +135,7 @@ class Keyframe:
     intrinsics: CameraIntrinsics | None
     T_odom_cam: np.ndarray
     depth_ref_m: np.ndarray | None = None
+    memo: Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
         what = f"keyframe {self.key!r}"

@@ -38,10 +38,12 @@ class Delivery:
 
     Attributes:
         messages: decoded messages with the sending robot id, in send order.
+        sizes: the wire size (bytes) of each of ``messages``.
         degradations: one ``"msg:lost"`` / ``"msg:garbled"`` entry per bad frame.
     """
 
     messages: list[tuple[str, Message]] = field(default_factory=list)
+    sizes: list[int] = field(default_factory=list)
     degradations: list[str] = field(default_factory=list)
 
 
@@ -134,6 +136,7 @@ class Channel:
                 continue
             try:
                 out.messages.append((sender, decode(frame)))
+                out.sizes.append(len(frame))
                 self.counts["msg:delivered"] += 1
             except MessageError as exc:
                 self.counts["msg:garbled"] += 1

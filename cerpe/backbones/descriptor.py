@@ -216,9 +216,9 @@ class XFeatSaladDescriptor:
         # split of the last describe() call, read by cerpe.algorithm for its stage timings
         self.last_timings_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
 
-    def flags(self, key: Hashable) -> set[str]:
-        """Problems found while describing ``key`` (``{"low-texture"}`` or empty)."""
-        return {"low-texture"} if key in self.low_texture_keys else set()
+    def flags(self, view: View | Hashable) -> set[str]:
+        """Problems found while describing ``view`` (or its key): ``{"low-texture"}`` or empty."""
+        return {"low-texture"} if getattr(view, "key", view) in self.low_texture_keys else set()
 
     def wire_bytes(self) -> dict[str, int]:
         """Exact :class:`~cerpe.messages.DescriptorMessage` frame size per dtype."""

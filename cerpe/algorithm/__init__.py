@@ -1,0 +1,39 @@
+"""CERPE, Algorithm 1 of the paper, for a team of robots exchanging real wire frames.
+
+One step of one robot (:class:`StepEngine`, over a :class:`Link`):
+
+1. describe its image (``encode``/``descriptor`` stages); a blank frame is found here;
+2. broadcast a :class:`~cerpe.messages.DescriptorMessage`;
+3. gate: cosine of the *wire* descriptors (both robots of a pair see the same
+   score); ``score >= tau`` -> an :class:`~cerpe.messages.ImageRequest`, answered
+   with a JPEG :class:`~cerpe.messages.ImageReply` (``gate`` stage);
+4. ONE joint backbone pass over ``[current] + memory (newest first) (+ previous
+   frame) + received images`` (``backbone``);
+5. metric scale from the keyframes' depth references (``scale``);
+6. odometry through the view the current one was measured against;
+7. broadcast a :class:`~cerpe.messages.PoseMessage`;
+8. per peer: direct estimate (gate open, both views placed) stored as anchor, else
+   the last anchor propagated with both odometries (``propagation``);
+9. keyframe rule (:mod:`cerpe.memory`).
+
+:class:`Team` runs N engines in one process over the lossy
+:class:`~cerpe.transport.Channel`; ``cerpe.online`` runs one per process.
+Run-time faults are counted under the names in :data:`DEGRADATIONS`; malformed
+input raises :class:`AlgorithmError` naming robot, step and field.
+
+Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
+``poses`` (pose arithmetic), ``agent`` (one robot's state and phases), ``link``
+(the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
+process), ``degradations`` (the counted names).
+"""
+from .agent import RobotAgent
+from .config import PAPER_THRESHOLDS, AlgorithmError, CerpeConfig
+from .degradations import DEGRADATIONS
+from .engine import StepEngine, drive
+from .link import Inbox, Link, Mailbox, Received
+from .poses import Anchor, direct_relative, ego_motion
+from .team import Team, run_encounter
+
+__all__ = ["DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "CerpeConfig", "Inbox", "Link",
+           "Mailbox", "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
+           "run_encounter"]

@@ -1,0 +1,423 @@
+"""One robot: its memory, odometry, anchors, and the per-phase methods of a step.
+
+:class:`RobotAgent` knows nothing of how frames travel; :class:`~cerpe.algorithm.engine.StepEngine`
+calls its methods in the order of Algorithm 1 and moves the frames over a link.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from ..geometry import propagate_relative_pose
+from ..memory import Keyframe, KeyframeMemory, cosine
+from ..messages import DescriptorMessage, ImageReply, ImageRequest, MessageError, PoseMessage, decode
+from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
+from ..records import RobotRecord
+from ..scale import recover_scale
+from .config import AlgorithmError, CerpeConfig
+from .frames import check_frame, describe, intrinsics_tuple, received_view
+from .poses import Anchor, check_pose, direct_relative, ego_motion
+from .state import Previous, StepState
+
+log = logging.getLogger(__name__)
+
+
+class RobotAgent:
+    """One robot: its memory, odometry ``X`` (identity at its first step), anchors.
+
+    Phases, in order: :meth:`begin_step`, :meth:`descriptor_frame`,
+    :meth:`score_descriptor`, :meth:`image_reply` / :meth:`accept_reply`,
+    :meth:`joint_pass`, :meth:`estimate_scale`, :meth:`update_odometry`,
+    :meth:`pose_frame`, :meth:`note_pose`, :meth:`relative`, :meth:`manage_memory`,
+    :meth:`record`. Everything the robot remembers between steps (keyframes with
+    their backbone memos, the previous frame, scale, anchors, peers' poses) lives
+    here, so a new agent starts from nothing.
+    """
+
+    def __init__(self, robot_id: str, index: int, config: CerpeConfig, descriptor: DescriptorEncoder,
+                 backbone: PoseBackbone, depth: MetricDepthSource) -> None:
+        self.robot_id = str(robot_id)
+        self.index = int(index)
+        self.config = config.resolved(getattr(descriptor, "thresholds", None))  # idempotent on concrete values
+        self.descriptor = descriptor
+        self.backbone = backbone
+        self.depth = depth
+        self.memory = KeyframeMemory(self.config.memory_config())
+        self.X = np.eye(4)
+        self.last_scale = float("nan")
+        self.anchors: dict[str, Anchor] = {}
+        self.poses: dict[str, tuple[int, np.ndarray]] = {}
+        self.last_step: int | None = None
+        self.cur: StepState | None = None
+        self.previous: Previous | None = None
+
+    # ---------------------------------------------------------------- helpers
+    def _where(self, step: int | None = None) -> str:
+        s = self.cur.step if step is None and self.cur is not None else step
+        return f"robot {self.robot_id} step {s}"
+
+    def _state(self) -> StepState:
+        if self.cur is None:
+            raise AlgorithmError(f"robot {self.robot_id}: no step in progress (call begin_step first)")
+        return self.cur
+
+    def degrade(self, what: str) -> None:
+        """Count a run-time fault in this step's record (names in :data:`cerpe.algorithm.DEGRADATIONS`)."""
+        self._state().degradations.append(what)
+        log.debug("%s: %s", self._where(), what)
+
+    def count_sent(self, kind: str, nbytes: int) -> None:
+        """Book ``nbytes`` put on the wire this step under message ``kind``."""
+        self._state().bytes_sent[kind] += int(nbytes)
+
+    # ---------------------------------------------------------------- 1. describe
+    def begin_step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> np.ndarray:
+        """Check the frame and describe it; returns the ``[D] float32`` descriptor it broadcasts.
+
+        A blank frame (see :func:`cerpe.algorithm.frames.describe`) broadcasts the
+        all-zero descriptor (receivers keep their gate closed), skips the joint
+        pass, keeps ``X`` and is never kept as keyframe or tracking reference;
+        counted once as ``frame:blank``.
+        """
+        step = int(context.step)
+        where = self._where(step)
+        if context.robot_id != self.robot_id:
+            raise AlgorithmError(f"{where}: frame context belongs to robot {context.robot_id!r}")
+        if self.last_step is not None and step <= self.last_step:
+            raise AlgorithmError(f"{where}: steps must increase (previous {self.last_step})")
+        img = check_frame(image, context, where)
+        view = View(key=(self.robot_id, step), image=img, intrinsics=context.intrinsics)
+        d, blank, timings = describe(self.descriptor, view, where, self.config.min_image_std)
+        self.cur = StepState(step=step, stamp_s=float(step if stamp_s is None else stamp_s), image=img,
+                              context=context, view=view, descriptor=np.zeros_like(d) if blank else d,
+                              blank=bool(blank), timings=timings)
+        if blank == "zero-norm":
+            self.degrade("descriptor:zero-norm")
+        if blank:
+            self.degrade("frame:blank")
+        return self.cur.descriptor
+
+    # ---------------------------------------------------------------- 2. broadcast
+    def descriptor_frame(self, dtype: str) -> bytes:
+        """This step's descriptor as a wire frame; the quantised values are kept for scoring."""
+        st = self._state()
+        frame = DescriptorMessage(self.index, st.step, st.descriptor, dtype).encode()
+        st.wire_descriptor = decode(frame).descriptor
+        return frame
+
+    # ---------------------------------------------------------------- 3. gate
+    def score_descriptor(self, other: str, descriptor: np.ndarray | None) -> float:
+        """Cosine score against a received descriptor (None: it did not arrive); records the gate decision.
+
+        Returns NaN when no score can be computed (the gate stays closed and the reason is kept).
+        """
+        st = self._state()
+        t0 = time.perf_counter()
+        own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
+        score, reason = float("nan"), ""
+        if descriptor is None:
+            reason = "descriptor-missing"
+        elif st.blank:
+            reason = "own-descriptor-degenerate"
+        else:
+            d = np.asarray(descriptor, dtype=np.float32).ravel()
+            if d.size != own.size:
+                self.degrade("descriptor:wrong-length")
+                reason = "descriptor-length-mismatch"
+            elif not np.all(np.isfinite(d)) or not np.any(d):
+                self.degrade("descriptor:other-zero-norm")
+                reason = "other-descriptor-degenerate"
+            else:
+                score = cosine(own, d)
+        st.scores[other] = score
+        if reason:
+            st.gate_reason[other] = reason
+        st.timings["gate"] += time.perf_counter() - t0
+        return score
+
+    def gate_open(self, other: str) -> bool:
+        s = self._state().scores.get(other, float("nan"))
+        return bool(np.isfinite(s) and s >= self.config.tau)
+
+    def image_reply(self, request: ImageRequest) -> ImageReply | None:
+        """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
+        st = self._state()
+        if request.step != st.step or request.target != self.index:
+            self.degrade("msg:stale-request")
+            return None
+        if st.reply_cache is None:
+            t0 = time.perf_counter()
+            st.reply_cache = ImageReply.from_image(self.index, st.step, st.image,
+                                                   intrinsics_tuple(st.context.intrinsics),
+                                                   quality=self.config.jpeg_quality)
+            st.timings["gate"] += time.perf_counter() - t0
+        return st.reply_cache
+
+    def accept_reply(self, other: str, reply: ImageReply) -> View | None:
+        """Decode a collaborator's JPEG for the joint pass (see :func:`~cerpe.algorithm.frames.received_view`)."""
+        st = self._state()
+        if reply.step != st.step:
+            self.degrade("msg:stale-reply")
+            return None
+        t0 = time.perf_counter()
+        try:
+            view = received_view(other, reply)
+        except MessageError:
+            self.degrade("msg:undecodable-jpeg")
+            st.gate_reason[other] = "reply-undecodable"
+            return None
+        finally:
+            st.timings["gate"] += time.perf_counter() - t0
+        st.collab_views[other] = view
+        return view
+
+    # ---------------------------------------------------------------- 4. joint pass
+    def joint_pass(self) -> BackboneOutput | None:
+        """ONE backbone pass over ``[current] + keyframes (newest first) (+ previous frame) + collaborators``.
+
+        Kept views come with the memo the backbone gave them as current view. None
+        for a blank frame (no pass).
+        """
+        st = self._state()
+        st.passed = True
+        if st.blank:
+            return None
+        kfs = self.memory.newest_first()
+        # metric depth priors: each keyframe's reference, and the current frame's when it is
+        # computed anyway (no keyframe yet: the scale needs it; track_previous: the next step does)
+        if not kfs or self.config.track_previous:
+            st.view = dataclasses.replace(st.view, depth_m=self._current_depth())
+        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo) for kf in kfs]
+        prev = self.previous
+        st.prev_index = None
+        if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
+            st.prev_index = len(views)
+            views.append(prev.view)
+        for other, v in st.collab_views.items():
+            st.collab_index[other] = len(views)
+            views.append(v)
+        t0 = time.perf_counter()
+        out = self.backbone.infer(views)
+        st.timings["backbone"] += time.perf_counter() - t0
+        if not isinstance(out, BackboneOutput) or len(out.valid) != len(views):
+            n = len(out.valid) if isinstance(out, BackboneOutput) else type(out).__name__
+            raise AlgorithmError(f"{self._where()}: backbone returned {n} views for {len(views)} given")
+        valid = np.asarray(out.valid, dtype=bool).copy()
+        for k in range(len(views)):
+            if valid[k] and not np.all(np.isfinite(out.T_frame_cam[k])):
+                valid[k] = False
+                out.reasons[k] = "non-finite pose"
+                self.degrade("backbone:non-finite-pose")
+        out.valid = valid
+        st.out = out
+        st.view = dataclasses.replace(st.view, memo=out.memos[0])  # travels with the frame if it is kept
+        return out
+
+    # ---------------------------------------------------------------- 5. scale
+    def _current_depth(self) -> np.ndarray | None:
+        st = self._state()
+        done, d = st.depth_cache
+        if done:
+            return d
+        t0 = time.perf_counter()
+        d = self.depth.depth_m(st.view, st.context)
+        st.timings["scale"] += time.perf_counter() - t0
+        if d is not None:
+            d = np.asarray(d, dtype=np.float32)
+            if d.ndim != 2 or d.size == 0:
+                raise AlgorithmError(f"{self._where()}: depth source {getattr(self.depth, 'name', '?')!r} "
+                                     f"returned shape {d.shape}, expected [H,W]")
+        else:
+            self.degrade("depth:none")
+        st.depth_cache = (True, d)
+        return d
+
+    def _pass(self, what: str) -> StepState:
+        st = self._state()
+        if not st.passed:
+            raise AlgorithmError(f"{self._where()}: {what} before joint_pass")
+        return st
+
+    def estimate_scale(self) -> float:
+        """Memory scale of this pass (NaN when none, not even a previous one, and for a blank frame)."""
+        st = self._pass("estimate_scale")
+        out = st.out
+        if out is None:
+            return st.scale
+        if out.metric_unit and self.config.backbone_metric_unit:
+            st.scale = 1.0  # not kept as last_scale: that is the fallback of later up-to-scale passes
+            return st.scale
+        kfs = self.memory.newest_first()
+        metric, idx = ([kf.depth_ref_m for kf in kfs], list(range(1, 1 + len(kfs)))) if kfs \
+            else ([self._current_depth()], [0])
+        t0 = time.perf_counter()
+        est = recover_scale(metric, [out.depth[k] if out.valid[k] else None for k in idx],
+                            [out.depth_conf[k] for k in idx], min_pixels=self.config.min_scale_pixels)
+        st.timings["scale"] += time.perf_counter() - t0
+        for _, reason in est.skipped:
+            self.degrade(f"scale:skipped-{reason}")
+        if est.ok:
+            st.scale = self.last_scale = est.scale
+        elif np.isfinite(self.last_scale):
+            st.scale = self.last_scale
+            self.degrade("scale:fallback-last")
+        elif self.config.unit_scale_without_depth:
+            st.scale = 1.0
+            self.degrade("scale:unit-no-depth")
+        else:
+            self.degrade("scale:unavailable")
+        return st.scale
+
+    # ---------------------------------------------------------------- 6. odometry
+    def update_odometry(self) -> np.ndarray:
+        """``X_t`` through the pass's reference view, else the previous frame, else the newest placed keyframe.
+
+        Only differences within one pass are used, so a new backbone frame never
+        makes ``X`` jump; without an estimate ``X`` keeps its value.
+        """
+        st = self._pass("update_odometry")
+        out = st.out
+        kfs = self.memory.newest_first()
+        if out is None:
+            st.ego_status = "blank"
+            return self.X
+        if not kfs:
+            st.ego_status = "first" if self.last_step is None else "no-keyframe"
+            if st.ego_status == "no-keyframe":
+                self.degrade("ego:no-keyframe")
+            return self.X
+        if not out.valid[0]:
+            st.ego_status = "current-invalid"
+        elif not np.isfinite(st.scale):
+            st.ego_status = "no-scale"
+        else:
+            # pass index -> odometry pose of that view, in the order they are tried: the view the
+            # backbone measured the current one against, the previous frame, keyframes newest first
+            starts: dict[int, np.ndarray] = {}
+            p, ref = st.prev_index, out.reference
+            if ref is not None and (ref == p or 1 <= ref <= len(kfs)):
+                starts[ref] = self.previous.T_odom_cam if ref == p else kfs[ref - 1].T_odom_cam
+            if p is not None:
+                starts.setdefault(p, self.previous.T_odom_cam)
+            for k, kf in enumerate(kfs):
+                starts.setdefault(1 + k, kf.T_odom_cam)
+            for s, X_s in starts.items():
+                if out.valid[s]:
+                    self.X = ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale)
+                    st.ego_status = "ok"
+                    if s != ref and s != p and s > 1:
+                        self.degrade("ego:older-keyframe")
+                    return self.X
+            st.ego_status = "keyframes-invalid"
+        self.degrade("ego:no-estimate")
+        return self.X
+
+    # ---------------------------------------------------------------- 7. pose broadcast
+    def pose_frame(self) -> bytes:
+        st = self._state()
+        return PoseMessage(self.index, st.step, self.X).encode()
+
+    # ---------------------------------------------------------------- 8. relative poses
+    def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
+        """Remember robot ``other``'s broadcast odometry pose."""
+        self.poses[other] = (int(step), check_pose(X_j, f"{self._where()}: pose of robot {other}"))
+
+    def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
+        """This step's estimate of ``T_cj_ci`` for robot ``other``: ``(source, T or None, reason, anchor_step)``."""
+        st = self._state()
+        t0 = time.perf_counter()
+        try:
+            return self._relative(st, other)
+        finally:
+            st.timings["propagation"] += time.perf_counter() - t0
+
+    def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
+        out = st.out
+        pose = self.poses.get(other)
+        fresh = pose is not None and pose[0] == st.step
+        if self.gate_open(other):
+            k = st.collab_index.get(other)
+            if k is None:
+                reason = st.gate_reason.get(other, "reply-missing")
+            elif not out.valid[k]:
+                reason = "collaborator-view-not-placed"
+            elif not out.valid[0]:
+                reason = "own-view-not-placed"
+            elif not np.isfinite(st.scale):
+                reason = "no-scale"
+            else:
+                T = direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale)
+                if fresh:
+                    self.anchors[other] = Anchor(st.step, T, self.X.copy(), pose[1].copy())
+                    return "direct", T, "", st.step
+                self.degrade("anchor:not-stored-pose-missing")
+                return "direct", T, "anchor-not-stored: pose message missing", st.step
+        else:  # closed; say why when there was no score at all (lost, blank, mismatched)
+            reason = st.gate_reason.get(other, "")
+            if not self.config.propagate:
+                return "none", None, reason or "gate-closed", -1
+        if not self.config.propagate:
+            return "none", None, reason, -1
+        anchor = self.anchors.get(other)
+        if anchor is None:
+            return "none", None, "; ".join(r for r in (reason, "no-anchor") if r), -1
+        if pose is None:
+            return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1
+        if not fresh:
+            self.degrade("pose:stale")
+            reason = "; ".join(r for r in (reason, "stale-pose") if r)
+        T = propagate_relative_pose(anchor.T_cj_ci, anchor.X_i, self.X, anchor.X_j, pose[1])
+        return "propagated", T, reason, anchor.step
+
+    # ---------------------------------------------------------------- 9. memory
+    def manage_memory(self) -> bool:
+        """Keyframe rule and tracking reference; returns whether the current frame became a keyframe."""
+        st = self._state()
+        st.keyframe = self._keyframe_rule(st)
+        self._keep_previous(st)
+        return st.keyframe
+
+    def _keyframe_rule(self, st: StepState) -> bool:
+        out = st.out
+        if st.blank:
+            return False  # a blank frame (counted) is never worth keeping
+        if len(self.memory) and (out is None or not out.valid[0]):
+            return False  # a view the backbone cannot place would only break later passes
+        if st.ego_status == "keyframes-invalid":
+            self.memory.clear()
+            self.degrade("memory:reinit")
+            insert = True
+        else:
+            insert, _, _, _ = self.memory.decide(st.descriptor, st.step)
+        if insert:
+            self.memory.insert(Keyframe(step=st.step, key=st.view.key, descriptor=st.descriptor,
+                                        image=st.image, intrinsics=st.context.intrinsics,
+                                        T_odom_cam=self.X.copy(), depth_ref_m=self._current_depth(),
+                                        memo=st.view.memo))
+        return bool(insert)
+
+    def _keep_previous(self, st: StepState) -> None:
+        """This frame becomes next step's tracking reference when its pose is an estimate.
+
+        A blank frame leaves the reference as it was (the last good frame), so the
+        next good frame chains through that one.
+        """
+        if st.blank:
+            return
+        self.previous = None
+        if not self.config.track_previous:
+            return
+        if st.ego_status == "ok" or (st.ego_status == "first" and st.out is not None):
+            # joint_pass attached this frame's depth and memo to st.view
+            self.previous = Previous(step=st.step, view=st.view, T_odom_cam=self.X.copy())
+
+    def record(self) -> RobotRecord:
+        st = self._state()
+        self.last_step = st.step
+        return RobotRecord(step=st.step, stamp_s=st.stamp_s, robot=self.robot_id, T_odom_cam=self.X.copy(),
+                           scale=float(st.scale), n_keyframes=len(self.memory), keyframe=st.keyframe,
+                           bytes_sent=dict(st.bytes_sent), timings_s={k: float(v) for k, v in st.timings.items()},
+                           degradations=list(st.degradations))

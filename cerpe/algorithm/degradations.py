@@ -1,0 +1,40 @@
+"""The names under which run-time faults are counted in ``RobotRecord.degradations``.
+
+The robot keeps going after each; ``docs/ARCHITECTURE.md`` lists them too. A name
+ending in ``-`` is a prefix (the rest says which case).
+"""
+from __future__ import annotations
+
+DEGRADATIONS: dict[str, str] = {
+    "frame:blank": "own frame without texture (descriptor flag low-texture, zero-norm descriptor or grey-level "
+                   "std below min_image_std): zero descriptor broadcast, no joint pass, X kept, never kept as "
+                   "keyframe or tracking reference",
+    "descriptor:zero-norm": "the descriptor of the own frame is all zero (also counted as frame:blank)",
+    "descriptor:wrong-length": "a received descriptor of another length: gate closed for that pair",
+    "descriptor:other-zero-norm": "a received descriptor that is zero or not finite (a blank frame): gate closed",
+    "backbone:non-finite-pose": "a view the backbone called placed has a NaN pose: treated as not placed",
+    "ego:no-estimate": "the pass placed neither the current view nor a view to chain through, or there is no "
+                       "scale: X keeps its value (constant position)",
+    "ego:older-keyframe": "odometry chained through an older keyframe (newer views not placed)",
+    "ego:no-keyframe": "the memory is empty after the first step (the first frames were blank)",
+    "memory:reinit": "no keyframe could be placed but the current view could: memory restarts from it at the last X",
+    "scale:fallback-last": "the memory gave no scale: the last valid one is used",
+    "scale:unavailable": "no scale, and none before",
+    "scale:unit-no-depth": "no metric depth at all: s = 1 (unit_scale_without_depth)",
+    "scale:skipped-": "a keyframe without usable metric depth left out of the scale (suffix: why)",
+    "depth:none": "the depth source had nothing for the current frame",
+    "pose:stale": "the other robot's pose of this step is missing: its last pose is used for propagation",
+    "anchor:not-stored-pose-missing": "a direct estimate without the other's pose of this step: not an anchor",
+    "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
+    "msg:garbled": "a frame that does not decode",
+    "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
+    "msg:stale-request": "an image request for a step this robot is not at",
+    "msg:stale-reply": "an image reply for another step",
+    "msg:undecodable-jpeg": "an image reply whose JPEG does not decode",
+    "net:peer-lost": "online: a connection to a peer ended without a bye",
+}
+
+
+def known(name: str) -> bool:
+    """Whether ``name`` is one of :data:`DEGRADATIONS` (or starts with one of its prefixes)."""
+    return name in DEGRADATIONS or any(k.endswith("-") and name.startswith(k) for k in DEGRADATIONS)

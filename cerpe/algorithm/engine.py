@@ -1,0 +1,127 @@
+"""The phases of ONE robot's step of Algorithm 1, written once, over a :class:`~cerpe.algorithm.link.Link`.
+
+:meth:`StepEngine.step` is a generator: it yields at its two wait points (before
+it gathers the peers' descriptors, before it gathers their poses) and returns the
+step's :class:`~cerpe.records.StepResult`. A team in one process advances all its
+engines to the same wait point before any goes on (:func:`drive`), so every robot's
+frames are on the channel before anyone reads, in a fixed order: deterministic. A
+robot process resumes at once; there its link's ``gather`` blocks until the peers'
+frames are there or the deadline passes.
+"""
+from __future__ import annotations
+
+from typing import Generator, Iterable, Sequence
+
+import numpy as np
+
+from ..messages import ImageRequest
+from ..protocols import FrameContext
+from ..records import PairRecord, StepResult
+from .agent import RobotAgent
+from .config import AlgorithmError
+from .link import Inbox, Link
+
+StepRun = Generator[str, None, StepResult]
+
+
+class StepEngine:
+    """Runs one robot's :class:`RobotAgent` over a link, one step per :meth:`step`.
+
+    Args:
+        agent: the robot (its ``index`` is its position in ``robot_ids``, the wire sender id).
+        link: its end of the medium; the engine answers image requests through it.
+        robot_ids: every robot of the team in wire-index order.
+        peers: the robots it exchanges with and makes pair records for (default: all others).
+        wait_s: deadline of each wait (descriptors, replies, poses).
+    """
+
+    def __init__(self, agent: RobotAgent, link: Link, robot_ids: Sequence[str],
+                 peers: Iterable[str] | None = None, wait_s: float = 0.0) -> None:
+        self.agent, self.link, self.wait_s = agent, link, float(wait_s)
+        self.robot_ids = [str(r) for r in robot_ids]
+        if agent.robot_id not in self.robot_ids or self.robot_ids.index(agent.robot_id) != agent.index:
+            raise AlgorithmError(f"robot {agent.robot_id}: its index {agent.index} is not its position "
+                                 f"in {self.robot_ids}")
+        wanted = set(self.robot_ids if peers is None else peers)
+        if wanted - set(self.robot_ids):
+            raise AlgorithmError(f"robot {agent.robot_id}: peers {sorted(wanted - set(self.robot_ids))} are not "
+                                 f"robots of the team {self.robot_ids}")
+        self.peers = [r for r in self.robot_ids if r in wanted and r != agent.robot_id]
+        self.index_of = {r: k for k, r in enumerate(self.robot_ids)}
+        link.serve(self._answer)
+
+    def _answer(self, peer: str, request: ImageRequest) -> bytes | None:
+        """Image request -> reply frame (counted as this robot's ``reply`` bytes)."""
+        if self.agent.cur is None:
+            return None
+        reply = self.agent.image_reply(request)
+        if reply is None:
+            return None
+        frame = reply.encode()
+        self.agent.count_sent("reply", len(frame))
+        return frame
+
+    def _book(self, inbox: Inbox) -> Inbox:
+        for what in inbox.degradations:
+            self.agent.degrade(what)
+        return inbox
+
+    def step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> StepRun:
+        """One step of this robot: pair records with it as ego, and its robot record."""
+        a, link, t, peers = self.agent, self.link, int(context.step), self.peers
+        # 1. describe; 2. broadcast the descriptor
+        a.begin_step(image, context, stamp_s)
+        link.begin(t)
+        a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.descriptor_dtype)))
+        yield "descriptor"
+        # 3. gate: score every peer's descriptor, request the images whose score passes tau
+        got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
+        scores = {p: a.score_descriptor(p, _field(got, p, "descriptor")) for p in peers}
+        asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
+        replies = self._book(link.request(t, asked, self.wait_s))
+        for n in replies.sent.values():
+            a.count_sent("request", n)
+        for p in asked:
+            if p in replies.messages:
+                a.accept_reply(p, replies.messages[p].message)
+        # 4. ONE joint pass; 5. scale; 6. odometry; 7. broadcast the pose
+        a.joint_pass()
+        a.estimate_scale()
+        a.update_odometry()
+        a.count_sent("pose", link.broadcast("pose", a.pose_frame()))
+        yield "pose"
+        a.note_pose(a.robot_id, t, a.X)
+        for p, got_pose in self._book(link.gather(t, "pose", peers, self.wait_s)).messages.items():
+            a.note_pose(p, got_pose.message.step, got_pose.message.T_odom_cam)
+        # 8. relative pose per peer: direct when the gate opened and the pass placed both, else propagated
+        pairs = []
+        for p in peers:
+            source, T, reason, anchor_step = a.relative(p)
+            nbytes = replies.sent.get(p, 0) + (replies.messages[p].nbytes if p in replies.messages else 0)
+            pairs.append(PairRecord(step=t, stamp_s=a.cur.stamp_s, ego=a.robot_id, other=p,
+                                    gate_score=float(scores[p]), gate_open=a.gate_open(p), source=source,
+                                    T_cj_ci=T, reason=reason, bytes_pair=int(nbytes), anchor_step=anchor_step))
+        # 9. memory management
+        a.manage_memory()
+        return StepResult(step=t, pairs=pairs, robots=[a.record()])
+
+
+def _field(inbox: Inbox, peer: str, name: str):
+    msg = inbox.message(peer)
+    return None if msg is None else getattr(msg, name)
+
+
+def drive(runs: Sequence[StepRun]) -> list[StepResult]:
+    """Advance every run to its next wait point, in order, until all have returned."""
+    out: list[StepResult | None] = [None] * len(runs)
+    live = list(range(len(runs)))
+    while live:
+        still = []
+        for k in live:
+            try:
+                next(runs[k])
+                still.append(k)
+            except StopIteration as stop:
+                out[k] = stop.value
+        live = still
+    return out  # type: ignore[return-value]

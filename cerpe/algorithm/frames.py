@@ -1,0 +1,86 @@
+"""One robot's frame on its way in: checks, the descriptor, the blank-frame test, received images."""
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import numpy as np
+
+from ..messages import ImageReply
+from ..protocols import DescriptorEncoder, FrameContext, View
+from ..scene import CameraIntrinsics
+from .config import AlgorithmError
+
+
+def check_frame(image: np.ndarray, context: FrameContext, where: str) -> np.ndarray:
+    """The image as an ``[H,W,3] uint8`` array consistent with its intrinsics and sensor depth."""
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] == 0 or img.shape[1] == 0:
+        raise AlgorithmError(f"{where}: image must be a non-empty [H,W,3] array, got shape {img.shape}")
+    if img.dtype != np.uint8:
+        raise AlgorithmError(f"{where}: image must be uint8 RGB, got dtype {img.dtype}")
+    H, W = img.shape[:2]
+    K = context.intrinsics
+    if K is not None and (int(K.width), int(K.height)) != (W, H):
+        raise AlgorithmError(f"{where}: intrinsics are for {K.width}x{K.height} but the image is {W}x{H}")
+    if context.sensor_depth_m is not None:
+        d = np.asarray(context.sensor_depth_m)
+        if d.shape != (H, W):
+            raise AlgorithmError(f"{where}: sensor_depth_m shape {d.shape} does not match the image {(H, W)}")
+    return img
+
+
+def grey_std(image: np.ndarray) -> float:
+    """Standard deviation of the grey level (mean of the channels) over every other pixel."""
+    return float(image[::2, ::2].mean(axis=2, dtype=np.float32).std())
+
+
+def describe(descriptor: DescriptorEncoder, view: View, where: str,
+             min_image_std: float) -> tuple[np.ndarray, str, Counter]:
+    """``([D] float32 descriptor, why the frame is blank or "", stage timings)``.
+
+    Blank: the descriptor flags it ``low-texture`` (``flags(view)``, when it has
+    one), has zero norm, or the image's grey-level std is below ``min_image_std``
+    (so every descriptor is covered, also one that returns a random unit vector
+    for a blank image).
+    """
+    t0 = time.perf_counter()
+    d = np.asarray(descriptor.describe(view), dtype=np.float32)
+    split = getattr(descriptor, "last_timings_s", None)
+    flags = getattr(descriptor, "flags", None)
+    low_texture = callable(flags) and "low-texture" in (flags(view) or ())
+    dim = int(getattr(descriptor, "dim", d.size))
+    if d.ndim != 1 or d.size != dim:
+        raise AlgorithmError(f"{where}: descriptor has shape {d.shape}, expected [{dim}]")
+    if not np.all(np.isfinite(d)):
+        raise AlgorithmError(f"{where}: descriptor contains NaN or inf")
+    blank = ("zero-norm" if not np.linalg.norm(d) > 0 else "low-texture" if low_texture
+             else "low-std" if grey_std(view.image) < min_image_std else "")
+    timings: Counter = Counter()
+    if isinstance(split, dict) and "encode" in split and "descriptor" in split:
+        timings["encode"] += float(split["encode"])
+        timings["descriptor"] += float(split["descriptor"])
+    else:  # the whole call, flags and the texture check included
+        timings["descriptor"] += time.perf_counter() - t0
+    return d, blank, timings
+
+
+def intrinsics_tuple(K: CameraIntrinsics | None) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` for an image reply; ``(0, 0, 0, 0)`` means unknown (``fx`` is never 0)."""
+    return (0.0, 0.0, 0.0, 0.0) if K is None else (K.fx, K.fy, K.cx, K.cy)
+
+
+def received_view(other: str, reply: ImageReply) -> View:
+    """A collaborator's JPEG as a :class:`View` keyed ``(other, step, "jpeg")``.
+
+    The key differs from the owner's ``(other, step)`` because the pixels do:
+    plug-ins shared by a simulated team may cache per key and must not mix the
+    raw and the decoded image. Raises :class:`~cerpe.messages.MessageError` when
+    the JPEG does not decode.
+    """
+    img = reply.image_rgb()
+    fx, fy, cx, cy = reply.intrinsics
+    K = None
+    if fx > 0 and fy > 0 and np.all(np.isfinite(reply.intrinsics)):
+        K = CameraIntrinsics(fx, fy, cx, cy, img.shape[1], img.shape[0])
+    return View(key=(other, reply.step, "jpeg"), image=img, intrinsics=K)

@@ -1,0 +1,48 @@
+"""What one robot holds during a step (:class:`StepState`) and between steps besides its memory (:class:`Previous`)."""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..messages import ImageReply
+from ..protocols import BackboneOutput, FrameContext, View
+
+
+@dataclass
+class StepState:
+    """What one robot holds during one step (dropped when the next begins)."""
+
+    step: int
+    stamp_s: float
+    image: np.ndarray
+    context: FrameContext
+    view: View
+    descriptor: np.ndarray
+    blank: bool
+    wire_descriptor: np.ndarray | None = None
+    scores: dict[str, float] = field(default_factory=dict)
+    gate_reason: dict[str, str] = field(default_factory=dict)
+    collab_views: dict[str, View] = field(default_factory=dict)
+    passed: bool = False
+    out: BackboneOutput | None = None
+    collab_index: dict[str, int] = field(default_factory=dict)
+    prev_index: int | None = None
+    scale: float = float("nan")
+    ego_status: str = ""
+    keyframe: bool = False
+    timings: Counter = field(default_factory=Counter)
+    degradations: list[str] = field(default_factory=list)
+    bytes_sent: Counter = field(default_factory=Counter)
+    reply_cache: ImageReply | None = None
+    depth_cache: tuple[bool, np.ndarray | None] = (False, None)
+
+
+@dataclass
+class Previous:
+    """The last placed frame, a one-slot tracking reference (not a keyframe); its view carries its memo."""
+
+    step: int
+    view: View
+    T_odom_cam: np.ndarray
