@@ -65,45 +65,41 @@ def run(args: argparse.Namespace) -> dict:
     missing = link.wait_peers(peers, args.connect_timeout)
     degr: Counter[str] = Counter()
     sent: Counter[str] = Counter()
-    expected = received = bad = 0
+    count: Counter[str] = Counter()  # expected, received, bad_content
     step_s = []
+
+    def tally(inbox, kind: str, right) -> None:
+        degr.update(inbox.degradations)
+        for p in peers:
+            m = inbox.get(p, kind)
+            count["expected"] += 1
+            count["received"] += m is not None
+            count["bad_content"] += m is not None and not right(p, m)
     for t in range(args.steps):
         t0 = time.perf_counter()
         state["step"] = t
         sent["descriptor"] += link.broadcast("descriptor", DescriptorMessage(me, t, descriptor(me, t)).encode())
-        inbox = link.gather(t, {"descriptor"}, peers, args.deadline)
-        degr.update(inbox.degradations)
-        for p in peers:
-            expected += 1
-            m = inbox.get(p, "descriptor")
-            if m is not None:
-                received += 1
-                want = DescriptorMessage(roster.index(p), t, descriptor(roster.index(p), t)).encode()
-                bad += int(decode(want).descriptor.tobytes() != m.descriptor.tobytes())
+        tally(link.gather(t, {"descriptor"}, peers, args.deadline), "descriptor",
+              lambda p, m: decode(DescriptorMessage(roster.index(p), t, descriptor(roster.index(p), t)).encode())
+              .descriptor.tobytes() == m.descriptor.tobytes())
         for p in peers:
             frame, n = link.request(p, ImageRequest(me, t, roster.index(p)).encode(), args.deadline)
             sent["request"] += n
-            expected += 1
-            if frame is not None:
-                received += 1
-                bad += int(decode(frame).step != t)
+            count["expected"] += 1
+            count["received"] += frame is not None
+            count["bad_content"] += frame is not None and decode(frame).step != t
         degr.update(link.take_degradations())
         sent["pose"] += link.broadcast("pose", PoseMessage(me, t, pose(me, t)).encode())
-        inbox = link.gather(t, {"pose"}, peers, args.deadline)
-        degr.update(inbox.degradations)
-        for p in peers:
-            expected += 1
-            m = inbox.get(p, "pose")
-            if m is not None:
-                received += 1
-                bad += int(not np.allclose(m.T_odom_cam, pose(roster.index(p), t), atol=1e-9))
+        tally(link.gather(t, {"pose"}, peers, args.deadline), "pose",
+              lambda p, m: np.allclose(m.T_odom_cam, pose(roster.index(p), t), atol=1e-9))
         step_s.append(time.perf_counter() - t0)
         if args.step_sleep:
             time.sleep(args.step_sleep)
     link.close(linger_s=args.linger)
     stats = {k: v for k, v in link.stats.items()}
-    return {"robot": args.robot, "steps": args.steps, "expected": expected, "received": received,
-            "bad_content": bad, "degradations": dict(degr), "bytes_per_step": {k: v / args.steps for k, v in sent.items()},
+    return {"robot": args.robot, "steps": args.steps,
+            **{k: int(count[k]) for k in ("expected", "received", "bad_content")},
+            "degradations": dict(degr), "bytes_per_step": {k: v / args.steps for k, v in sent.items()},
             "step_s": step_s, "stats": stats, "missing_at_start": missing}
 
 

@@ -344,9 +344,9 @@ class ZenohLink:
         """
         self._handler = handler
 
-    def poll(self) -> None:
-        """Answer the image queries that are waiting (call it when idle between steps)."""
-        self._serve_queries()
+    def poll(self, timeout_s: float = 0.0) -> None:
+        """Answer image queries for ``timeout_s`` (0: those waiting now); use it instead of sleeping."""
+        self._wait(lambda: False, time.monotonic() + max(0.0, float(timeout_s)))
 
     def _serve_queries(self) -> None:
         if self._handler is None:
