@@ -54,17 +54,19 @@ def run(args: argparse.Namespace) -> dict:
     me = roster.index(args.robot)
     peers = [r for r in roster if r != args.robot]
     state = {"step": 0}
+    sent: Counter[str] = Counter()  # frame bytes this robot sent, per kind
 
     def handler(frame: bytes) -> bytes | None:
         req = decode(frame)
         if not (state["step"] - HELD_STEPS < req.step <= state["step"]):
             return None
-        return ImageReply.from_image(me, req.step, image(me, req.step), (50.0, 50.0, 32.0, 24.0)).encode()
+        reply = ImageReply.from_image(me, req.step, image(me, req.step), (50.0, 50.0, 32.0, 24.0)).encode()
+        sent["reply"] += len(reply)
+        return reply
 
     link.serve(handler)
     missing = link.wait_peers(peers, args.connect_timeout)
     degr: Counter[str] = Counter()
-    sent: Counter[str] = Counter()
     count: Counter[str] = Counter()  # expected, received, bad_content
     step_s = []
 
