@@ -103,16 +103,18 @@ def test_broadcast_gather_all_kinds(team_of, n):
     team = team_of(ids)
     for t in range(4):
         for k, r in enumerate(ids):
+            team[r].begin(t)
             for kind, frame in frames_of(k, t).items():
                 assert team[r].broadcast(kind, frame) == len(frame)  # the frame's bytes, counted once
         for k, r in enumerate(ids):
             peers = [p for p in ids if p != r]
-            inbox = team[r].gather(t, {"descriptor", "pose"}, peers, deadline_s=10.0)
-            assert inbox.degradations == [] and inbox.step == t
-            for p in peers:
-                for kind, frame in frames_of(ids.index(p), t).items():
-                    got, want = inbox.get(p, kind), decode(frame)
-                    assert inbox.nbytes[p][kind] == len(frame)
+            for kind in ("descriptor", "pose"):
+                inbox = team[r].gather(t, kind, peers, deadline_s=10.0)
+                assert inbox.degradations == [] and sorted(inbox.messages) == peers
+                for p in peers:
+                    frame = frames_of(ids.index(p), t)[kind]
+                    got, want = inbox.message(p), decode(frame)
+                    assert inbox.messages[p].nbytes == len(frame)
                     assert got.sender == want.sender and got.step == t
                     if kind == "pose":
                         np.testing.assert_array_equal(got.T_odom_cam, want.T_odom_cam)
@@ -124,15 +126,15 @@ def test_broadcast_gather_all_kinds(team_of, n):
 def test_frames_of_later_steps_wait_and_earlier_are_late(team_of):
     team = team_of(["r0", "r1"])
     team["r1"].broadcast("descriptor", frames_of(1, 1)["descriptor"])  # step 1 before step 0
-    inbox = team["r0"].gather(0, {"descriptor"}, ["r1"], deadline_s=5.0)  # r1 is past 0: not waited for
+    inbox = team["r0"].gather(0, "descriptor", ["r1"], deadline_s=5.0)  # r1 is past 0: not waited for
     assert inbox.messages == {} and inbox.degradations == ["msg:lost"]
-    assert team["r0"].gather(1, {"descriptor"}, ["r1"], 5.0).get("r1", "descriptor").step == 1
+    assert team["r0"].gather(1, "descriptor", ["r1"], 5.0).message("r1").step == 1
     team["r1"].broadcast("pose", frames_of(1, 0)["pose"])
     team["r0"].poll(0.3)
-    assert team["r0"].gather(1, {"pose"}, ["r1"], 0.3).degradations == ["msg:lost"]
+    assert team["r0"].gather(1, "pose", ["r1"], 0.3).degradations == ["msg:lost"]
     assert team["r0"].stats["late"] == 1
-    with pytest.raises(ZenohLinkError, match="gather of step 0 after step 1"):
-        team["r0"].gather(0, {"pose"}, ["r1"], 0.1)
+    with pytest.raises(ZenohLinkError, match="step 0 begun after step 1"):
+        team["r0"].gather(0, "pose", ["r1"], 0.1)
 
 
 # --------------------------------------------------------------------------- request / reply
@@ -152,57 +154,97 @@ class serving:
         self.th.join(10)
 
 
-def test_request_reply_through_queryable(team_of):
+def reply_of(k: int, t: int) -> bytes:
+    return ImageReply(k, t, b"\xff\xd8jpeg-bytes-%d" % t, (500.0, 500.0, 320.0, 240.0)).encode()
+
+
+def test_request_reply_through_queryables(team_of):
     team = team_of(["r0", "r1", "r2"])
-    held = {3: ImageReply(1, 3, b"\xff\xd8jpeg-bytes", (500.0, 500.0, 320.0, 240.0)).encode()}
     asked = []
+    for r in ("r1", "r2"):
+        team[r].begin(3)
 
-    def handler(frame: bytes):
-        asked.append(decode(frame))
-        return held.get(decode(frame).step)
+        def handler(peer, req, k=team.roster.index(r)):
+            asked.append((peer, req))
+            return reply_of(k, req.step) if req.step == 3 else None  # only the current image is held
 
-    team["r1"].serve(handler)
-    req = ImageRequest(0, 3, 1).encode()
+        team[r].serve(handler)
+    reqs = {p: ImageRequest(0, 3, team.roster.index(p)).encode() for p in ("r1", "r2")}
+    team["r0"].begin(3)
+    with serving(team["r1"]), serving(team["r2"]):
+        inbox = team["r0"].request(3, reqs, deadline_s=5.0)
+    assert inbox.sent == {p: len(f) for p, f in reqs.items()} and inbox.degradations == []
+    for k, p in ((1, "r1"), (2, "r2")):
+        assert inbox.messages[p].nbytes == len(reply_of(k, 3)) and inbox.message(p) == decode(reply_of(k, 3))
+    assert sorted((peer, req.target) for peer, req in asked) == [("r0", 1), ("r0", 2)]
+
+
+def test_image_no_longer_held_and_bad_requests(team_of):
+    team = team_of(["r0", "r1", "r2"])
+    team["r1"].serve(lambda peer, req: None)  # holds nothing
+    team["r1"].begin(5)
+    team["r0"].begin(5)
     with serving(team["r1"]):
-        reply, n = team["r0"].request("r1", req, deadline_s=5.0)
-        assert reply == held[3] and n == len(req)
-        assert asked == [decode(req)]
-        # an image no longer held: an error reply, counted by the requester
-        reply, _ = team["r0"].request("r1", ImageRequest(0, 1, 1).encode(), deadline_s=5.0)
-        assert reply is None and team["r0"].take_degradations() == ["msg:image-not-held"]
-        # a request whose target is not the owner is refused without calling the handler
-        reply, _ = team["r2"].request("r1", ImageRequest(2, 3, 0).encode(), deadline_s=5.0)
-        assert reply is None and len(asked) == 2
+        inbox = team["r0"].request(5, {"r1": ImageRequest(0, 5, 1).encode()}, deadline_s=5.0)
+        assert inbox.messages == {} and inbox.degradations == ["msg:image-not-held"]
+        raw = raw_session(team.ports["r1"])
+        try:  # a request meant for r2 on r1's key, and one that is not a request: refused, counted by r1
+            for frame in (ImageRequest(0, 5, 2).encode(), frames_of(0, 5)["pose"]):
+                replies = list(raw.get(w.image_key("t", "r1"), payload=frame, attachment=w.HEADER, timeout=5.0))
+                assert w.parse_error_payload(replies[0].err.payload.to_bytes()) in ("wrong-target", "garbled")
+        finally:
+            raw.close()
     assert team["r1"].stats["queries_refused_wrong-target"] == 1
+    assert team["r1"].stats["queries_refused_garbled"] == 1
+    assert team["r1"].take_degradations() == ["msg:garbled", "msg:garbled"]
+    with pytest.raises(ZenohLinkError, match="not this robot's image request"):
+        team["r0"].request(5, {"r1": ImageRequest(0, 5, 2).encode()}, 1.0)
+
+
+def test_request_of_a_later_step_waits_until_the_owner_begins_it(team_of):
+    team = team_of(["r0", "r1"])
+    steps = []
+    team["r1"].serve(lambda peer, req: steps.append(req.step) or reply_of(1, req.step))
+    team["r1"].begin(1)
+    team["r0"].begin(2)
+    result = {}
+    th = threading.Thread(target=lambda: result.update(
+        inbox=team["r0"].request(2, {"r1": ImageRequest(0, 2, 1).encode()}, deadline_s=10.0)))
+    th.start()
+    team["r1"].poll(0.5)
+    assert steps == []  # r1 is still at step 1
+    team["r1"].begin(2)
+    team["r1"].poll(0.2)
+    th.join(10)
+    assert steps == [2] and result["inbox"].message("r1").step == 2
 
 
 def test_request_to_a_peer_that_does_not_serve_costs_at_most_the_deadline(team_of):
     team = team_of(["r0", "r1", "r2"], up=["r0", "r1"])
     t0 = time.monotonic()
-    reply, _ = team["r0"].request("r2", ImageRequest(0, 0, 2).encode(), deadline_s=0.5)  # r2 is not up
-    assert reply is None and time.monotonic() - t0 < 0.5 + SLACK_S
+    inbox = team["r0"].request(0, {"r2": ImageRequest(0, 0, 2).encode()}, deadline_s=0.5)  # r2 is not up
+    assert inbox.messages == {} and time.monotonic() - t0 < 0.5 + SLACK_S
     t0 = time.monotonic()
-    reply, _ = team["r0"].request("r1", ImageRequest(0, 0, 1).encode(), deadline_s=0.5)  # r1 never serves
-    assert reply is None and 0.5 <= time.monotonic() - t0 < 0.5 + SLACK_S
-    assert team["r0"].take_degradations() == ["msg:lost", "msg:lost"]
+    inbox2 = team["r0"].request(0, {"r1": ImageRequest(0, 0, 1).encode()}, deadline_s=0.5)  # r1 never serves
+    assert inbox2.messages == {} and 0.5 <= time.monotonic() - t0 < 0.5 + SLACK_S
+    assert inbox.degradations == inbox2.degradations == ["msg:lost"]
 
 
 def test_two_robots_requesting_from_each_other_do_not_deadlock(team_of):
     team = team_of(["r0", "r1"])
     out = {}
     for r in ("r0", "r1"):
-        k = team.roster.index(r)
-        team[r].serve(lambda f, k=k: ImageReply(k, decode(f).step, b"img", (1.0, 1.0, 1.0, 1.0)).encode())
+        team[r].serve(lambda peer, req, k=team.roster.index(r): reply_of(k, req.step))
 
     def ask(r, p):
-        out[r] = team[r].request(p, ImageRequest(team.roster.index(r), 0, team.roster.index(p)).encode(), 10.0)
+        out[r] = team[r].request(0, {p: ImageRequest(team.roster.index(r), 0, team.roster.index(p)).encode()}, 10.0)
 
     ths = [threading.Thread(target=ask, args=pair) for pair in (("r0", "r1"), ("r1", "r0"))]
     for th in ths:
         th.start()
     for th in ths:
         th.join(15)
-    assert decode(out["r0"][0]).sender == 1 and decode(out["r1"][0]).sender == 0
+    assert out["r0"].message("r1").sender == 1 and out["r1"].message("r0").sender == 0
 
 
 # --------------------------------------------------------------------------- deadlines
@@ -212,9 +254,9 @@ def test_missing_peer_costs_at_most_the_deadline_then_nothing(team_of):
     for t in range(4):
         team["r1"].broadcast("descriptor", frames_of(1, t)["descriptor"])
         t0 = time.monotonic()
-        inbox = team["r0"].gather(t, {"descriptor"}, ["r1", "r2"], deadline_s=0.4)
+        inbox = team["r0"].gather(t, "descriptor", ["r1", "r2"], deadline_s=0.4)
         took = time.monotonic() - t0
-        assert took < 0.4 + SLACK_S and inbox.get("r1", "descriptor") is not None
+        assert took < 0.4 + SLACK_S and inbox.message("r1") is not None
         lost.append((inbox.degradations, took >= 0.4))
     # r2 never appeared: waited for in steps 0 and 1 (it could still start: max_lag_steps = 2), then not
     assert [d for d, _ in lost] == [["msg:lost"]] * 4
@@ -239,9 +281,10 @@ def test_killed_peer_is_counted_and_not_waited_for(team_of, tmp_path):
         while "r1" in team["r0"].present and time.monotonic() - t0 < 15:
             team["r0"].poll(0.1)
         t0 = time.monotonic()
-        inbox = team["r0"].gather(0, {"descriptor", "pose"}, ["r1"], deadline_s=5.0)
+        lost = team["r0"].gather(0, "descriptor", ["r1"], deadline_s=5.0).degradations
+        lost += team["r0"].gather(0, "pose", ["r1"], deadline_s=5.0).degradations
         assert time.monotonic() - t0 < 2.0  # a peer known gone is not waited for
-        assert sorted(inbox.degradations) == ["msg:lost", "msg:lost", "net:peer-lost"]
+        assert sorted(lost) == ["msg:lost", "msg:lost", "net:peer-lost"]
     finally:
         proc.kill()
 
@@ -252,7 +295,7 @@ def test_peer_that_said_bye_is_not_lost(team_of):
     t0 = time.monotonic()
     while "r1" in team["r0"].present and time.monotonic() - t0 < 10:
         team["r0"].poll(0.1)
-    inbox = team["r0"].gather(0, {"pose"}, ["r1"], deadline_s=5.0)
+    inbox = team["r0"].gather(0, "pose", ["r1"], deadline_s=5.0)
     assert inbox.degradations == ["msg:lost"]  # its frame is missing, but no net:peer-lost
 
 
@@ -272,10 +315,10 @@ def test_malformed_payloads_on_our_keys_are_counted(team_of):
         raw.put(w.data_key("t", "r7", "descriptor"), good["descriptor"], attachment=w.HEADER)  # not in roster
         raw.put(key, frames_of(0, 0)["descriptor"], attachment=w.HEADER)           # sender index 0 on r1's key
         raw.put(key, good["descriptor"], attachment=w.HEADER)                      # finally the real one
-        inbox = team["r0"].gather(0, {"descriptor"}, ["r1"], deadline_s=5.0)
+        inbox = team["r0"].gather(0, "descriptor", ["r1"], deadline_s=5.0)
     finally:
         raw.close()
-    assert inbox.get("r1", "descriptor") is not None
+    assert inbox.message("r1") is not None
     assert sorted(inbox.degradations) == ["msg:garbled"] * 5 + ["msg:unknown-sender"] * 2
 
 
@@ -289,7 +332,7 @@ def test_other_protocol_version_is_one_counted_degradation(team_of, caplog):
         for t in range(3):
             raw.put(w.data_key("t", "r1", "pose"), frames_of(1, t)["pose"], attachment=other)
         with caplog.at_level("WARNING"):
-            inbox = team["r0"].gather(0, {"pose"}, ["r1"], deadline_s=0.5)
+            inbox = team["r0"].gather(0, "pose", ["r1"], deadline_s=0.5)
         token.undeclare()
     finally:
         raw.close()
@@ -305,7 +348,7 @@ def test_robot_of_another_team_is_named_and_counted(team_of, caplog):
         while not team["r0"].stats["link:team-mismatch"] and time.monotonic() - t0 < 10:
             team["r0"].poll(0.1)
         team["r1"].broadcast("descriptor", frames_of(1, 0)["descriptor"])  # on lab-b's keys: r0 never sees it
-        inbox = team["r0"].gather(0, {"descriptor"}, ["r1"], deadline_s=0.5)
+        inbox = team["r0"].gather(0, "descriptor", ["r1"], deadline_s=0.5)
     assert sorted(inbox.degradations) == ["link:team-mismatch", "msg:lost"]
     assert "robot r1 is up in team 'lab-b', this robot is in team 'lab-a'" in caplog.text
 
@@ -314,6 +357,7 @@ def test_robot_of_another_team_is_named_and_counted(team_of, caplog):
 @pytest.mark.parametrize("conf, match", [
     ({"listen": ["tcp/10.255.255.1:7447"]}, "cannot open .*Cannot assign requested address"),
     ({"listen": ["nonsense"]}, "zenoh config listen/endpoints"),
+    ({"zenoh": {"no/such/key": 1}}, "zenoh config no/such/key"),
     ({"mode": "client", "connect": ["tcp/127.0.0.1:1"]}, "cannot open .*Unable to connect"),
     ({"mode": "client"}, "needs a router endpoint"),
     ({"mode": "router"}, "expected one of"),

@@ -56,8 +56,7 @@ def run(args: argparse.Namespace) -> dict:
     state = {"step": 0}
     sent: Counter[str] = Counter()  # frame bytes this robot sent, per kind
 
-    def handler(frame: bytes) -> bytes | None:
-        req = decode(frame)
+    def handler(peer: str, req: ImageRequest) -> bytes | None:
         if not (state["step"] - HELD_STEPS < req.step <= state["step"]):
             return None
         reply = ImageReply.from_image(me, req.step, image(me, req.step), (50.0, 50.0, 32.0, 24.0)).encode()
@@ -70,33 +69,31 @@ def run(args: argparse.Namespace) -> dict:
     count: Counter[str] = Counter()  # expected, received, bad_content
     step_s = []
 
-    def tally(inbox, kind: str, right) -> None:
+    def tally(inbox, right) -> None:
         degr.update(inbox.degradations)
         for p in peers:
-            m = inbox.get(p, kind)
+            m = inbox.message(p)
             count["expected"] += 1
             count["received"] += m is not None
             count["bad_content"] += m is not None and not right(p, m)
+
     for t in range(args.steps):
         t0 = time.perf_counter()
         state["step"] = t
+        link.begin(t)
         sent["descriptor"] += link.broadcast("descriptor", DescriptorMessage(me, t, descriptor(me, t)).encode())
-        tally(link.gather(t, {"descriptor"}, peers, args.deadline), "descriptor",
+        tally(link.gather(t, "descriptor", peers, args.deadline),
               lambda p, m: decode(DescriptorMessage(roster.index(p), t, descriptor(roster.index(p), t)).encode())
               .descriptor.tobytes() == m.descriptor.tobytes())
-        for p in peers:
-            frame, n = link.request(p, ImageRequest(me, t, roster.index(p)).encode(), args.deadline)
-            sent["request"] += n
-            count["expected"] += 1
-            count["received"] += frame is not None
-            count["bad_content"] += frame is not None and decode(frame).step != t
-        degr.update(link.take_degradations())
+        replies = link.request(t, {p: ImageRequest(me, t, roster.index(p)).encode() for p in peers}, args.deadline)
+        sent["request"] += sum(replies.sent.values())
+        tally(replies, lambda p, m: m.step == t and m.image_rgb().shape == (48, 64, 3))
         sent["pose"] += link.broadcast("pose", PoseMessage(me, t, pose(me, t)).encode())
-        tally(link.gather(t, {"pose"}, peers, args.deadline), "pose",
+        tally(link.gather(t, "pose", peers, args.deadline),
               lambda p, m: np.allclose(m.T_odom_cam, pose(roster.index(p), t), atol=1e-9))
         step_s.append(time.perf_counter() - t0)
-        if args.step_sleep:
-            time.sleep(args.step_sleep)
+        link.poll(args.step_sleep)  # idle between steps, still answering requests
+    degr.update(link.take_degradations())
     link.close(linger_s=args.linger)
     stats = {k: v for k, v in link.stats.items()}
     return {"robot": args.robot, "steps": args.steps,
@@ -116,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--deadline", type=float, default=2.0)
     p.add_argument("--connect-timeout", type=float, default=10.0)
-    p.add_argument("--step-sleep", type=float, default=0.0)
+    p.add_argument("--step-sleep", type=float, default=0.0, help="idle seconds between steps")
     p.add_argument("--linger", type=float, default=3.0)
     p.add_argument("--out", required=True, type=Path)
     args = p.parse_args(argv)

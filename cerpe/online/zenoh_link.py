@@ -1,39 +1,43 @@
-"""One robot's link to its team over Zenoh (``eclipse-zenoh``): the ``Link`` of the step engine.
+"""One robot's link to its team over Zenoh (``eclipse-zenoh``): a ``Link`` for the step engine.
 
-Keys and the link header are in :mod:`cerpe.online.zenoh_wire`. What the link does:
+Keys and the link header are in :mod:`cerpe.online.zenoh_wire`. The methods are those
+of the engine's link protocol (``begin``, ``broadcast``, ``gather``, ``request``,
+``serve``; :class:`Inbox` has the shape of the engine's):
 
 * :meth:`ZenohLink.broadcast` puts a frame on ``cerpe/<team>/<robot>/<kind>``;
   the bytes counted are the frame's, once (as :class:`cerpe.transport.Channel`).
-* Frames of the team arrive through one subscriber into a per-step inbox;
-  :meth:`ZenohLink.gather` returns when every peer's frame of each kind of a step
-  is there or the deadline passes. A peer is not waited for when its frame cannot
-  come: it left (said bye, or its liveliness token went), it already sent that
-  kind for a later step (Zenoh keeps a publisher's order on a key), or it is more
-  than ``max_lag_steps`` behind (or never appeared after step ``max_lag_steps``).
-* Image requests are Zenoh queries on the owner's ``image`` key, answered by its
-  queryable. Queries are queued and answered by the handler given to
-  :meth:`ZenohLink.serve` on the thread that calls the link (in ``gather``,
-  ``request``, ``wait_peers``, ``poll``, ``close``), so the handler may read the
-  robot's state without locks, exactly as the TCP node did.
+* Frames of the team arrive through one subscriber into a per-step store;
+  :meth:`ZenohLink.gather` returns when every peer's frame of a step is there or
+  the deadline passes. A peer is not waited for when its frame cannot come: it
+  left (said bye, or its liveliness token went), it already sent that kind for a
+  later step (Zenoh keeps a publisher's order on a key), or it is more than
+  ``max_lag_steps`` behind (a robot never seen: from step ``max_lag_steps`` on).
+* Image requests are Zenoh queries on the owner's ``image`` key, all of a step
+  at once (:meth:`ZenohLink.request`), answered by the owner's queryable. Valid
+  queries are queued and answered by the handler given to :meth:`ZenohLink.serve`
+  on the thread that calls the link (inside ``begin``, ``gather``, ``request``,
+  ``wait_peers``, ``poll``, ``close``), once the owner has begun the query's step,
+  so the handler reads the robot's state without locks, as over TCP. One thread
+  calls a link.
 
 Counting (one entry per event in the next :class:`Inbox`'s ``degradations``;
-:meth:`ZenohLink.take_degradations` drains what no gather delivered yet):
-``msg:lost`` (an expected frame not there at the deadline, a request with no
-reply), ``msg:garbled`` (a payload on our keys that does not decode, a missing
-or foreign header, a frame whose type is not its key's kind),
-``msg:unknown-sender`` (a key robot not in the roster, a frame whose sender index
-is not its key robot's), ``msg:image-not-held`` (the owner answered that it no
-longer holds that image), ``net:peer-lost`` (a peer's session ended without
-bye), ``link:protocol-mismatch`` and ``link:team-mismatch`` (once per robot and
-version/team, with a warning naming both). Late, duplicate and far-ahead frames
-and the bytes really sent (frame + header) go to :attr:`ZenohLink.stats`.
+:meth:`ZenohLink.take_degradations` drains what no inbox delivered yet):
+``msg:lost`` (an expected frame or reply not there at the deadline),
+``msg:garbled`` (a payload on our keys that does not decode, a missing or foreign
+header, a frame whose type is not its key's kind), ``msg:unknown-sender`` (a key
+robot not in the roster, a frame whose sender index is not its key robot's),
+``msg:image-not-held`` (the owner answered that it no longer holds that image),
+``net:peer-lost`` (a peer's session ended without bye), ``link:protocol-mismatch``
+and ``link:team-mismatch`` (once per robot and version/team, with a warning naming
+both), ``link:duplicate-robot`` (another session uses this robot's id). Late,
+duplicate and far-ahead frames, refused queries and the bytes really sent (frame
++ header) go to :attr:`ZenohLink.stats`.
 
 Every wait has a deadline; a session that cannot open is one
 :class:`ZenohLinkError` naming the endpoints; nothing else raises on bad input.
 """
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -44,81 +48,53 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from ..config import merge_conf
 from ..errors import CerpeError
 from ..messages import ImageReply, ImageRequest, Message, MessageError, decode
+from . import zenoh_session as zs
 from . import zenoh_wire as w
 
 log = logging.getLogger(__name__)
 
 default_conf: dict[str, Any] = {
     "team": "cerpe",              # key chunk shared by the robots of one team
-    "mode": "peer",               # "peer" (default) or "client" (needs a router in "connect")
-    "connect": [],                # Zenoh endpoints to dial, e.g. ["tcp/10.0.0.2:7447"]
-    "listen": [],                 # endpoints to listen on; [] = Zenoh's default (peer: any port)
-    "multicast_scouting": True,   # find peers on the LAN by UDP multicast
+    **zs.default_conf,            # mode, connect, listen, multicast_scouting, zenoh (cerpe.online.zenoh_session)
     "max_lag_steps": 2,           # do not wait for a peer this many steps behind
     "max_ahead_steps": 64,        # frames further ahead of the current step are dropped
-    "max_queued_queries": 64,     # image queries waiting for serve(); more are refused ("busy")
-    "zenoh": None,                # extra Zenoh config, {json5 path: value}, applied last
+    "max_queued_queries": 64,     # image queries waiting to be answered; more are refused ("busy")
 }
-
-_MODES = ("peer", "client")
 
 
 class ZenohLinkError(CerpeError, ValueError):
     """Bad link configuration, or a Zenoh session that cannot open."""
 
 
+@dataclass(frozen=True)
+class Received:
+    """One decoded frame from a peer and its size on the wire (bytes)."""
+
+    message: Message
+    nbytes: int
+
+
 @dataclass
 class Inbox:
-    """What :meth:`ZenohLink.gather` got for one step.
+    """What one wait brought (the engine's ``cerpe.algorithm.link.Inbox`` shape).
 
     Attributes:
-        step: the step gathered.
-        messages: sender robot id -> kind -> decoded message of that step.
-        nbytes: sender robot id -> kind -> frame bytes received.
-        degradations: counted problems since the previous gather (``msg:lost`` ...).
+        messages: peer -> the frame of the asked kind and step (for ``request``: its reply).
+        degradations: problems counted since the previous inbox, one entry each.
+        sent: for :meth:`ZenohLink.request`: peer -> bytes of the request frame sent.
     """
 
-    step: int
-    messages: dict[str, dict[str, Message]] = field(default_factory=dict)
-    nbytes: dict[str, dict[str, int]] = field(default_factory=dict)
+    messages: dict[str, Received] = field(default_factory=dict)
     degradations: list[str] = field(default_factory=list)
+    sent: dict[str, int] = field(default_factory=dict)
 
-    def get(self, sender: str, kind: str) -> Message | None:
-        return self.messages.get(sender, {}).get(kind)
-
-
-def zenoh_config(conf: Mapping[str, Any]) -> Any:
-    """A ``zenoh.Config`` from the link conf (mode, endpoints, scouting, extra keys)."""
-    import zenoh
-
-    if conf["mode"] not in _MODES:
-        raise ZenohLinkError(f"zenoh mode {conf['mode']!r}: expected one of {_MODES}")
-    entries: list[tuple[str, Any]] = [("mode", conf["mode"]),
-                                      ("scouting/multicast/enabled", bool(conf["multicast_scouting"]))]
-    for what in ("connect", "listen"):
-        eps = conf[what]
-        if isinstance(eps, str) or not all(isinstance(e, str) for e in eps):
-            raise ZenohLinkError(f"--{what}: expected a list of endpoints like tcp/10.0.0.2:7447, got {eps!r}")
-        if eps:
-            entries.append((f"{what}/endpoints", list(eps)))
-    if conf["mode"] == "client" and not conf["connect"]:
-        raise ZenohLinkError("zenoh mode 'client' needs a router endpoint in --connect (e.g. tcp/10.0.0.1:7447)")
-    extra = conf.get("zenoh") or {}
-    if not isinstance(extra, Mapping):
-        raise ZenohLinkError(f"link conf 'zenoh': expected {{json5 path: value}}, got {type(extra).__name__}")
-    entries += list(extra.items())
-    zc = zenoh.Config()
-    for key, value in entries:
-        try:
-            zc.insert_json5(str(key), json.dumps(value))
-        except zenoh.ZError as exc:
-            raise ZenohLinkError(f"zenoh config {key} = {value!r}: {_first_line(exc)}") from None
-    return zc
+    def message(self, peer: str) -> Message | None:
+        got = self.messages.get(peer)
+        return None if got is None else got.message
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return text.split(" at /")[0]  # zenoh appends the Rust source location
+#: answers an image request: ``(peer, request) -> reply frame`` or None (image not held)
+RequestHandler = Callable[[str, ImageRequest], "bytes | None"]
 
 
 def _bytes(z: Any) -> bytes | None:
@@ -135,7 +111,8 @@ class ZenohLink:
         conf: overrides of :data:`default_conf` (strict: unknown keys are errors).
 
     Raises:
-        ZenohLinkError: a bad name or option, or a session that cannot open.
+        ZenohLinkError, ZenohWireError, ZenohSessionError: a bad roster, name or
+            option, or a session that cannot open.
     """
 
     def __init__(self, robot_id: str, robot_ids: Sequence[str], conf: Mapping[str, Any] | None = None) -> None:
@@ -152,7 +129,7 @@ class ZenohLink:
         self.index = self.index_of[self.robot_id]
         self.stats: Counter[str] = Counter()
         self._cond = threading.Condition()
-        self._buf: dict[int, dict[str, dict[str, tuple[Message, int]]]] = defaultdict(lambda: defaultdict(dict))
+        self._buf: dict[int, dict[str, dict[str, Received]]] = defaultdict(lambda: defaultdict(dict))
         self._last: dict[str, dict[str, int]] = defaultdict(dict)  # peer -> kind -> highest step received
         self._floor = 0                      # lowest step still filed
         self._pending: list[str] = []        # degradations not yet handed out
@@ -160,17 +137,10 @@ class ZenohLink:
         self._gone: set[str] = set()         # peers that were up and went (bye or lost)
         self._said_bye: set[str] = set()
         self._reported: set[tuple] = set()   # (what, robot, detail) logged and counted once
-        self._queries: list[Any] = []
-        self._handler: Callable[[bytes], bytes | None] | None = None
+        self._queries: list[tuple[Any, str, ImageRequest]] = []  # (query, peer, request), not answered yet
+        self._handler: RequestHandler | None = None
         self._closed = False
-        zc = zenoh_config(self.conf)
-        try:
-            self.session = zenoh.open(zc)
-        except zenoh.ZError as exc:
-            raise ZenohLinkError(
-                f"robot {self.robot_id}: Zenoh session cannot open (mode {self.conf['mode']}, "
-                f"listen {self.conf['listen'] or 'default'}, connect {self.conf['connect'] or 'none'}): "
-                f"{_first_line(exc)}") from None
+        self.session = zs.open_session({k: self.conf[k] for k in zs.default_conf}, f"robot {self.robot_id}")
         try:
             self.zid = str(self.session.zid())
             remote = zenoh.Locality.REMOTE
@@ -186,7 +156,7 @@ class ZenohLink:
             self._token = self.session.liveliness().declare_token(w.alive_key(self.team, self.robot_id, self.zid))
         except zenoh.ZError as exc:
             self.session.close()
-            raise ZenohLinkError(f"robot {self.robot_id}: Zenoh declarations failed: {_first_line(exc)}") from None
+            raise ZenohLinkError(f"robot {self.robot_id}: Zenoh declarations failed: {zs.first_line(exc)}") from None
 
     # ------------------------------------------------------------------ counting
     def _degrade(self, what: str) -> None:
@@ -269,7 +239,7 @@ class ZenohLink:
         elif robot in self._buf[step][kind]:
             self.stats["duplicate"] += 1
         else:
-            self._buf[step][kind][robot] = (msg, len(payload))
+            self._buf[step][kind][robot] = Received(msg, len(payload))
 
     def _on_alive(self, sample: Any) -> None:
         import zenoh
@@ -324,23 +294,49 @@ class ZenohLink:
                             self.robot_id, robot)
 
     def _on_query(self, query: Any) -> None:
+        """Check an image query in the Zenoh thread: refuse a bad one at once, queue a good one."""
+        payload, attachment = _bytes(query.payload) or b"", _bytes(query.attachment)
         with self._cond:
-            if len(self._queries) >= int(self.conf["max_queued_queries"]):
-                self.stats["queries_refused_busy"] += 1
-                with query:
-                    query.reply_err(w.error_payload("busy"))
+            reason, peer, req = self._check_query(payload, attachment)
+            if reason is None and len(self._queries) >= int(self.conf["max_queued_queries"]):
+                reason = "busy"
+            if reason is None:
+                self._queries.append((query, peer, req))
+                self._cond.notify_all()
                 return
-            self._queries.append(query)
-            self._cond.notify_all()
+            self.stats[f"queries_refused_{reason}"] += 1
+        with query:
+            query.reply_err(w.error_payload(reason))
+
+    def _check_query(self, payload: bytes, attachment: bytes | None) -> tuple[str | None, str, Any]:
+        """``(refusal reason or None, peer, request)`` (lock held)."""
+        status = w.header_status(attachment)
+        if status == "protocol":
+            self._once("link:protocol-mismatch", "?", w.header_tag(attachment),
+                       f"an image request with link protocol {w.header_tag(attachment)} reached this robot "
+                       f"({w.PROTOCOL_TAG}); refused")
+            return "protocol", "", None
+        try:
+            req = decode(payload) if status == "ok" else None
+        except MessageError:
+            req = None
+        if not isinstance(req, ImageRequest) or req.target != self.index:
+            self._degrade("msg:garbled")
+            return ("garbled" if not isinstance(req, ImageRequest) else "wrong-target"), "", None
+        if not (0 <= req.sender < len(self.robot_ids)) or req.sender == self.index:
+            self._degrade("msg:unknown-sender")
+            return "garbled", "", None
+        return None, self.robot_ids[req.sender], req
 
     # ------------------------------------------------------------------ serving (caller's thread)
-    def serve(self, handler: Callable[[bytes], bytes | None]) -> None:
-        """Answer image requests with ``handler(request_frame) -> reply_frame | None``.
+    def serve(self, handler: RequestHandler) -> None:
+        """Answer image requests with ``handler(peer, request) -> reply frame | None``.
 
-        The handler is called on the thread that calls the link, inside its
-        waits; None means "image not held" (the requester counts
-        ``msg:image-not-held``). A :class:`CerpeError` from it is logged and
-        answered as an error; other exceptions propagate to the caller.
+        Called on the thread that calls the link, inside its waits, for requests
+        of a step this robot has begun (earlier ones too: the handler decides
+        what is stale). None means "image not held": the requester counts
+        ``msg:image-not-held``. A :class:`CerpeError` from the handler is logged
+        and answered as an error; other exceptions propagate to the caller.
         """
         self._handler = handler
 
@@ -352,41 +348,43 @@ class ZenohLink:
         if self._handler is None:
             return
         with self._cond:
-            queries, self._queries = self._queries, []
-        for query in queries:
+            ready = [q for q in self._queries if q[2].step <= self._floor]
+            self._queries = [q for q in self._queries if q[2].step > self._floor]
+        for query, peer, req in ready:
             with query:
-                self._answer(query)
+                self._answer(query, peer, req)
 
-    def _answer(self, query: Any) -> None:
-        payload, status = _bytes(query.payload) or b"", w.header_status(_bytes(query.attachment))
-        reason = None
-        if status != "ok":
-            reason = status
+    def _answer(self, query: Any, peer: str, req: ImageRequest) -> None:
+        try:
+            reply = self._handler(peer, req)
+        except CerpeError as exc:
+            log.warning("robot %s: image request of %s for step %d failed: %s", self.robot_id, peer, req.step, exc)
+            reply, reason = None, "error"
         else:
-            try:
-                msg = decode(payload)
-            except MessageError:
-                msg = None
-            if not isinstance(msg, ImageRequest):
-                reason = "garbled"
-            elif msg.target != self.index:
-                reason = "wrong-target"
-        if reason is None:
-            try:
-                reply = self._handler(payload)
-            except CerpeError as exc:
-                log.warning("robot %s: image request of step %d failed: %s", self.robot_id, msg.step, exc)
-                reply, reason = None, "error"
-            if reply is not None:
-                query.reply(w.image_key(self.team, self.robot_id), reply, attachment=w.HEADER)
+            reason = w.NOT_HELD
+        with self._cond:
+            if reply is None:
+                self.stats[f"queries_refused_{reason}"] += 1
+            else:
                 self.stats["replies_sent"] += 1
                 self.stats["wire_bytes_reply"] += len(reply) + len(w.HEADER)
-                return
-            reason = reason or w.NOT_HELD
-        self.stats[f"queries_refused_{reason}"] += 1
-        query.reply_err(w.error_payload(reason))
+        if reply is None:
+            query.reply_err(w.error_payload(reason))
+        else:
+            query.reply(w.image_key(self.team, self.robot_id), bytes(reply), attachment=w.HEADER)
 
-    # ------------------------------------------------------------------ sending
+    # ------------------------------------------------------------------ the Link
+    def begin(self, step: int) -> None:
+        """This robot is at ``step``: earlier frames are dropped, requests up to ``step`` answered."""
+        step = int(step)
+        with self._cond:
+            if step < self._floor:
+                raise ZenohLinkError(f"robot {self.robot_id}: step {step} begun after step {self._floor}")
+            self._floor = step
+            for old in [t for t in self._buf if t < step]:
+                del self._buf[old]
+        self._serve_queries()
+
     def broadcast(self, kind: str, frame: bytes) -> int:
         """Put ``frame`` on this robot's ``kind`` key; returns its bytes (counted once)."""
         if kind not in w.BROADCAST_KINDS:
@@ -400,57 +398,100 @@ class ZenohLink:
             self.stats[f"wire_bytes_{kind}"] += len(frame) + len(w.HEADER)
         return len(frame)
 
-    def request(self, peer: str, frame: bytes, deadline_s: float) -> tuple[bytes | None, int]:
-        """Ask ``peer`` for an image; returns ``(reply frame or None, request bytes sent)``.
+    def gather(self, step: int, kind: str, peers: Sequence[str], deadline_s: float) -> Inbox:
+        """The ``kind`` frames of ``step`` from ``peers``: returns when all are there or cannot come,
+        or after ``deadline_s``; each missing one is a ``msg:lost``."""
+        step = int(step)
+        self._check_peers(peers, f"gather({step}, {kind!r})")
+        if kind not in w.BROADCAST_KINDS:
+            raise ZenohLinkError(f"robot {self.robot_id}: gather of kind {kind!r}; expected one of "
+                                 f"{w.BROADCAST_KINDS}")
+        if step != self._floor:
+            self.begin(step)
 
-        The reply is returned only if it decodes as an :class:`ImageReply` of
-        ``peer`` for the request's step; anything else is None and counted
-        (``msg:lost`` for no reply in ``deadline_s``, ``msg:image-not-held``,
-        ``msg:garbled``, ``msg:unknown-sender``). Image queries that reach this
-        robot meanwhile are answered.
+        def complete() -> bool:
+            have = self._buf.get(step, {}).get(kind, {})
+            return all(p in have or not self._may_come(p, kind, step) for p in peers)
+
+        t0 = time.perf_counter()
+        self._wait(complete, time.monotonic() + max(0.0, float(deadline_s)))
+        with self._cond:
+            self.stats["wait_s"] += time.perf_counter() - t0
+            have = self._buf.get(step, {}).get(kind, {})
+            for p in peers:
+                if p not in have:
+                    self._degrade("msg:lost")
+            inbox = Inbox({p: have[p] for p in peers if p in have}, self._pending)
+            self._pending = []
+        return inbox
+
+    def request(self, step: int, frames: Mapping[str, bytes], deadline_s: float) -> Inbox:
+        """Send each peer its image request (a Zenoh query), wait up to ``deadline_s`` for the replies.
+
+        ``messages`` holds each reply that decodes as that peer's
+        :class:`ImageReply` of ``step``; each other peer is counted once
+        (``msg:lost`` for no reply in time, ``msg:image-not-held``,
+        ``msg:garbled``, ``msg:unknown-sender``). ``sent``: request bytes per peer.
         """
         import zenoh
 
-        if peer not in self.index_of or peer == self.robot_id:
-            raise ZenohLinkError(f"robot {self.robot_id}: cannot request from {peer!r}; peers: "
-                                 f"{[r for r in self.robot_ids if r != self.robot_id]}")
-        try:
-            req = decode(frame)
-        except MessageError as exc:
-            raise ZenohLinkError(f"robot {self.robot_id}: request frame to {peer} does not decode: {exc}") from None
-        if not isinstance(req, ImageRequest):
-            raise ZenohLinkError(f"robot {self.robot_id}: request() takes an ImageRequest frame, "
-                                 f"got {type(req).__name__}")
-        state: dict[str, Any] = {"ok": [], "err": [], "done": False}
+        step = int(step)
+        self._check_peers(list(frames), f"request({step})")
+        reqs = {}
+        for p, frame in frames.items():
+            try:
+                req = decode(frame)
+            except MessageError as exc:
+                raise ZenohLinkError(f"robot {self.robot_id}: request frame to {p} does not decode: {exc}") from None
+            if not (isinstance(req, ImageRequest) and req.step == step and req.target == self.index_of[p]
+                    and req.sender == self.index):
+                raise ZenohLinkError(f"robot {self.robot_id}: the frame for {p} is not this robot's image "
+                                     f"request of step {step} to {p}: {req}")
+            reqs[p] = req
+        state = {p: {"ok": [], "err": [], "done": False} for p in frames}
 
-        def on_reply(reply: Any) -> None:
+        def on_reply(p: str, reply: Any) -> None:
             with self._cond:
                 if reply.ok is not None:
-                    state["ok"].append((_bytes(reply.ok.payload) or b"", _bytes(reply.ok.attachment)))
+                    state[p]["ok"].append((_bytes(reply.ok.payload) or b"", _bytes(reply.ok.attachment)))
                 else:
-                    state["err"].append(_bytes(reply.err.payload) or b"")
+                    state[p]["err"].append(_bytes(reply.err.payload) or b"")
                 self._cond.notify_all()
 
-        def on_done() -> None:
+        def on_done(p: str) -> None:
             with self._cond:
-                state["done"] = True
+                state[p]["done"] = True
                 self._cond.notify_all()
 
         timeout = max(float(deadline_s), 1e-3)
         deadline = time.monotonic() + timeout
-        self.session.get(w.image_key(self.team, peer), zenoh.handlers.Callback(on_reply, on_done),
-                         payload=bytes(frame), attachment=w.HEADER, timeout=timeout,
-                         target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
+        for p, frame in frames.items():
+            handler = zenoh.handlers.Callback(lambda r, p=p: on_reply(p, r), lambda p=p: on_done(p))
+            self.session.get(w.image_key(self.team, p), handler, payload=bytes(frame), attachment=w.HEADER,
+                             timeout=timeout, target=zenoh.QueryTarget.ALL,
+                             consolidation=zenoh.ConsolidationMode.NONE)
+            with self._cond:
+                self.stats["frames_sent_request"] += 1
+                self.stats["wire_bytes_request"] += len(frame) + len(w.HEADER)
+        t0 = time.perf_counter()
+        self._wait(lambda: all(st["ok"] or st["done"] for st in state.values()), deadline)
         with self._cond:
-            self.stats["frames_sent_request"] += 1
-            self.stats["wire_bytes_request"] += len(frame) + len(w.HEADER)
-        self._wait(lambda: bool(state["ok"]) or state["done"], deadline)
-        with self._cond:
-            reply = self._check_reply(peer, req, state["ok"], state["err"])
-        return reply, len(frame)
+            self.stats["wait_s"] += time.perf_counter() - t0
+            inbox = Inbox(sent={p: len(f) for p, f in frames.items()})
+            for p, req in reqs.items():
+                got = self._check_reply(p, req, state[p]["ok"], state[p]["err"])
+                if got is not None:
+                    inbox.messages[p] = got
+            inbox.degradations, self._pending = self._pending, []
+        return inbox
 
-    def _check_reply(self, peer: str, req: ImageRequest, oks: list, errs: list) -> bytes | None:
-        """The first valid reply, or None with the reason counted (lock held)."""
+    def _check_peers(self, peers: Sequence[str], what: str) -> None:
+        bad = [p for p in peers if p not in self.index_of or p == self.robot_id]
+        if bad:
+            raise ZenohLinkError(f"robot {self.robot_id}: {what}: {bad} are not other robots of {self.robot_ids}")
+
+    def _check_reply(self, peer: str, req: ImageRequest, oks: list, errs: list) -> Received | None:
+        """The first reply if it is valid, else None with the reason counted (lock held)."""
         if len(oks) > 1:
             self.stats["extra_replies"] += len(oks) - 1
         for payload, attachment in oks[:1]:
@@ -471,17 +512,13 @@ class ZenohLink:
                 self._degrade("msg:unknown-sender")
                 return None
             self.stats["replies_received"] += 1
-            return payload
+            return Received(msg, len(payload))
         ours = [e for e in errs if e[:2] == w.MAGIC]
         if ours:  # the owner answered with a reason; Zenoh's own errors (timeout) carry no header
             reason = w.parse_error_payload(ours[0])
             self.stats[f"reply_error_{reason}"] += 1
             if reason == w.NOT_HELD:
                 self._degrade("msg:image-not-held")
-                return None
-            if reason == "protocol":
-                self._once("link:protocol-mismatch", peer, "?", f"robot {peer} refused a request as another "
-                           f"link protocol (this robot {w.PROTOCOL_TAG})")
                 return None
             log.info("robot %s: robot %s refused the image request of step %d (%s)",
                      self.robot_id, peer, req.step, reason)
@@ -499,7 +536,7 @@ class ZenohLink:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return
-                if not self._queries or self._handler is None:
+                if not any(q[2].step <= self._floor for q in self._queries) or self._handler is None:
                     self._cond.wait(min(left, 0.5))
 
     def _may_come(self, peer: str, kind: str, step: int) -> bool:
@@ -510,46 +547,6 @@ class ZenohLink:
         if last.get(kind, -1) > step:
             return False  # it sent a later one: Zenoh keeps a publisher's order per key
         return max(last.values(), default=-1) >= step - int(self.conf["max_lag_steps"])
-
-    def gather(self, step: int, kinds: Iterable[str], peers: Sequence[str], deadline_s: float) -> Inbox:
-        """This step's frames of ``kinds`` from ``peers``, waiting at most ``deadline_s``.
-
-        Returns as soon as every peer's frame of every kind is there or cannot
-        come (see the module docstring). Each missing one is a ``msg:lost``.
-        Frames of earlier steps are forgotten; later ones are kept.
-        """
-        step, kinds = int(step), tuple(kinds)
-        unknown = [p for p in peers if p not in self.index_of or p == self.robot_id]
-        if unknown or any(k not in w.BROADCAST_KINDS for k in kinds):
-            raise ZenohLinkError(f"robot {self.robot_id}: gather({step}, {kinds}, {list(peers)}): peers must be "
-                                 f"other robots of {self.robot_ids}, kinds among {w.BROADCAST_KINDS}")
-        with self._cond:
-            if step < self._floor:
-                raise ZenohLinkError(f"robot {self.robot_id}: gather of step {step} after step {self._floor}")
-            self._floor = step
-            for old in [s for s in self._buf if s < step]:
-                del self._buf[old]
-
-        def complete() -> bool:
-            have = self._buf.get(step, {})
-            return all(p in have.get(k, {}) or not self._may_come(p, k, step) for p in peers for k in kinds)
-
-        t0 = time.perf_counter()
-        self._wait(complete, time.monotonic() + max(0.0, float(deadline_s)))
-        with self._cond:
-            self.stats["wait_s"] += time.perf_counter() - t0
-            inbox = Inbox(step)
-            have = self._buf.get(step, {})
-            for p in peers:
-                for k in kinds:
-                    got = have.get(k, {}).get(p)
-                    if got is None:
-                        self._degrade("msg:lost")
-                        continue
-                    inbox.messages.setdefault(p, {})[k] = got[0]
-                    inbox.nbytes.setdefault(p, {})[k] = got[1]
-            inbox.degradations, self._pending = self._pending, []
-        return inbox
 
     def wait_peers(self, peers: Iterable[str], timeout_s: float) -> list[str]:
         """Wait until every peer's link is up or ``timeout_s`` passes; returns the missing ones."""
@@ -575,6 +572,10 @@ class ZenohLink:
         finally:
             with self._cond:
                 self._closed = True
+                queries, self._queries = self._queries, []
+            for query, _, _ in queries:
+                with query:
+                    query.reply_err(w.error_payload(w.NOT_HELD))
             self.session.close()
 
     def __enter__(self) -> "ZenohLink":
