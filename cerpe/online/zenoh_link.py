@@ -187,22 +187,32 @@ class ZenohLink:
             self._file(key, payload, attachment)
             self._cond.notify_all()
 
+    def _protocol_mismatch(self, robot: str, tag: str) -> None:
+        """Count and name a robot of another link protocol version, once (lock held)."""
+        self._once("link:protocol-mismatch", robot, tag,
+                   f"robot {robot} speaks cerpe link protocol {tag}, this robot {w.PROTOCOL_TAG}: its frames "
+                   f"and requests are ignored (run the same cerpe version on every robot)")
+
+    def _decode(self, robot: str, payload: bytes, attachment: bytes | None) -> Message | None:
+        """The message of a payload that carries our header; None, counted, for anything else (lock held)."""
+        status = w.header_status(attachment)
+        if status == "protocol":
+            self._protocol_mismatch(robot, w.header_tag(attachment))
+            self.stats["frames_foreign_protocol"] += 1
+            return None
+        try:
+            if status == "ok":
+                return decode(payload)
+        except MessageError as exc:
+            log.debug("robot %s: garbled frame from %s: %s", self.robot_id, robot, exc)
+        self._degrade("msg:garbled")
+        return None
+
     def _file(self, key: tuple[str, str, str] | None, payload: bytes, attachment: bytes | None) -> None:
         if key is None:
             self._degrade("msg:garbled")
             return
         _, robot, kind = key
-        status = w.header_status(attachment)
-        if status == "protocol":
-            self._once("link:protocol-mismatch", robot, w.header_tag(attachment),
-                       f"robot {robot} speaks cerpe link protocol {w.header_tag(attachment)}, this robot "
-                       f"{w.PROTOCOL_TAG}: its frames are ignored (run the same cerpe version on every robot)")
-            self.stats["frames_foreign_protocol"] += 1
-            return
-        if status != "ok":
-            self._degrade("msg:garbled")
-            log.debug("robot %s: frame on %s without a cerpe link header", self.robot_id, kind)
-            return
         if robot == self.robot_id:
             self._once("link:duplicate-robot", robot, "", f"another Zenoh session publishes as robot {robot} "
                        f"in team {self.team}: two robots were started with the same id")
@@ -212,14 +222,12 @@ class ZenohLink:
             log.debug("robot %s: frame from robot %r, not in the roster %s", self.robot_id, robot, self.robot_ids)
             return
         if kind == w.BYE:
-            self._said_bye.add(robot)
-            self._gone.add(robot)
+            if w.header_status(attachment) == "ok":
+                self._said_bye.add(robot)
+                self._gone.add(robot)
             return
-        try:
-            msg = decode(payload)
-        except MessageError as exc:
-            self._degrade("msg:garbled")
-            log.debug("robot %s: garbled %s frame from %s: %s", self.robot_id, kind, robot, exc)
+        msg = self._decode(robot, payload, attachment)
+        if msg is None:
             return
         if w.KIND_OF_TYPE.get(msg.TYPE) != kind:
             self._degrade("msg:garbled")
@@ -263,9 +271,7 @@ class ZenohLink:
             return
         if tag != w.PROTOCOL_TAG:
             if up:
-                self._once("link:protocol-mismatch", robot, tag,
-                           f"robot {robot} speaks cerpe link protocol {tag}, this robot {w.PROTOCOL_TAG}: "
-                           f"its frames are ignored (run the same cerpe version on every robot)")
+                self._protocol_mismatch(robot, tag)
             return
         if robot == self.robot_id:
             if up:
@@ -310,16 +316,12 @@ class ZenohLink:
 
     def _check_query(self, payload: bytes, attachment: bytes | None) -> tuple[str | None, str, Any]:
         """``(refusal reason or None, peer, request)`` (lock held)."""
-        status = w.header_status(attachment)
-        if status == "protocol":
-            self._once("link:protocol-mismatch", "?", w.header_tag(attachment),
-                       f"an image request with link protocol {w.header_tag(attachment)} reached this robot "
-                       f"({w.PROTOCOL_TAG}); refused")
+        if w.header_status(attachment) == "protocol":
+            self._protocol_mismatch("?", w.header_tag(attachment))
             return "protocol", "", None
-        try:
-            req = decode(payload) if status == "ok" else None
-        except MessageError:
-            req = None
+        req = self._decode("?", payload, attachment)
+        if req is None:
+            return "garbled", "", None
         if not isinstance(req, ImageRequest) or req.target != self.index:
             self._degrade("msg:garbled")
             return ("garbled" if not isinstance(req, ImageRequest) else "wrong-target"), "", None
@@ -495,16 +497,9 @@ class ZenohLink:
         if len(oks) > 1:
             self.stats["extra_replies"] += len(oks) - 1
         for payload, attachment in oks[:1]:
-            status = w.header_status(attachment)
-            if status == "protocol":
-                self._once("link:protocol-mismatch", peer, w.header_tag(attachment),
-                           f"robot {peer} replied with link protocol {w.header_tag(attachment)}, this robot "
-                           f"{w.PROTOCOL_TAG}: reply ignored")
+            msg = self._decode(peer, payload, attachment)
+            if msg is None:
                 return None
-            try:
-                msg = decode(payload) if status == "ok" else None
-            except MessageError:
-                msg = None
             if not isinstance(msg, ImageReply) or msg.step != req.step:
                 self._degrade("msg:garbled")
                 return None
