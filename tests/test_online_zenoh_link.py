@@ -395,3 +395,12 @@ def test_three_driver_processes_on_loopback(tmp_path):
         rep = json.loads((tmp_path / f"{r}.json").read_text())
         assert rep["expected"] == 4 * 3 * 2 and rep["received"] == rep["expected"], rep
         assert rep["bad_content"] == 0 and rep["degradations"] == {}, rep
+
+
+def test_sending_on_a_closed_session_is_one_clear_error(team_of):
+    team = team_of(["r0", "r1"])
+    team["r0"].session.close()
+    with pytest.raises(ZenohLinkError, match="robot r0: cannot send its pose"):
+        team["r0"].broadcast("pose", frames_of(0, 0)["pose"])
+    with pytest.raises(ZenohLinkError, match="robot r0: cannot send its image request to r1"):
+        team["r0"].request(0, {"r1": ImageRequest(0, 0, 1).encode()}, 0.1)

@@ -38,6 +38,7 @@ Every wait has a deadline; a session that cannot open is one
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -394,7 +395,12 @@ class ZenohLink:
                                  f"expected one of {w.BROADCAST_KINDS}")
         if not isinstance(frame, (bytes, bytearray)) or not frame:
             raise ZenohLinkError(f"robot {self.robot_id}: empty or non-bytes {kind} frame")
-        self._pubs[kind].put(bytes(frame), attachment=w.HEADER)
+        import zenoh
+
+        try:
+            self._pubs[kind].put(bytes(frame), attachment=w.HEADER)
+        except zenoh.ZError as exc:  # the session was closed under the robot
+            raise ZenohLinkError(f"robot {self.robot_id}: cannot send its {kind}: {zs.first_line(exc)}") from None
         with self._cond:
             self.stats[f"frames_sent_{kind}"] += 1
             self.stats[f"wire_bytes_{kind}"] += len(frame) + len(w.HEADER)
@@ -469,9 +475,13 @@ class ZenohLink:
         deadline = time.monotonic() + timeout
         for p, frame in frames.items():
             handler = zenoh.handlers.Callback(lambda r, p=p: on_reply(p, r), lambda p=p: on_done(p))
-            self.session.get(w.image_key(self.team, p), handler, payload=bytes(frame), attachment=w.HEADER,
-                             timeout=timeout, target=zenoh.QueryTarget.ALL,
-                             consolidation=zenoh.ConsolidationMode.NONE)
+            try:
+                self.session.get(w.image_key(self.team, p), handler, payload=bytes(frame), attachment=w.HEADER,
+                                 timeout=timeout, target=zenoh.QueryTarget.ALL,
+                                 consolidation=zenoh.ConsolidationMode.NONE)
+            except zenoh.ZError as exc:
+                raise ZenohLinkError(f"robot {self.robot_id}: cannot send its image request to {p}: "
+                                     f"{zs.first_line(exc)}") from None
             with self._cond:
                 self.stats["frames_sent_request"] += 1
                 self.stats["wire_bytes_request"] += len(frame) + len(w.HEADER)
@@ -562,14 +572,17 @@ class ZenohLink:
         if self._closed:
             return
         try:
-            self._pubs[w.BYE].put(b"", attachment=w.HEADER)
-            self._wait(lambda: not (self._present - self._said_bye), time.monotonic() + max(0.0, linger_s))
+            if not self.session.is_closed():
+                self._pubs[w.BYE].put(b"", attachment=w.HEADER)
+                self._wait(lambda: not (self._present - self._said_bye), time.monotonic() + max(0.0, linger_s))
         finally:
             with self._cond:
                 self._closed = True
                 queries, self._queries = self._queries, []
+            import zenoh
+
             for query, _, _ in queries:
-                with query:
+                with query, contextlib.suppress(zenoh.ZError):  # the requester's query may be gone
                     query.reply_err(w.error_payload(w.NOT_HELD))
             self.session.close()
 
