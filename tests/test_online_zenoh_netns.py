@@ -18,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,12 @@ class VethPair:
                 subprocess.run(["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", dev, "root", "netem",
                                 "loss", f"{self.loss_pct}%", "delay", f"{self.delay_ms}ms"],
                                check=True, capture_output=True, timeout=20)
+        # Zenoh picks its multicast interface when the session opens: start robots once the link is up
+        deadline = time.monotonic() + 10
+        while not all("state UP" in _ip("-n", self.ns[r], "-o", "link", "show", "dev", dev).stdout
+                      for r, dev in (("r0", "v0"), ("r1", "v1"))):
+            assert time.monotonic() < deadline, "the veth pair did not come up"
+            time.sleep(0.05)
         return self
 
     def __exit__(self, *exc) -> None:

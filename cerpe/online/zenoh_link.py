@@ -558,7 +558,14 @@ class ZenohLink:
         peers = list(peers)
         self._wait(lambda: all(p in self._present for p in peers), time.monotonic() + max(0.0, float(timeout_s)))
         with self._cond:
-            return [p for p in peers if p not in self._present]
+            missing = [p for p in peers if p not in self._present]
+        if missing:
+            hint = ("; found by multicast scouting only: if multicast does not pass on this network, or the "
+                    "network came up after this robot started, give endpoints (--connect)"
+                    if self.conf["multicast_scouting"] and not self.conf["connect"] else "")
+            log.warning("robot %s: robots %s of team %s not up after %.0f s%s", self.robot_id, missing,
+                        self.team, timeout_s, hint)
+        return missing
 
     @property
     def present(self) -> set[str]:
