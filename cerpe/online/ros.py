@@ -1,0 +1,212 @@
+"""Estimates out to ROS 2: each robot's relative poses as ``geometry_msgs/msg/PoseWithCovarianceStamped``.
+
+Robot ``i`` (this robot) publishes, for every other robot ``j`` it has an
+estimate of at a step:
+
+* topic ``/cerpe/<team>/<i>/relative_pose/<j>`` (team and robot ids must be ROS
+  name tokens: a letter, then letters, digits or ``_``);
+* pose: the paper's ``T_ij = T_cj_ci`` (:func:`cerpe.geometry.paper_T_ij`), the
+  pose of camera ``i`` in camera ``j``; position = its translation (metres),
+  orientation = its rotation. Both cameras use OpenCV axes (x right, y down, z
+  forward), which is ROS's ``*_optical`` frame convention (REP 103);
+* ``header.frame_id`` = ``<team>/<j>/camera_optical`` (the frame the pose is
+  expressed in); the pose is that of ``<team>/<i>/camera_optical``;
+* ``header.stamp`` = the step's capture time (the data's clock), seconds split
+  into ``sec`` / ``nanosec``;
+* covariance: 6x6, row-major, ROS order ``(x, y, z, rot_x, rot_y, rot_z)``, the
+  rotations about the fixed axes of ``header.frame_id``. A covariance that is
+  not known is sent as all zeros, the ROS convention for "covariance unknown"
+  (``sensor_msgs/Imu``, ``NavSatFix`` COVARIANCE_TYPE_UNKNOWN); a pair without
+  an estimate (source ``none``) is not published.
+
+Zenoh key, by ``key_format``:
+
+* ``rmw_zenoh`` (default): rmw_zenoh's data key
+  ``<domain_id>/<topic without leading />/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/<type hash>``
+  with the ``RIHS01_...`` type hash (REP 2016, computed by ``rosbags``) for Jazzy and
+  later, ``TypeHashNotSupported`` for Humble (``distro``); each sample carries the
+  33-byte attachment rmw_zenoh subscriptions require (sequence number i64 LE,
+  source timestamp ns i64 LE, GID length u8 = 16, GID 16 B). No liveliness
+  tokens are declared, so ``ros2 topic list`` does not show the topic; name the
+  type: ``ros2 topic echo /cerpe/lab/r0/relative_pose/r1 geometry_msgs/msg/PoseWithCovarianceStamped``.
+* ``ros2dds``: ``<topic without leading />`` and a bare CDR payload, the key
+  ``zenoh-bridge-ros2dds`` maps a ROS topic to (for a DDS-based ROS 2 graph).
+"""
+from __future__ import annotations
+
+import functools
+import os
+import re
+import struct
+import time
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from ..config import merge_conf
+from ..errors import CerpeError
+from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw, se3_to_tq_xyzw
+
+ROS_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+DDS_TYPE = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
+HUMBLE_HASH = "TypeHashNotSupported"
+KEY_FORMATS = ("rmw_zenoh", "ros2dds")
+
+default_conf: dict[str, Any] = {
+    "domain_id": 0,            # ROS_DOMAIN_ID of the graph that reads the estimates
+    "distro": "jazzy",         # "humble" (no type hashes) or a later one ("jazzy", "kilted", "rolling")
+    "key_format": "rmw_zenoh",  # or "ros2dds" (through zenoh-bridge-ros2dds)
+}
+
+_TOKEN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_ATTACHMENT = struct.Struct("<qqB16s")
+
+
+class RosError(CerpeError, ValueError):
+    """A name that cannot be a ROS topic token, a bad pose or covariance, a bad option."""
+
+
+@functools.lru_cache(maxsize=1)
+def _typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)  # PoseWithCovarianceStamped is the same in every ROS 2 distro
+
+
+def type_hash(distro: str) -> str:
+    """rmw_zenoh's type-hash key chunk for :data:`ROS_TYPE` under ``distro``."""
+    return HUMBLE_HASH if str(distro).lower() == "humble" else _typestore().hash_rihs01(ROS_TYPE)
+
+
+def ros_token(name: str, what: str) -> str:
+    if not _TOKEN.match(str(name)):
+        raise RosError(f"{what} {name!r}: not a ROS name token (a letter, then letters, digits or '_'); "
+                       f"ROS 2 topics are named after it")
+    return str(name)
+
+
+def topic_name(team: str, ego: str, other: str) -> str:
+    """``/cerpe/<team>/<ego>/relative_pose/<other>``."""
+    return (f"/cerpe/{ros_token(team, '--team')}/{ros_token(ego, 'robot id')}/relative_pose/"
+            f"{ros_token(other, 'robot id')}")
+
+
+def camera_frame_id(team: str, robot: str) -> str:
+    return f"{team}/{robot}/camera_optical"
+
+
+def zenoh_key(topic: str, conf: Mapping[str, Any]) -> str:
+    """The Zenoh key of ``topic`` for ``conf`` (see the module docstring)."""
+    if conf["key_format"] == "ros2dds":
+        return topic.lstrip("/")
+    return f"{int(conf['domain_id'])}/{topic.lstrip('/')}/{DDS_TYPE}/{type_hash(conf['distro'])}"
+
+
+def rmw_attachment(sequence: int, stamp_ns: int, gid: bytes) -> bytes:
+    """rmw_zenoh's per-sample attachment (33 bytes)."""
+    if len(gid) != 16:
+        raise RosError(f"publisher GID must be 16 bytes, got {len(gid)}")
+    return _ATTACHMENT.pack(int(sequence), int(stamp_ns), 16, bytes(gid))
+
+
+def parse_rmw_attachment(data: bytes) -> tuple[int, int, bytes]:
+    """``(sequence, stamp_ns, gid)`` of an rmw_zenoh attachment."""
+    if len(data) != _ATTACHMENT.size:
+        raise RosError(f"rmw_zenoh attachment must be {_ATTACHMENT.size} bytes, got {len(data)}")
+    seq, stamp_ns, n, gid = _ATTACHMENT.unpack(data)
+    if n != 16:
+        raise RosError(f"rmw_zenoh attachment: GID length {n}, expected 16")
+    return seq, stamp_ns, gid
+
+
+def _covariance(cov: Any) -> np.ndarray:
+    if cov is None:
+        return np.zeros(36)  # ROS: all zeros = covariance unknown
+    c = np.asarray(cov, dtype=np.float64)
+    if c.shape != (6, 6) or not np.all(np.isfinite(c)) or not np.allclose(c, c.T, atol=1e-12, rtol=1e-9):
+        raise RosError(f"covariance must be a finite symmetric 6x6 matrix (x y z rot_x rot_y rot_z), "
+                       f"got shape {c.shape}")
+    if np.any(np.diag(c) < 0):
+        raise RosError("covariance has a negative variance on its diagonal")
+    return c.ravel()
+
+
+def encode_pose_cdr(T_cj_ci: Any, stamp_s: float, frame_id: str, covariance: Any = None) -> bytes:
+    """One ``PoseWithCovarianceStamped`` as CDR (little endian, with its 4-byte encapsulation header)."""
+    types = _typestore().types
+    Time, Header = types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
+    Point, Quaternion = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
+    Pose, PoseWithCovariance = types["geometry_msgs/msg/Pose"], types["geometry_msgs/msg/PoseWithCovariance"]
+    try:
+        t, q = se3_to_tq_xyzw(check_se3(T_cj_ci, "T_cj_ci"))
+    except GeometryError as exc:
+        raise RosError(f"pose to publish: {exc}") from None
+    stamp = float(stamp_s)
+    if not (np.isfinite(stamp) and 0 <= stamp < 2**31):
+        raise RosError(f"stamp {stamp_s!r} s cannot be a ROS time (0 <= stamp < 2^31 s)")
+    sec = int(np.floor(stamp))
+    nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    msg = types[ROS_TYPE](header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=str(frame_id)),
+                  pose=PoseWithCovariance(pose=Pose(position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                                                    orientation=Quaternion(x=float(q[0]), y=float(q[1]),
+                                                                           z=float(q[2]), w=float(q[3]))),
+                                          covariance=_covariance(covariance)))
+    return bytes(_typestore().serialize_cdr(msg, ROS_TYPE))
+
+
+def decode_pose_cdr(data: bytes) -> dict[str, Any]:
+    """``{"T_cj_ci", "stamp_s", "frame_id", "covariance" (6x6)}`` of a CDR ``PoseWithCovarianceStamped``."""
+    try:
+        m = _typestore().deserialize_cdr(bytes(data), ROS_TYPE)
+    except Exception as exc:  # rosbags raises several types for truncated or foreign data
+        raise RosError(f"not a CDR {ROS_TYPE}: {exc}") from None
+    p, o = m.pose.pose.position, m.pose.pose.orientation
+    return {"T_cj_ci": se3_from_tq_xyzw([p.x, p.y, p.z], [o.x, o.y, o.z, o.w]),
+            "stamp_s": m.header.stamp.sec + m.header.stamp.nanosec * 1e-9,
+            "frame_id": m.header.frame_id, "covariance": np.asarray(m.pose.covariance, np.float64).reshape(6, 6)}
+
+
+class EstimatePublisher:
+    """Publishes one robot's relative-pose estimates on a Zenoh session (e.g. ``ZenohLink.session``).
+
+    Args:
+        session: an open ``zenoh.Session``.
+        team, robot_id: this robot's team and id (ROS name tokens).
+        conf: overrides of :data:`default_conf`.
+    """
+
+    def __init__(self, session: Any, team: str, robot_id: str, conf: Mapping[str, Any] | None = None) -> None:
+        self.conf = merge_conf(default_conf, conf, "ros estimates conf")
+        if self.conf["key_format"] not in KEY_FORMATS:
+            raise RosError(f"ros key_format {self.conf['key_format']!r}: expected one of {KEY_FORMATS}")
+        domain = self.conf["domain_id"]
+        if not (isinstance(domain, int) and 0 <= domain <= 232):
+            raise RosError(f"ros domain_id {domain!r}: expected an integer in 0..232 (ROS_DOMAIN_ID)")
+        self.session, self.team, self.robot_id = session, ros_token(team, "--team"), ros_token(robot_id, "robot id")
+        self.gid = os.urandom(16)
+        self._pubs: dict[str, Any] = {}
+        self._seq: dict[str, int] = {}
+
+    def key(self, other: str) -> str:
+        return zenoh_key(topic_name(self.team, self.robot_id, other), self.conf)
+
+    def publish(self, other: str, T_cj_ci: Any, stamp_s: float, covariance: Any = None) -> int:
+        """Publish this robot's estimate of ``T_cj_ci`` (j = ``other``); returns the CDR bytes."""
+        cdr = encode_pose_cdr(T_cj_ci, stamp_s, camera_frame_id(self.team, other), covariance)
+        if other not in self._pubs:
+            self._pubs[other] = self.session.declare_publisher(self.key(other))
+            self._seq[other] = 0
+        self._seq[other] += 1
+        if self.conf["key_format"] == "rmw_zenoh":
+            self._pubs[other].put(cdr, attachment=rmw_attachment(self._seq[other], time.time_ns(), self.gid))
+        else:
+            self._pubs[other].put(cdr)
+        return len(cdr)
+
+    def publish_pairs(self, pairs: Iterable[Any]) -> int:
+        """Publish every :class:`~cerpe.records.PairRecord` of this robot that has an estimate."""
+        n = 0
+        for rec in pairs:
+            if rec.ego == self.robot_id and rec.T_cj_ci is not None:
+                n += self.publish(rec.other, rec.T_cj_ci, rec.stamp_s)
+        return n
