@@ -67,13 +67,12 @@ statistics behind them are printed by the script and recorded in
 encounters rendered with seed 2001 (the evaluation suites use seed 0).
 
 Images without usable texture (grey-level std below ``min_texture_std``: blank,
-black; or no more keypoints than clusters) get no content descriptor:
-:meth:`describe` returns a unit vector drawn from a generator seeded by the view
-key, nearly orthogonal to every other descriptor (|cos| ~ 1/sqrt(dim)), so it
-can never open the gate, and records the key in :attr:`low_texture_keys`
-(``flags(key)`` -> ``{"low-texture"}``) for the algorithm to count. Wrong shape /
-channel count / dtype or images smaller than 32 px raise
-:class:`~cerpe.backbones.xfeat.ImageInputError`.
+black, constant grey; or no more keypoints than clusters) get no content
+descriptor: :meth:`describe` returns a unit vector drawn from a generator seeded by
+the view key, nearly orthogonal to every other descriptor (|cos| ~ 1/sqrt(dim)), so
+it can never open the gate, and :meth:`flags` says ``{"low-texture"}`` for the
+algorithm to act on and count. Wrong shape / channel count / dtype or images smaller
+than 32 px raise :class:`~cerpe.backbones.xfeat.ImageInputError`.
 """
 from __future__ import annotations
 
@@ -81,7 +80,6 @@ import json
 import logging
 import time
 import zlib
-from collections import OrderedDict
 from importlib import resources
 from pathlib import Path
 from typing import Any, Hashable
@@ -89,6 +87,7 @@ from typing import Any, Hashable
 import numpy as np
 
 from ..protocols import BackboneError, View
+from .cache import LRUCache, content_key
 from .xfeat import XFeatEncoder, XFeatFeatures, check_image, grey_std, shared_encoder
 
 logger = logging.getLogger(__name__)
@@ -168,7 +167,8 @@ class XFeatSaladDescriptor:
         colour_size: ``(width, height)`` the image is area-resized to before the histogram.
         token_weight2: squared weight of the token relative to all cluster blocks together.
         min_texture_std: grey-level std below which an image is low-texture.
-        cache_size: descriptors kept by view key (LRU).
+        cache_size: descriptors kept (LRU, keyed by view key and pixels: the placeholder of a
+            blank image depends on the key).
         thresholds: ``tau``, ``tau_m``, ``tau_k`` for this descriptor (None: the
             calibrated values in ``cerpe/data/xfeat_salad_thresholds.json``).
     """
@@ -211,14 +211,18 @@ class XFeatSaladDescriptor:
         self.dim = self.num_clusters * 64 + self.token_dim
         th = self.conf["thresholds"] or _default_thresholds()
         self.thresholds: dict[str, float] = {k: float(th[k]) for k in ("tau", "tau_m", "tau_k")}
-        self.low_texture_keys: set[Hashable] = set()
-        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(int(self.conf["cache_size"]))
         # split of the last describe() call, read by cerpe.algorithm for its stage timings
         self.last_timings_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
 
-    def flags(self, key: Hashable) -> set[str]:
-        """Problems found while describing ``key`` (``{"low-texture"}`` or empty)."""
-        return {"low-texture"} if key in self.low_texture_keys else set()
+    def flags(self, view: View) -> frozenset[str]:
+        """``{"low-texture"}`` when ``view``'s image has no usable texture (see the module
+        docstring), else empty. A function of the pixels: the same image gives the same
+        flags whether or not :meth:`describe` saw it first."""
+        return self._describe(view, timed=False)[1]
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
 
     def wire_bytes(self) -> dict[str, int]:
         """Exact :class:`~cerpe.messages.DescriptorMessage` frame size per dtype."""
@@ -228,35 +232,36 @@ class XFeatSaladDescriptor:
 
     def describe(self, view: View) -> np.ndarray:
         """``[dim] float32`` unit descriptor of ``view.image`` (see the module docstring)."""
+        return self._describe(view, timed=True)[0].copy()
+
+    def _describe(self, view: View, timed: bool) -> tuple[np.ndarray, frozenset[str]]:
+        """Descriptor and flags of ``view``, cached by its key and pixels; ``timed`` sets
+        :attr:`last_timings_s`."""
         image = check_image(view.image, f"view {view.key!r}", int(self.encoder.conf["min_size"]))
-        ck = (view.key, zlib.crc32(np.ascontiguousarray(image).data))
+        ck = (view.key, content_key(image))
         t0 = time.perf_counter()
-        self.last_timings_s = {"encode": 0.0, "descriptor": 0.0}
-        d = self._cache.get(ck)
-        if d is not None:
-            self._cache.move_to_end(ck)
-            self.last_timings_s["descriptor"] = time.perf_counter() - t0
-            return d.copy()
+        hit = self._cache.get(ck)
+        if hit is not None:
+            if timed:
+                self.last_timings_s = {"encode": 0.0, "descriptor": time.perf_counter() - t0}
+            return hit
+        t1 = t0
         if grey_std(image) < self.conf["min_texture_std"]:
-            self.low_texture_keys.add(view.key)
-            d = self._placeholder(view.key)
-            self.last_timings_s["descriptor"] = time.perf_counter() - t0
+            d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         else:
-            self.low_texture_keys.discard(view.key)
             feats = self.encoder.encode(view)
             t1 = time.perf_counter()
             try:
-                d = self.aggregate(feats, image)
+                d, flags = self.aggregate(feats, image), frozenset()
             except DescriptorError:
                 if self.local_features(feats)[0].shape[0] > self.num_clusters:
                     raise
-                self.low_texture_keys.add(view.key)  # too few keypoints: no content to describe
-                d = self._placeholder(view.key)
+                # too few keypoints: no content to describe
+                d, flags = self._placeholder(view.key), frozenset({"low-texture"})
+        if timed:
             self.last_timings_s = {"encode": t1 - t0, "descriptor": time.perf_counter() - t1}
-        self._cache[ck] = d
-        while len(self._cache) > int(self.conf["cache_size"]):
-            self._cache.popitem(last=False)
-        return d.copy()
+        self._cache.put(ck, (d, flags))
+        return d, flags
 
     def _placeholder(self, key: Hashable) -> np.ndarray:
         seed = zlib.crc32(repr(key).encode()) ^ 0x5A1AD
