@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import CerpeError
+from ..geometry import se3_inverse
 __all__ = ["RGBDAlignError", "AlignResult", "default_conf", "grey_image", "align_rgbd"]
 
 
@@ -401,7 +402,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     result.inlier_ratio = float(np.mean(np.abs(rI / fine_scales[0]) <= 3.0))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    D = T @ np.linalg.inv(T0)
+    D = T @ se3_inverse(T0)
     result.change_m = float(np.linalg.norm(D[:3, 3]))
     result.change_deg = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
     if not np.all(np.isfinite(T)):

@@ -26,11 +26,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ...geometry import se3_inverse
 from ...protocols import BackboneOutput, View
 from ...scene import CameraIntrinsics
 from ..xfeat import XFeatEncoder, check_image, shared_encoder
 from .context import OfflineBackboneError, Pass, Recon, check_memo
-from .matching import PairMatcher, _inv, pinhole_camera, reprojection_error, splat_depth
+from .matching import PairMatcher, pinhole_camera, reprojection_error, splat_depth
 from .reconstruction import bootstrap_depth, place_pnp
 from .two_view import bootstrap, merge_image_only, two_view_with_scale
 
@@ -242,7 +243,7 @@ def _depth_maps(p: Pass, rec: Recon | None, valid: np.ndarray) -> tuple[list[np.
     for s, (ids, kp) in rec.obs.items():
         if not valid[s]:
             continue
-        Tsf = _inv(rec.T[s])
+        Tsf = se3_inverse(rec.T[s])
         Xs = rec.X[ids] @ Tsf[:3, :3].T + Tsf[:3, 3]
         uv = p.feats[s].keypoints[kp]
         err = reprojection_error(Xs, uv, p.Ks[s])

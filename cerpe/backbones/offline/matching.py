@@ -207,8 +207,3 @@ def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, in
     return out
 
 
-def _inv(T: np.ndarray) -> np.ndarray:
-    Ti = np.eye(4)
-    Ti[:3, :3] = T[:3, :3].T
-    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return Ti

@@ -18,9 +18,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ...geometry import se3_inverse
 from ..rgbd_align import align_rgbd
 from .context import Pass, Recon
-from .matching import _inv, keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
+from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
 from .vote import choose_motion, grid_mask_image, moving_pixels
 
 
@@ -58,7 +59,7 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
         refine_dense(p, d, rec)
         moving = moving_pixels(p, d, rec.T[0])
         # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
-        T_c0_d = _inv(rec.T.pop(0))
+        T_c0_d = se3_inverse(rec.T.pop(0))
         p.remember(d, T_c0_d, moving)
         rec.X = rec.X @ T_c0_d[:3, :3].T + T_c0_d[:3, 3]
         rec.T = {0: np.eye(4), d: T_c0_d}
@@ -77,9 +78,9 @@ def refine_dense(p: Pass, d: int, rec: Recon) -> None:
     moving = p.moving(d) if c["dense_mask_moving"] else None
     mask = None if moving is None else grid_mask_image(moving, p.feats[d].image_hw, int(c["vote_stride"]))
     res = align_rgbd(p.views[d].image, p.views[d].depth_m, p.views[0].image, p.views[0].depth_m,
-                     p.Ks[d], p.Ks[0], _inv(rec.T[0]), c["dense"], mask_ref=mask)
+                     p.Ks[d], p.Ks[0], se3_inverse(rec.T[0]), c["dense"], mask_ref=mask)
     if res.ok:
-        rec.T[0] = _inv(res.T_cur_ref)
+        rec.T[0] = se3_inverse(res.T_cur_ref)
         p.counts["dense-refined"] += 1
     else:
         p.counts[f"dense-refused:{res.reason}"] += 1
@@ -164,7 +165,7 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
         # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
         T_s_f, inl = hyps[choose_motion(p, ref_depth, [T_h for T_h, _ in hyps])]
-    rec.T[s] = _inv(T_s_f)
+    rec.T[s] = se3_inverse(T_s_f)
     rec.obs[s] = (pt[inl], kp[inl])
     return True
 

@@ -15,8 +15,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ...geometry import se3_inverse
 from .context import Pass, Recon
-from .matching import (_inv, keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error, triangulate,
+from .matching import (keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error, triangulate,
                        triangulation_angle_deg)
 
 
@@ -58,7 +59,7 @@ def triangulate_pair(c: dict[str, Any], uv0: np.ndarray, uv1: np.ndarray, K0: np
     X1 = X @ T_1_0[:3, :3].T + T_1_0[:3, 3]
     e0 = reprojection_error(X, uv0, K0)
     e1 = reprojection_error(X1, uv1, K1)
-    ang = triangulation_angle_deg(X, np.zeros(3), _inv(T_1_0)[:3, 3])
+    ang = triangulation_angle_deg(X, np.zeros(3), se3_inverse(T_1_0)[:3, 3])
     keep = (np.all(np.isfinite(X), axis=1) & (X[:, 2] > 0) & (X1[:, 2] > 0)
             & (e0 < c["max_reproj_px"]) & (e1 < c["max_reproj_px"]))
     return X, keep & (ang >= c["min_point_angle_deg"]), 0.5 * (e0 + e1), ang
@@ -91,7 +92,7 @@ def bootstrap(p: Pass, anchor: int, cands: Sequence[int]) -> tuple[Recon | None,
             continue
         mi = m[inl][keep]
         ids = np.arange(len(mi))
-        return Recon(X=X[keep], T={anchor: np.eye(4), s: _inv(T_s_a)},
+        return Recon(X=X[keep], T={anchor: np.eye(4), s: se3_inverse(T_s_a)},
                      obs={anchor: (ids, mi[:, 0]), s: (ids, mi[:, 1])}, pair=(anchor, s)), why
     return None, why
 
@@ -115,14 +116,14 @@ def two_view_with_scale(p: Pass, s: int, rec: Recon) -> str:
     pt = cur_to_pt[m0s[shared, 0]]
     if keep.sum() < c["min_scale_points"]:
         return "no-parallax"
-    T_0_f = _inv(rec.T[0])
+    T_0_f = se3_inverse(rec.T[0])
     X0 = rec.X[pt[keep]] @ T_0_f[:3, :3].T + T_0_f[:3, 3]  # shared points in camera 0
     scale = float(np.median(X0[:, 2] / X_unit[keep, 2]))
     if not np.isfinite(scale) or scale <= 0:
         return "few-3d-points"
     T_s_0 = T_s_0.copy()
     T_s_0[:3, 3] *= scale
-    rec.T[s] = rec.T[0] @ _inv(T_s_0)
+    rec.T[s] = rec.T[0] @ se3_inverse(T_s_0)
     rec.obs[s] = (pt[keep], m0s[shared, 1][keep])
     return ""
 
@@ -146,7 +147,7 @@ def two_view_prior_scale(p: Pass, s: int, rec: Recon, m0s: np.ndarray, inl: np.n
         return "few-3d-points"
     T = T_s_0.copy()
     T[:3, 3] *= scale
-    rec.T[s] = rec.T[0] @ _inv(T)
+    rec.T[s] = rec.T[0] @ se3_inverse(T)
     return ""
 
 
