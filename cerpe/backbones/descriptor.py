@@ -86,6 +86,7 @@ from typing import Any, Hashable
 
 import numpy as np
 
+from ..config import merge_conf
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
 from .xfeat import XFeatEncoder, XFeatFeatures, check_image, grey_std, shared_encoder
@@ -194,7 +195,7 @@ class XFeatSaladDescriptor:
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "descriptor conf")
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         data = load_centres(self.conf["centres"])
         self.centres = data["centres"]

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import merge_conf
 from ..errors import CerpeError
 from ..geometry import se3_inverse
 __all__ = ["RGBDAlignError", "AlignResult", "default_conf", "grey_image", "align_rgbd"]
@@ -341,7 +342,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
         reason), only for malformed input.
     """
-    c = {**default_conf, **(conf or {})}
+    c = merge_conf(default_conf, conf, "align_rgbd conf")
     T0 = np.asarray(T_cur_ref, np.float64)
     if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
         raise RGBDAlignError(f"align_rgbd: T_cur_ref must be a finite [4,4], got {T0.shape}")

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import merge_conf
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
 
@@ -142,7 +143,7 @@ class XFeatEncoder:
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "xfeat conf")
         import torch
         import kornia.feature as KF
 
@@ -347,7 +348,7 @@ def shared_encoder(conf: dict[str, Any] | None = None) -> XFeatEncoder:
     once per image between them (the cache is keyed by the pixels, so robots of one
     process may share it safely).
     """
-    full = {**XFeatEncoder.default_conf, **(conf or {})}
+    full = merge_conf(XFeatEncoder.default_conf, conf, "xfeat conf")
     key = tuple(sorted((k, str(v)) for k, v in full.items()))
     with _SHARED_LOCK:
         enc = _SHARED.get(key)

@@ -27,8 +27,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
+from ...config import merge_conf
 from ...protocols import BackboneOutput, View
 from ...scene import CameraIntrinsics
+from ..rgbd_align import default_conf as dense_default_conf
 from ..xfeat import XFeatEncoder, check_image, shared_encoder
 from .context import OfflineBackboneError, Pass, Recon, check_memo
 from .matching import PairMatcher, pinhole_camera, reprojection_error, splat_depth
@@ -112,7 +114,7 @@ class OfflineGeometryBackbone:
         "vote_chain_hops": 12,
         "mask_moving": True,
         "dense_refine": True,
-        "dense": {"stride": 8, "iterations": 12},
+        "dense": {**dense_default_conf, "stride": 8, "iterations": 12},
         "dense_mask_moving": False,
         "merge_max_rot_px": 3.0,
         "merge_max_dir_deg": 10.0,
@@ -121,7 +123,7 @@ class OfflineGeometryBackbone:
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "offline backbone conf")
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         self.matcher = PairMatcher(self.conf["min_cossim"], self.conf["ratio"], int(self.conf["match_cache_size"]))
         self.counts: Counter[str] = Counter()
