@@ -1,78 +1,44 @@
 """Training-free SALAD-style global descriptor over XFeat local features.
 
-Implements :class:`cerpe.protocols.DescriptorEncoder` for the offline profile.
-The paper aggregates DINOv2 patch features with a *trained* SALAD head; no such
-weights exist here, so this descriptor keeps SALAD's aggregation (Sinkhorn
-optimal transport of the local features onto ``m`` clusters plus a dustbin,
-per-cluster weighted sums, per-cluster L2 normalisation, a global token, L2
-normalisation of the whole) and replaces the three learned parts by fitted or
-fixed ones:
+Implements :class:`cerpe.protocols.DescriptorEncoder` for the offline profile. The
+paper aggregates DINOv2 patch features with a *trained* SALAD head; no such weights
+exist here, so this keeps SALAD's aggregation (Sinkhorn transport of the local
+features onto ``m`` clusters plus a dustbin, per-cluster sums and L2 normalisation, a
+global token, L2 normalisation of the whole) and replaces the learned parts:
 
-* local features: the XFeat keypoint descriptors of the image (the same ones
-  the pose backbone matches, up to ``max_keypoints``, highest score first;
-  ``features="dense"`` uses the 1/8-resolution dense map instead);
-* feature-to-cluster scores: ``beta * cos(f_i, c_k)`` with ``c_k`` spherical
-  k-means centres of L2-normalised XFeat descriptors (fitted once on synthetic
-  images rendered with seeds disjoint from the evaluation suites, shipped as
-  ``cerpe/data/xfeat_salad_centres.npz``; ``scripts/fit_descriptor.py`` made it);
-  the dustbin score is the constant ``beta * dustbin_cos``;
-* the reduced local features: ``reduction="residual"`` aggregates
-  ``f_i - c_k`` per cluster (NetVLAD's residuals with SALAD's transport plan as
-  the soft assignment), then signed square-rooting (``power``) before the
-  per-cluster normalisation; ``"centred"`` aggregates ``f_i - mean`` as upstream
-  SALAD aggregates its learned projection (with ``power=1`` this is
-  :func:`cerpe.backbones.salad.salad_aggregate` exactly). Without learned
-  projections, residuals and power normalisation rank overlap far better
-  (synthetic suite, ROC AUC against overlap >= 0.2: 0.61 for the centred dense
-  form, 0.76 for residuals over keypoints), because a cluster's plain sum mostly
-  re-describes the cluster's own direction;
-* the global token: a square-rooted hue x saturation x value histogram of the
-  image area-resized to ``colour_size`` (``colour_bins`` 32 x 16 x 8 = 4096
-  values), carrying ``token_weight2 / (token_weight2 + 1)`` of the similarity.
-  Why colour: XFeat describes grey-level texture only, while our synthetic
-  worlds (and real streets) are built from a few repeated textures whose
-  colours tell places apart; alone it reaches AUC 0.79, with the residual
-  clusters 0.81 on the paper-default suite (``scripts/calibrate_thresholds.py``
-  prints the figure; 0.80 on the disjoint seed-2001 calibration scenes).
-  ``token="mean"`` uses the mean XFeat feature instead.
+* local features: the XFeat keypoint descriptors (the ones the pose backbone
+  matches, best ``max_keypoints``; ``features="dense"``: the 1/8-resolution map);
+* scores: ``beta * cos(f_i, c_k)`` with spherical k-means centres ``c_k`` fitted on
+  synthetic renders of development seeds (``cerpe/data/xfeat_salad_centres.npz``,
+  made by ``scripts/fit_descriptor.py``); the dustbin scores ``beta * dustbin_cos``;
+* aggregation: ``reduction="residual"`` sums ``f_i - c_k`` per cluster (NetVLAD's
+  residuals with SALAD's transport plan as soft assignment) and square-roots them
+  (``power``): without a learned projection a cluster's plain sum mostly
+  re-describes the cluster's own direction. ``"centred"`` with ``power=1`` is
+  :func:`cerpe.backbones.salad.salad_aggregate` exactly;
+* the global token: a square-rooted hue x saturation x value histogram
+  (``colour_bins``) carrying ``token_weight2 / (token_weight2 + 1)`` of the
+  similarity: XFeat describes grey-level texture only, while places built from a
+  few repeated textures differ in colour. ``token="mean"``: the mean XFeat feature.
 
-Size: ``m*64 + g`` values (``m`` clusters, ``g`` token values): 64 x 64 + 4096
-= 8192, under the paper's 8448 (8192 + 256) so that a descriptor frame is no
-larger than the paper's.
+Size ``m*64 + g`` (64 x 64 + 4096 = 8192), no more than the paper's 8448, so a
+descriptor frame is no larger than the paper's. How well it ranks overlap is printed
+by :func:`cerpe.pipeline.evaluate.gate_quality` for every run.
 
-How good can a gate be on our synthetic suite? Ground-truth overlap counts every
-co-visible surface pixel, road and floor included, so two robots at one
-intersection facing different streets "overlap" through the asphalt; and it is
-directional (the fraction of *i's* pixels that j sees), while the cosine is
-symmetric. A third of the ordered pairs (36 % on CAD, 28 % indoor, paper-default
-seed 0) overlap in one direction only, e.g. a robot that sees a subset of what the
-one behind it sees, and the gate necessarily ranks one of the two directions
-wrong: no symmetric score can exceed ROC AUC 0.93 (CAD) / 0.96 (indoor) there,
-and even the true mean of both directions' overlap reaches only 0.91. On the
-pairs whose two directions agree the descriptor ranks with AUC 0.91 (CAD) / 0.97
-(indoor); over all ordered pairs 0.77 / 0.86.
-:func:`cerpe.pipeline.evaluate.gate_quality` prints all three figures for every
-run. Pairwise XFeat matching with essential-matrix verification ranks all ordered
-pairs with AUC 0.85.
-
-Thresholds (``thresholds`` and ``default_conf["thresholds"]``): calibrated by
-``scripts/calibrate_thresholds.py`` on synthetic encounters: ``tau`` maximises F1
-of ``similarity >= tau`` against "ground-truth overlap ratio >= 0.2" over all
-cross-robot pairs; ``tau_m`` is a low quantile of the similarity of consecutive
-frames of one robot (a frame less similar than most neighbours = moderate
-viewpoint change); ``tau_k`` a low quantile of the similarity of frames
-``Delta_k`` or more steps apart (large viewpoint change). The values and the
-statistics behind them are printed by the script and recorded in
-``cerpe/data/xfeat_salad_thresholds.json``. The shipped values were calibrated on
-encounters rendered with seed 2001 (the evaluation suites use seed 0).
+Thresholds ``tau``, ``tau_m``, ``tau_k`` come from
+``cerpe/data/xfeat_salad_thresholds.json``, written by
+``scripts/calibrate_thresholds.py`` on encounters of a development seed: ``tau``
+maximises F1 of ``similarity >= tau`` against "overlap >= 0.2", ``tau_m`` and
+``tau_k`` are low quantiles of the similarity of consecutive frames and of frames
+``Delta_k`` apart.
 
 Images without usable texture (grey-level std below ``min_texture_std``: blank,
 black, constant grey; or no more keypoints than clusters) get no content
 descriptor: :meth:`describe` returns a unit vector drawn from a generator seeded by
-the view key, nearly orthogonal to every other descriptor (|cos| ~ 1/sqrt(dim)), so
-it can never open the gate, and :meth:`flags` says ``{"low-texture"}`` for the
-algorithm to act on and count. Wrong shape / channel count / dtype or images smaller
-than 32 px raise :class:`~cerpe.backbones.xfeat.ImageInputError`.
+the view key, nearly orthogonal to every other descriptor, so it can never open the
+gate, and :meth:`flags` says ``{"low-texture"}`` for the algorithm to act on and
+count. Malformed or too small images raise
+:class:`~cerpe.backbones.xfeat.ImageInputError`.
 """
 from __future__ import annotations
 

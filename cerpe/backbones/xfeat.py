@@ -118,16 +118,12 @@ class XFeatEncoder:
             biases two-view translation directions at 640x480).
         fast_cpu: run a copy of the network with every batch norm folded into the
             convolution before it (:func:`fold_batchnorm`; exact algebra, outputs
-            differ by float rounding, ~1e-5) in channels-last memory layout, which
-            oneDNN's CPU convolutions prefer. On 2 cores at 640x480 the forward pass
-            takes ~25 ms instead of ~35-55 ms (``cerpe bench`` shows the encode stage).
+            differ by float rounding) in channels-last memory layout, which oneDNN's CPU
+            convolutions prefer (``cerpe bench`` shows the encode stage).
         keep_heap: ask glibc's allocator to keep freed memory for reuse
-            (:func:`keep_freed_memory`). Each pass allocates ~20 MB of feature maps; by
-            default glibc hands blocks that large back to the system when freed and
-            maps fresh zeroed pages for the next pass: measured ~5000 page faults per
-            image over a sequence and 27 ms per encode, against none and 18 ms with the
-            setting (``cerpe bench``, 3 robots: team step median 699 -> 651 ms). No
-            effect off glibc.
+            (:func:`keep_freed_memory`): each pass allocates tens of MB of feature maps,
+            which glibc would otherwise unmap when freed and fault in again, zeroed, on
+            the next pass. No effect off glibc.
     """
 
     default_conf: dict[str, Any] = {
@@ -298,8 +294,7 @@ def _nms(heat: "torch.Tensor", threshold: float, kernel_size: int) -> "torch.Ten
 
     The same keypoints as kornia's XFeat NMS (a peak beats every other pixel of its
     ``kernel_size`` window; no peak within ``kernel_size // 2`` of the border), through an
-    OpenCV dilation: torch's CPU pooling takes 20-100 ms on a 640x480 map, the dilation
-    well under 1 ms, and this ran once per encoded image.
+    OpenCV dilation, far cheaper on the CPU than torch's pooling.
     """
     import cv2
     import torch
