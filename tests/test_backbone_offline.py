@@ -128,7 +128,7 @@ def test_memory_reuse_no_re_encoding(room):
     n = bb.encoder.n_encoded
     out = bb.infer([views[3], views[2], views[1], views[0]])
     assert bb.encoder.n_encoded == n + 1  # only the new current view is encoded
-    assert bb.n_match_cached >= 1  # keyframe-keyframe matches reused
+    assert bb.matcher.n_cached >= 1  # keyframe-keyframe matches reused
     assert out.valid.all(), out.reasons
 
 
@@ -269,24 +269,22 @@ def test_depth_prior_ignores_an_object_moving_along(room, backbone):
 
 
 def _recon(T: dict[int, np.ndarray], n_pts: int = 20):
-    from cerpe.backbones.offline import _Recon
+    from cerpe.backbones.offline import Recon
 
     rng = np.random.default_rng(len(T))
     X = rng.normal(size=(n_pts * len(T), 3)) + [0, 0, 8]
     obs = {s: (np.arange(k * n_pts, (k + 1) * n_pts), np.arange(n_pts)) for k, s in enumerate(T)}
-    return _Recon(X=X, T={s: t.copy() for s, t in T.items()}, obs=obs, pair=(0, 1), metric=True)
+    return Recon(X=X, T={s: t.copy() for s, t in T.items()}, obs=obs, pair=(0, 1), metric=True)
 
 
 @pytest.mark.parametrize("seed", range(5))
 def test_image_only_views_join_the_metric_pass_scaled(seed):
     """Views only the image-only reconstruction placed join the metric one at the metric scale,
     with their points; when the two disagree on a shared view nothing joins (counted)."""
-    from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.offline import OfflineGeometryBackbone, merge_image_only
 
     rng = np.random.default_rng(seed)
-    bb = OfflineGeometryBackbone.__new__(OfflineGeometryBackbone)
-    bb.conf = dict(OfflineGeometryBackbone.default_conf)
-    bb.n_merged, bb.n_merge_refused = 0, Counter()
+    conf, counts = OfflineGeometryBackbone.default_conf, Counter()
     T1, T2 = G.random_se3(rng), G.random_se3(rng)
     T1[:3, 3] *= 0.5 / np.linalg.norm(T1[:3, 3])
     unit = float(rng.uniform(0.2, 5.0))  # metres per image-only unit
@@ -294,8 +292,8 @@ def test_image_only_views_join_the_metric_pass_scaled(seed):
     rec = _recon({0: np.eye(4), 1: T1})
     rec_i = _recon({0: np.eye(4), 1: shrink(T1), 2: shrink(T2)})
     n_before = len(rec.X)
-    assert bb._merge_image_only(rec, rec_i, 300.0) == [2]
-    assert np.allclose(rec.T[2], T2, atol=1e-9) and bb.n_merged == 1
+    assert merge_image_only(rec, rec_i, 300.0, conf, counts) == [2]
+    assert np.allclose(rec.T[2], T2, atol=1e-9) and counts["merged"] == 1
     ids, kp = rec.obs[2]
     assert len(rec.X) == n_before + len(ids)
     assert np.allclose(rec.X[ids], rec_i.X[rec_i.obs[2][0]] * unit)
@@ -303,13 +301,20 @@ def test_image_only_views_join_the_metric_pass_scaled(seed):
     bad = shrink(T1)
     bad[:3, :3] = G.so3_exp(np.radians(1.0) * np.array([0, 1.0, 0])) @ bad[:3, :3]
     rec = _recon({0: np.eye(4), 1: T1})
-    assert bb._merge_image_only(rec, _recon({0: np.eye(4), 1: bad, 2: shrink(T2)}), 300.0) == []
-    assert 2 not in rec.T and bb.n_merge_refused == {"rotation": 1}
+    assert merge_image_only(rec, _recon({0: np.eye(4), 1: bad, 2: shrink(T2)}), 300.0, conf, counts) == []
+    assert 2 not in rec.T and counts["merge-refused:rotation"] == 1
     # no shared view with a baseline: no scale to carry over
     still = np.eye(4)
     rec = _recon({0: np.eye(4), 1: still})
-    assert bb._merge_image_only(rec, _recon({0: np.eye(4), 1: still, 2: shrink(T2)}), 300.0) == []
-    assert bb.n_merge_refused["no-baseline"] == 1
+    assert merge_image_only(rec, _recon({0: np.eye(4), 1: still, 2: shrink(T2)}), 300.0, conf, counts) == []
+    assert counts["merge-refused:no-baseline"] == 1
+
+
+def with_memo(view: View, out) -> View:
+    """``view`` as the robot hands it back after the pass ``out`` in which it was the current view."""
+    import dataclasses
+
+    return dataclasses.replace(view, memo=out.memos[0])
 
 
 @pytest.mark.parametrize("guarded", [True, False])
@@ -336,7 +341,7 @@ def test_object_filling_the_prior_view_does_not_win(room, guarded):
         views.append(View(("o", k), img, K, depth_m=d))
     out1 = bb.infer([views[1], views[0]])
     assert out1.valid[1] and out1.metric_unit
-    out2 = bb.infer([views[2], views[1], views[0]])
+    out2 = bb.infer([views[2], with_memo(views[1], out1), views[0]])
     assert out2.valid[1], out2.reasons
     T_gt = G.se3_inverse(Tw[2]) @ Tw[1]
     err = np.linalg.norm(out2.T_frame_cam[1][:3, 3] - T_gt[:3, 3])
@@ -352,7 +357,8 @@ def test_dense_refinement_leaves_out_the_pixels_found_moving(room, monkeypatch):
     """With ``dense_mask_moving``, the object's pixels remembered when frame 1 was placed
     are left out of the dense alignment of frame 2 on frame 1 (``mask_ref``), and only
     those (one grid cell around); by default nothing is left out."""
-    import cerpe.backbones.offline as off
+    import cerpe.backbones.offline.reconstruction as rc
+    from cerpe.backbones.offline import OfflineGeometryBackbone
 
     seen = []
 
@@ -360,9 +366,8 @@ def test_dense_refinement_leaves_out_the_pixels_found_moving(room, monkeypatch):
         seen.append(mask_ref)
         return align(*args, mask_ref=mask_ref, **kw)
 
-    align = off.align_rgbd
-    monkeypatch.setattr(off, "align_rgbd", spy)
-    bb = off.OfflineGeometryBackbone({"dense_mask_moving": True})
+    align = rc.align_rgbd
+    monkeypatch.setattr(rc, "align_rgbd", spy)
     Tw = [pose((0.05 * k, 0, 0.02 * k)) for k in range(3)]
     patch = _blocks(11, (100, 120), 6)
     views = []
@@ -372,15 +377,16 @@ def test_dense_refinement_leaves_out_the_pixels_found_moving(room, monkeypatch):
             x0 = 60 + 24 * (k - 1)
             img[60:160, x0:x0 + 120], d[60:160, x0:x0 + 120] = patch, 2.0
         views.append(View(("mv", k), img, K, depth_m=d))
-    bb.infer([views[1], views[0]])
-    bb.infer([views[2], views[1], views[0]])
-    assert seen[0] is None  # frame 0 was nobody's current view: nothing known to move
-    mask = seen[-1]
-    assert mask is not None and mask.shape == (K.height, K.width)
-    assert mask[70:150, 70:170].mean() > 0.9  # the object where frame 1 saw it
-    assert mask[:40].mean() < 0.1 and mask[200:].mean() < 0.1  # the room above and below it
-    seen.clear()
-    plain = off.OfflineGeometryBackbone()
-    plain.infer([views[1], views[0]])
-    plain.infer([views[2], views[1], views[0]])
-    assert seen and all(m is None for m in seen)
+    for conf in ({"dense_mask_moving": True}, {}):
+        seen.clear()
+        bb = OfflineGeometryBackbone(conf)
+        out1 = bb.infer([views[1], views[0]])
+        bb.infer([views[2], with_memo(views[1], out1), views[0]])
+        if not conf:  # by default nothing is left out
+            assert seen and all(m is None for m in seen)
+            continue
+        assert seen[0] is None  # frame 0 was nobody's current view: nothing known to move
+        mask = seen[-1]
+        assert mask is not None and mask.shape == (K.height, K.width)
+        assert mask[70:150, 70:170].mean() > 0.9  # the object where frame 1 saw it
+        assert mask[:40].mean() < 0.1 and mask[200:].mean() < 0.1  # the room above and below it

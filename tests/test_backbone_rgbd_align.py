@@ -188,5 +188,5 @@ def test_backbone_refines_the_depth_prior_pose(pair):
         out = bb.infer(views)
         assert out.valid.all(), out.reasons
         err[on] = _errors(out.T_frame_cam[1])[0]  # the pass frame is the current camera
-        assert bb.n_dense_refined == int(on)
+        assert bb.counts["dense-refined"] == int(on)
     assert err[True] < 5e-4 and err[True] < err[False], err

@@ -93,8 +93,30 @@ def test_blank_images_cannot_open_gate(descriptor, room, value):
     good = descriptor.describe(View(("g", 0), room.render(pose())[0], K))
     assert abs(np.linalg.norm(a) - 1) < 1e-5 and np.all(np.isfinite(a))
     assert a @ b < tau and a @ good < tau
-    assert descriptor.flags(("blank", value)) == {"low-texture"}
-    assert descriptor.flags(("g", 0)) == set()
+
+
+@pytest.mark.parametrize("value", [0, 255, 128, 37])
+def test_flags_mark_black_white_and_grey_frames_low_texture(descriptor, room, value):
+    """``flags(view)`` is a function of the pixels: the same answer before or after ``describe``,
+    under any key; a textured frame is not flagged."""
+    blank = np.full((240, 320, 3), value, np.uint8)
+    textured = room.render(pose((0.1, 0, 0.2), (0, 3, 0)))[0]
+    assert descriptor.flags(View(("flag-first", value), blank, K)) == frozenset({"low-texture"})
+    descriptor.describe(View(("described", value), blank, K))
+    assert descriptor.flags(View(("described", value), blank, K)) == frozenset({"low-texture"})
+    assert descriptor.flags(View(("flag-first", value), textured, K)) == frozenset()
+    descriptor.describe(View(("described", value), textured, K))
+    assert descriptor.flags(View(("described", value), textured, K)) == frozenset()
+    # grey noise below the texture threshold (sensor noise on a blank wall) is blank too
+    noisy = np.clip(blank.astype(int) + np.random.default_rng(value).integers(-1, 2, blank.shape), 0, 255)
+    assert descriptor.flags(View(("noisy", value), noisy.astype(np.uint8), K)) == frozenset({"low-texture"})
+
+
+def test_flags_do_not_change_the_stage_timings(descriptor, room):
+    descriptor.describe(View(("t", 0), room.render(pose((0.3, 0, 0), (0, 5, 0)))[0], K))
+    before = dict(descriptor.last_timings_s)
+    descriptor.flags(View(("t", 1), np.zeros((240, 320, 3), np.uint8), K))
+    assert descriptor.last_timings_s == before
 
 
 def test_descriptor_rejects_malformed_images(descriptor):
@@ -160,7 +182,7 @@ def test_too_few_keypoints_is_low_texture(descriptor, room):
     img[100:120, 150:170] = 255  # a textured patch: grey std passes, a handful of keypoints
     d = descriptor.describe(View(("few", 0), img, K))
     good = descriptor.describe(View(("g", 1), room.render(pose())[0], K))
-    assert descriptor.flags(("few", 0)) == {"low-texture"}
+    assert descriptor.flags(View(("few", 0), img, K)) == {"low-texture"}
     assert abs(np.linalg.norm(d) - 1) < 1e-5 and d @ good < descriptor.thresholds["tau"]
 
 

@@ -109,7 +109,9 @@ def test_errors() -> None:
         salad_aggregate(torch.randn(1, 2, 3), torch.randn(1, 4, 3), torch.randn(1, 2), 1.0)
     with pytest.raises(SaladError, match="batch"):
         salad_aggregate(torch.randn(2, 2, 9), torch.randn(1, 4, 9), torch.randn(2, 2), 1.0)
-    with pytest.raises(SaladError, match="unknown config"):
+    from cerpe.config import ConfigError
+
+    with pytest.raises(ConfigError, match="SALADHead conf: unknown option.*'clusters'; known: .*num_clusters"):
         SALADHead(clusters=3)
     with pytest.raises(SaladError, match="expected features"):
         SALADHead()(torch.randn(1, 10, 4, 4), torch.randn(1, 10))

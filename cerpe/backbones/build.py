@@ -12,24 +12,24 @@ The depth source is chosen separately (it depends on the data, see
 """
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any
 
+from ..config import merge_conf
 from ..protocols import BackboneError
+from .xfeat import XFeatEncoder
 
-PRESETS: dict[str, dict[str, Any]] = {
+PRESETS: dict[str, dict[str, Any] | None] = {
     "offline": {
-        # 1024 keypoints: measured with `cerpe bench --all-encounters` (2 cores), 2048 costs 1.5-2x the
-        # team-step latency (CAD 2 robots 575 vs 371 ms) for ~1.3x lower ego translation error and a
-        # slightly worse direct rotation median; the descriptor aggregates the best 1024 either way.
-        "xfeat": {"top_k": 1024, "detection_threshold": 0.05},
-        "descriptor": {},
-        "backbone": {},
+        # 1024 keypoints: `cerpe bench --all-encounters` shows the latency/accuracy trade-off against 2048;
+        # the descriptor aggregates the best 1024 either way.
+        "xfeat": {**XFeatEncoder.default_conf, "top_k": 1024, "detection_threshold": 0.05},
+        "descriptor": {},  # XFeatSaladDescriptor conf, checked there
+        "backbone": {},  # OfflineGeometryBackbone conf, checked there
         "depth": "sensor",
         "depth_conf": {},
     },
-    "paper": {"depth": "metric3d"},
+    "paper": None,  # the conf goes whole to paper_profile.build_paper, checked against its default_conf
 }
 
 
@@ -47,21 +47,16 @@ class Plugins:
     preset: str = "offline"
 
 
-def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(a)
-    for k, v in (b or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
-    return out
-
-
 def build_plugins(preset: str = "offline", conf: dict[str, Any] | None = None,
                   depth: str | None = None) -> Plugins:
-    """Build the plug-ins of ``preset`` with ``conf`` overrides (nested dicts merge).
+    """Build the plug-ins of ``preset`` with ``conf`` overrides (nested dicts merge deeply).
 
     Args:
         preset: ``offline`` or ``paper``.
         conf: overrides of the preset (keys ``xfeat``, ``descriptor``, ``backbone``,
-            ``depth``, ``depth_conf``; the ``paper`` preset passes it on whole).
+            ``depth``, ``depth_conf``; the ``paper`` preset passes it on whole to
+            :func:`cerpe.backbones.paper_profile.build_paper`). Merged strictly
+            (:func:`cerpe.config.merge_conf`): an unknown key is refused.
         depth: depth source name; overrides ``conf["depth"]``.
 
     Raises:
@@ -69,7 +64,8 @@ def build_plugins(preset: str = "offline", conf: dict[str, Any] | None = None,
     """
     if preset not in PRESETS:
         raise BuildError(f"unknown backbone preset {preset!r}; valid: {', '.join(PRESETS)}")
-    full = _merge(PRESETS[preset], conf or {})
+    defaults = PRESETS[preset]
+    full = dict(conf or {}) if defaults is None else merge_conf(defaults, conf, f"preset {preset!r} conf")
     if depth is not None:
         full["depth"] = depth
     if preset == "paper":

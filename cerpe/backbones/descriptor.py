@@ -1,78 +1,43 @@
 """Training-free SALAD-style global descriptor over XFeat local features.
 
-Implements :class:`cerpe.protocols.DescriptorEncoder` for the offline profile.
-The paper aggregates DINOv2 patch features with a *trained* SALAD head; no such
-weights exist here, so this descriptor keeps SALAD's aggregation (Sinkhorn
-optimal transport of the local features onto ``m`` clusters plus a dustbin,
-per-cluster weighted sums, per-cluster L2 normalisation, a global token, L2
-normalisation of the whole) and replaces the three learned parts by fitted or
-fixed ones:
+Implements :class:`cerpe.protocols.DescriptorEncoder` for the offline profile. The
+paper aggregates DINOv2 patch features with a *trained* SALAD head; no such weights
+exist here, so this keeps SALAD's aggregation (Sinkhorn transport of the local
+features onto ``m`` clusters plus a dustbin, per-cluster sums and L2 normalisation, a
+global token, L2 normalisation of the whole) and replaces the learned parts:
 
-* local features: the XFeat keypoint descriptors of the image (the same ones
-  the pose backbone matches, up to ``max_keypoints``, highest score first;
-  ``features="dense"`` uses the 1/8-resolution dense map instead);
-* feature-to-cluster scores: ``beta * cos(f_i, c_k)`` with ``c_k`` spherical
-  k-means centres of L2-normalised XFeat descriptors (fitted once on synthetic
-  images rendered with seeds disjoint from the evaluation suites, shipped as
-  ``cerpe/data/xfeat_salad_centres.npz``; ``scripts/fit_descriptor.py`` made it);
-  the dustbin score is the constant ``beta * dustbin_cos``;
-* the reduced local features: ``reduction="residual"`` aggregates
-  ``f_i - c_k`` per cluster (NetVLAD's residuals with SALAD's transport plan as
-  the soft assignment), then signed square-rooting (``power``) before the
-  per-cluster normalisation; ``"centred"`` aggregates ``f_i - mean`` as upstream
-  SALAD aggregates its learned projection (with ``power=1`` this is
-  :func:`cerpe.backbones.salad.salad_aggregate` exactly). Without learned
-  projections, residuals and power normalisation rank overlap far better
-  (synthetic suite, ROC AUC against overlap >= 0.2: 0.61 for the centred dense
-  form, 0.76 for residuals over keypoints), because a cluster's plain sum mostly
-  re-describes the cluster's own direction;
-* the global token: a square-rooted hue x saturation x value histogram of the
-  image area-resized to ``colour_size`` (``colour_bins`` 32 x 16 x 8 = 4096
-  values), carrying ``token_weight2 / (token_weight2 + 1)`` of the similarity.
-  Why colour: XFeat describes grey-level texture only, while our synthetic
-  worlds (and real streets) are built from a few repeated textures whose
-  colours tell places apart; alone it reaches AUC 0.79, with the residual
-  clusters 0.81 on the paper-default suite (``scripts/calibrate_thresholds.py``
-  prints the figure; 0.80 on the disjoint seed-2001 calibration scenes).
-  ``token="mean"`` uses the mean XFeat feature instead.
+* local features: the XFeat keypoint descriptors (the ones the pose backbone
+  matches, best ``max_keypoints``; ``features="dense"``: the 1/8-resolution map);
+* scores: ``beta * cos(f_i, c_k)`` with spherical k-means centres ``c_k`` fitted on
+  synthetic renders of development seeds (``cerpe/data/xfeat_salad_centres.npz``,
+  made by ``scripts/fit_descriptor.py``); the dustbin scores ``beta * dustbin_cos``;
+* aggregation: ``reduction="residual"`` sums ``f_i - c_k`` per cluster (NetVLAD's
+  residuals with SALAD's transport plan as soft assignment) and square-roots them
+  (``power``): without a learned projection a cluster's plain sum mostly
+  re-describes the cluster's own direction. ``"centred"`` with ``power=1`` is
+  :func:`cerpe.backbones.salad.salad_aggregate` exactly;
+* the global token: a square-rooted hue x saturation x value histogram
+  (``colour_bins``) carrying ``token_weight2 / (token_weight2 + 1)`` of the
+  similarity: XFeat describes grey-level texture only, while places built from a
+  few repeated textures differ in colour. ``token="mean"``: the mean XFeat feature.
 
-Size: ``m*64 + g`` values (``m`` clusters, ``g`` token values): 64 x 64 + 4096
-= 8192, under the paper's 8448 (8192 + 256) so that a descriptor frame is no
-larger than the paper's.
+Size ``m*64 + g`` (64 x 64 + 4096 = 8192), no more than the paper's 8448, so a
+descriptor frame is no larger than the paper's. How well it ranks overlap is printed
+by :func:`cerpe.pipeline.evaluate.gate_quality` for every run.
 
-How good can a gate be on our synthetic suite? Ground-truth overlap counts every
-co-visible surface pixel, road and floor included, so two robots at one
-intersection facing different streets "overlap" through the asphalt; and it is
-directional (the fraction of *i's* pixels that j sees), while the cosine is
-symmetric. A third of the ordered pairs (36 % on CAD, 28 % indoor, paper-default
-seed 0) overlap in one direction only, e.g. a robot that sees a subset of what the
-one behind it sees, and the gate necessarily ranks one of the two directions
-wrong: no symmetric score can exceed ROC AUC 0.93 (CAD) / 0.96 (indoor) there,
-and even the true mean of both directions' overlap reaches only 0.91. On the
-pairs whose two directions agree the descriptor ranks with AUC 0.91 (CAD) / 0.97
-(indoor); over all ordered pairs 0.77 / 0.86.
-:func:`cerpe.pipeline.evaluate.gate_quality` prints all three figures for every
-run. Pairwise XFeat matching with essential-matrix verification ranks all ordered
-pairs with AUC 0.85.
-
-Thresholds (``thresholds`` and ``default_conf["thresholds"]``): calibrated by
-``scripts/calibrate_thresholds.py`` on synthetic encounters: ``tau`` maximises F1
-of ``similarity >= tau`` against "ground-truth overlap ratio >= 0.2" over all
-cross-robot pairs; ``tau_m`` is a low quantile of the similarity of consecutive
-frames of one robot (a frame less similar than most neighbours = moderate
-viewpoint change); ``tau_k`` a low quantile of the similarity of frames
-``Delta_k`` or more steps apart (large viewpoint change). The values and the
-statistics behind them are printed by the script and recorded in
-``cerpe/data/xfeat_salad_thresholds.json``. The shipped values were calibrated on
-encounters rendered with seed 2001 (the evaluation suites use seed 0).
+Thresholds ``tau``, ``tau_m``, ``tau_k`` come from
+``cerpe/data/xfeat_salad_thresholds.json``, written by
+``scripts/calibrate_thresholds.py`` on encounters of a development seed: ``tau``
+maximises F1 of ``similarity >= tau`` against "overlap >= 0.2", ``tau_m`` and
+``tau_k`` are low quantiles of the similarity of consecutive frames and of frames
+``Delta_k`` apart.
 
 Images without usable texture (grey-level std below ``min_texture_std``: blank,
-black; or no more keypoints than clusters) get no content descriptor:
-:meth:`describe` returns a unit vector drawn from a generator seeded by the view
-key, nearly orthogonal to every other descriptor (|cos| ~ 1/sqrt(dim)), so it
-can never open the gate, and records the key in :attr:`low_texture_keys`
-(``flags(key)`` -> ``{"low-texture"}``) for the algorithm to count. Wrong shape /
-channel count / dtype or images smaller than 32 px raise
+black, constant grey; or no more keypoints than clusters) get no content
+descriptor: :meth:`describe` returns a unit vector drawn from a generator seeded by
+the view key, nearly orthogonal to every other descriptor, so it can never open the
+gate, and :meth:`flags` says ``{"low-texture"}`` for the algorithm to act on and
+count. Malformed or too small images raise
 :class:`~cerpe.backbones.xfeat.ImageInputError`.
 """
 from __future__ import annotations
@@ -81,14 +46,15 @@ import json
 import logging
 import time
 import zlib
-from collections import OrderedDict
 from importlib import resources
 from pathlib import Path
 from typing import Any, Hashable
 
 import numpy as np
 
+from ..config import merge_conf
 from ..protocols import BackboneError, View
+from .cache import LRUCache, content_key
 from .xfeat import XFeatEncoder, XFeatFeatures, check_image, grey_std, shared_encoder
 
 logger = logging.getLogger(__name__)
@@ -168,7 +134,8 @@ class XFeatSaladDescriptor:
         colour_size: ``(width, height)`` the image is area-resized to before the histogram.
         token_weight2: squared weight of the token relative to all cluster blocks together.
         min_texture_std: grey-level std below which an image is low-texture.
-        cache_size: descriptors kept by view key (LRU).
+        cache_size: descriptors kept (LRU, keyed by view key and pixels: the placeholder of a
+            blank image depends on the key).
         thresholds: ``tau``, ``tau_m``, ``tau_k`` for this descriptor (None: the
             calibrated values in ``cerpe/data/xfeat_salad_thresholds.json``).
     """
@@ -194,7 +161,7 @@ class XFeatSaladDescriptor:
     }
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "descriptor conf")
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         data = load_centres(self.conf["centres"])
         self.centres = data["centres"]
@@ -211,14 +178,18 @@ class XFeatSaladDescriptor:
         self.dim = self.num_clusters * 64 + self.token_dim
         th = self.conf["thresholds"] or _default_thresholds()
         self.thresholds: dict[str, float] = {k: float(th[k]) for k in ("tau", "tau_m", "tau_k")}
-        self.low_texture_keys: set[Hashable] = set()
-        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(int(self.conf["cache_size"]))
         # split of the last describe() call, read by cerpe.algorithm for its stage timings
         self.last_timings_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
 
-    def flags(self, view: View | Hashable) -> set[str]:
-        """Problems found while describing ``view`` (or its key): ``{"low-texture"}`` or empty."""
-        return {"low-texture"} if getattr(view, "key", view) in self.low_texture_keys else set()
+    def flags(self, view: View) -> frozenset[str]:
+        """``{"low-texture"}`` when ``view``'s image has no usable texture (see the module
+        docstring), else empty. A function of the pixels: the same image gives the same
+        flags whether or not :meth:`describe` saw it first."""
+        return self._describe(view, timed=False)[1]
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
 
     def wire_bytes(self) -> dict[str, int]:
         """Exact :class:`~cerpe.messages.DescriptorMessage` frame size per dtype."""
@@ -228,35 +199,36 @@ class XFeatSaladDescriptor:
 
     def describe(self, view: View) -> np.ndarray:
         """``[dim] float32`` unit descriptor of ``view.image`` (see the module docstring)."""
+        return self._describe(view, timed=True)[0].copy()
+
+    def _describe(self, view: View, timed: bool) -> tuple[np.ndarray, frozenset[str]]:
+        """Descriptor and flags of ``view``, cached by its key and pixels; ``timed`` sets
+        :attr:`last_timings_s`."""
         image = check_image(view.image, f"view {view.key!r}", int(self.encoder.conf["min_size"]))
-        ck = (view.key, zlib.crc32(np.ascontiguousarray(image).data))
+        ck = (view.key, content_key(image))
         t0 = time.perf_counter()
-        self.last_timings_s = {"encode": 0.0, "descriptor": 0.0}
-        d = self._cache.get(ck)
-        if d is not None:
-            self._cache.move_to_end(ck)
-            self.last_timings_s["descriptor"] = time.perf_counter() - t0
-            return d.copy()
+        hit = self._cache.get(ck)
+        if hit is not None:
+            if timed:
+                self.last_timings_s = {"encode": 0.0, "descriptor": time.perf_counter() - t0}
+            return hit
+        t1 = t0
         if grey_std(image) < self.conf["min_texture_std"]:
-            self.low_texture_keys.add(view.key)
-            d = self._placeholder(view.key)
-            self.last_timings_s["descriptor"] = time.perf_counter() - t0
+            d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         else:
-            self.low_texture_keys.discard(view.key)
             feats = self.encoder.encode(view)
             t1 = time.perf_counter()
             try:
-                d = self.aggregate(feats, image)
+                d, flags = self.aggregate(feats, image), frozenset()
             except DescriptorError:
                 if self.local_features(feats)[0].shape[0] > self.num_clusters:
                     raise
-                self.low_texture_keys.add(view.key)  # too few keypoints: no content to describe
-                d = self._placeholder(view.key)
+                # too few keypoints: no content to describe
+                d, flags = self._placeholder(view.key), frozenset({"low-texture"})
+        if timed:
             self.last_timings_s = {"encode": t1 - t0, "descriptor": time.perf_counter() - t1}
-        self._cache[ck] = d
-        while len(self._cache) > int(self.conf["cache_size"]):
-            self._cache.popitem(last=False)
-        return d.copy()
+        self._cache.put(ck, (d, flags))
+        return d, flags
 
     def _placeholder(self, key: Hashable) -> np.ndarray:
         seed = zlib.crc32(repr(key).encode()) ^ 0x5A1AD

@@ -27,6 +27,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..config import merge_conf
 from ..errors import CerpeError
 
 
@@ -136,10 +137,7 @@ class DinoVisionTransformer(nn.Module):
 
     def __init__(self, **conf: Any) -> None:
         super().__init__()
-        unknown = set(conf) - set(self.default_conf)
-        if unknown:
-            raise DinoV2Error(f"DinoVisionTransformer: unknown config keys {sorted(unknown)}")
-        c = {**self.default_conf, **conf}
+        c = merge_conf(self.default_conf, conf, "DINOv2 conf")
         if c["preset"] not in DINOV2_PRESETS:
             raise DinoV2Error(f"DINOv2 preset {c['preset']!r} not supported; choose one of {sorted(DINOV2_PRESETS)}")
         for k, v in DINOV2_PRESETS[c["preset"]].items():

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..config import merge_conf
 from ..protocols import FrameContext, View
 from .paper_profile import (
     PaperModelError,
@@ -181,7 +182,7 @@ class Metric3DDepth:
     }
 
     def __init__(self, conf: Mapping[str, Any] | None = None, model: torch.nn.Module | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "Metric3D conf")
         self.device = select_device(self.conf["device"])
         if model is None:
             if not self.conf["repo"] or not self.conf["checkpoint"]:

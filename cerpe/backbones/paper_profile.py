@@ -30,6 +30,7 @@ from typing import Any, Mapping
 
 import torch
 
+from ..config import merge_conf
 from ..errors import CerpeError
 
 logger = logging.getLogger(__name__)
@@ -49,9 +50,10 @@ PAPER_PARAMETERS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2, "L
 default_conf: dict[str, Any] = {
     "device": "auto",  # auto | cpu | cuda | cuda:N
     "weights_dir": None,  # default: $CERPE_WEIGHTS_DIR
-    "salad": {"checkpoint": None},  # default: <weights_dir>/dino_salad.ckpt
-    "vggt": {"checkpoint": None},  # default: <weights_dir>/model.pt | model.safetensors
-    "metric3d": {"checkpoint": None, "repo": None, "model": "metric3d_vit_small"},
+    # each model's own conf, checked by its adapter (open here); a checkpoint not given is looked up:
+    "salad": {},  # SaladDinoV2Descriptor; checkpoint: <weights_dir>/dino_salad.ckpt
+    "vggt": {},  # VGGTBackbone; checkpoint: <weights_dir>/model.pt | model.safetensors
+    "metric3d": {},  # Metric3DDepth; repo: $CERPE_METRIC3D_REPO, model: metric3d_vit_small
     "depth": "metric3d",  # or any cerpe.backbones.depth source name (sensor on real robots)
     "depth_conf": {},
     "check_memory": True,
@@ -77,14 +79,6 @@ APPROX_BYTES: dict[str, float] = {
 
 
 # ----------------------------------------------------------------------------- helpers
-def merge_conf(base: Mapping[str, Any], over: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Nested dict merge (``over`` wins); unknown keys are kept."""
-    out = dict(base)
-    for k, v in (over or {}).items():
-        out[k] = merge_conf(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
-    return out
-
-
 def select_device(name: str = "auto") -> torch.device:
     """``auto`` -> CUDA when available, else CPU; otherwise ``torch.device(name)``.
 
@@ -280,7 +274,7 @@ def check_paper_requirements(conf: Mapping[str, Any] | None = None) -> list[str]
     size), the local Metric3D clone, and memory for VGGT-1B on the chosen device.
     Nothing is loaded.
     """
-    conf = merge_conf(default_conf, conf)
+    conf = merge_conf(default_conf, conf, "paper profile conf")
     problems: list[str] = []
     paths = _paths(conf)
 
@@ -355,7 +349,7 @@ def build_paper(conf: Mapping[str, Any] | None = None) -> tuple[Any, Any, Any]:
     other than ``metric3d`` (e.g. ``sensor`` for real robots) is built by
     :func:`cerpe.backbones.depth.build_depth_source`.
     """
-    conf = merge_conf(default_conf, conf)
+    conf = merge_conf(default_conf, conf, "paper profile conf")
     require_paper(conf)
     from .metric3d import Metric3DDepth
     from .salad_dinov2 import SaladDinoV2Descriptor

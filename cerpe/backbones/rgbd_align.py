@@ -35,7 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from ..config import merge_conf
 from ..errors import CerpeError
+from ..geometry import se3_inverse
 __all__ = ["RGBDAlignError", "AlignResult", "default_conf", "grey_image", "align_rgbd"]
 
 
@@ -340,7 +342,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
         reason), only for malformed input.
     """
-    c = {**default_conf, **(conf or {})}
+    c = merge_conf(default_conf, conf, "align_rgbd conf")
     T0 = np.asarray(T_cur_ref, np.float64)
     if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
         raise RGBDAlignError(f"align_rgbd: T_cur_ref must be a finite [4,4], got {T0.shape}")
@@ -401,7 +403,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     result.inlier_ratio = float(np.mean(np.abs(rI / fine_scales[0]) <= 3.0))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    D = T @ np.linalg.inv(T0)
+    D = T @ se3_inverse(T0)
     result.change_m = float(np.linalg.norm(D[:3, 3]))
     result.change_deg = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
     if not np.all(np.isfinite(T)):

@@ -38,6 +38,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..config import merge_conf
 from ..errors import CerpeError
 
 
@@ -182,10 +183,7 @@ class SALADHead(nn.Module):
 
     def __init__(self, **conf: Any) -> None:
         super().__init__()
-        unknown = set(conf) - set(self.default_conf)
-        if unknown:
-            raise SaladError(f"SALADHead: unknown config keys {sorted(unknown)}")
-        self.conf = {**self.default_conf, **conf}
+        self.conf = merge_conf(self.default_conf, conf, "SALADHead conf")
         c = self.conf
         C, h = c["num_channels"], c["hidden_dim"]
         drop: nn.Module = nn.Dropout(c["dropout"]) if c["dropout"] > 0 else nn.Identity()

@@ -27,6 +27,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..config import merge_conf
 from ..protocols import View
 from .dinov2 import DinoVisionTransformer
 from .paper_profile import (
@@ -137,14 +138,14 @@ class SaladDinoV2Descriptor:
         "checkpoint": None,
         "device": "auto",
         "image_size": (322, 322),
-        "dinov2": {"preset": "dinov2_vitb14"},
+        "dinov2": dict(DinoVisionTransformer.default_conf),  # preset dinov2_vitb14
         "head": {},  # SALADHead overrides; official: 64 clusters x 128 + 256
         "thresholds": {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2},
         "batch_size": 8,
     }
 
     def __init__(self, conf: Mapping[str, Any] | None = None, model: SaladDinoV2Model | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "SALAD/DINOv2 conf")
         self.device = select_device(self.conf["device"])
         if model is None:
             if not self.conf["checkpoint"]:

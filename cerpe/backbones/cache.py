@@ -1,0 +1,78 @@
+"""One small LRU cache and the content key the plug-ins' caches are keyed by.
+
+A plug-in may cache work per image (features, descriptors, matches) but a cache hit
+must equal a recomputation: keys are built from what the result depends on, the
+pixels (:func:`content_key`), never from a view's name alone, so two encounters that
+reuse the keys ``(robot, step)`` with other pixels never share an entry.
+"""
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from typing import Generic, Hashable, TypeVar
+
+import numpy as np
+
+__all__ = ["LRUCache", "content_key"]
+
+V = TypeVar("V")
+
+
+def content_key(array: np.ndarray) -> bytes:
+    """16-byte digest (SHA-256) of an array's shape, dtype and values.
+
+    Equal arrays give equal keys; different ones collide with odds of 2^-64 per pair.
+    SHA-256 runs at the speed of a CRC on CPUs with SHA extensions (~0.6 ms for a
+    640x480 RGB image).
+    """
+    a = np.ascontiguousarray(array)
+    h = hashlib.sha256(f"{a.shape}|{a.dtype.str}|".encode())
+    h.update(a.reshape(-1).view(np.uint8))
+    return h.digest()[:16]
+
+
+class LRUCache(Generic[V]):
+    """A bounded mapping that forgets the least recently used entry first (thread-safe).
+
+    Args:
+        maxsize: entries kept (0: nothing is kept).
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        self.maxsize = max(int(maxsize), 0)
+        self._data: OrderedDict[Hashable, V] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: Hashable) -> V | None:
+        """The value under ``key`` (now the most recently used), or None."""
+        with self._lock:
+            value = self._data.get(key)
+            if value is None:
+                self.misses += 1
+            else:
+                self._data.move_to_end(key)
+                self.hits += 1
+            return value
+
+    def put(self, key: Hashable, value: V) -> None:
+        """Store ``value`` under ``key``; drop the oldest entries beyond ``maxsize``."""
+        with self._lock:
+            self._data[key] = value
+            self._data.move_to_end(key)
+            while len(self._data) > self.maxsize:
+                self._data.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._data.clear()
+
+    def __contains__(self, key: Hashable) -> bool:
+        with self._lock:
+            return key in self._data
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._data)

@@ -1,0 +1,136 @@
+"""What one pass of the offline backbone works on, and the memo it hands back about its current view.
+
+:class:`Pass` bundles the views of one ``infer`` call with their features, intrinsics,
+cached matches, configuration and counters; :class:`Recon` is a reconstruction
+(points and placed views). The backbone keeps nothing about a robot between calls:
+what a later pass needs about the current view once it is a keyframe or the
+previous frame leaves in its memo (``BackboneOutput.memos[0]``) and comes back as
+``View.memo``:
+
+* ``image``: the view's content key, checked on the way back (a memo handed back
+  with other pixels is an error, not a silently wrong prior);
+* ``chain``: the motion that placed the view on its depth-prior view, then the one
+  that placed that view on its own, ...: ``((anchor key, T_view_anchor), ...)``,
+  newest first, at most ``vote_chain_hops`` (at least one) hops. The first hop is
+  the constant-velocity prior; the chain reaches older keyframes that vote too;
+* ``moving``: ``[n_grid] bool`` vote-grid pixels of the view that its motion did not
+  explain (a moving object), or None.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Hashable, Mapping, Sequence
+
+import numpy as np
+
+from ...protocols import BackboneError, View
+from ..xfeat import XFeatFeatures
+from .matching import PairMatcher
+
+MEMO_FIELDS = ("image", "chain", "moving")
+
+Chain = tuple[tuple[Hashable, np.ndarray], ...]
+
+
+class OfflineBackboneError(BackboneError):
+    """A view the offline backbone cannot take at all (no intrinsics, malformed image, a foreign memo)."""
+
+
+@dataclass
+class Recon:
+    """Points and placed views of one reconstruction (frame: its anchor view's camera).
+
+    Attributes:
+        X: ``[P,3]`` points in the frame.
+        T: view index -> ``T_frame_view [4,4]`` (metric up to the pass's unit).
+        obs: view index -> ``(point ids [M], keypoint ids [M])`` of that view.
+        pair: the two views that made the points (anchor first).
+        metric: the unit is the metre (the points came from a depth prior).
+    """
+
+    X: np.ndarray
+    T: dict[int, np.ndarray] = field(default_factory=dict)
+    obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pair: tuple[int, int] = (0, 0)
+    metric: bool = False
+
+    def kp_to_pt(self, s: int, n_kp: int) -> np.ndarray:
+        """``[n_kp]`` point id of each keypoint of view ``s`` (-1: none)."""
+        a = np.full(n_kp, -1, np.int64)
+        if s in self.obs:
+            ids, kp = self.obs[s]
+            a[kp] = ids
+        return a
+
+
+def check_memo(view: View, s: int, feats: XFeatFeatures) -> Mapping[str, Any] | None:
+    """``view.memo`` when it is this backbone's memo of these pixels, None when there is none.
+
+    Raises:
+        OfflineBackboneError: a memo of another backbone or of another image.
+    """
+    memo = view.memo
+    if memo is None:
+        return None
+    if not isinstance(memo, Mapping) or any(k not in memo for k in MEMO_FIELDS):
+        raise OfflineBackboneError(f"offline backbone: view {s} (key {view.key!r}) carries a memo that is not "
+                                   f"this backbone's (fields {', '.join(MEMO_FIELDS)})")
+    if memo["image"] != feats.fingerprint:
+        raise OfflineBackboneError(f"offline backbone: view {s} (key {view.key!r}) carries the memo of "
+                                   f"another image")
+    return memo
+
+
+@dataclass
+class Pass:
+    """The inputs of one pass, shared by the helpers of the package."""
+
+    views: Sequence[View]
+    feats: list[XFeatFeatures]
+    Ks: list[np.ndarray]
+    cams: list[dict]
+    low_tex: list[bool]
+    conf: dict[str, Any]
+    matcher: PairMatcher
+    memos: list[Mapping[str, Any] | None] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    # (a, b) -> essential-matrix result of views a and b (the depth-anchored and the
+    # image-only solves of one pass ask for the same pairs)
+    relative: dict[tuple[int, int], tuple[np.ndarray | None, np.ndarray, str]] = field(default_factory=dict)
+    # events of this pass: "dense-refined", "dense-refused:<reason>", "merged", "merge-refused:<reason>"
+    counts: Counter = field(default_factory=Counter)
+    memo_out: dict[str, Any] | None = None  # the memo of view 0, once a depth prior placed it
+
+    def m(self, a: int, b: int) -> np.ndarray:
+        """``[M,2]`` keypoint index pairs between views ``a`` and ``b`` (empty for low texture)."""
+        if self.low_tex[a] or self.low_tex[b]:
+            return np.zeros((0, 2), np.int64)
+        return self.matcher(self.feats[a], self.feats[b])
+
+    def ransac(self, **extra: float) -> dict[str, float]:
+        """poselib RANSAC options with this pass's iteration bounds."""
+        return {"min_iterations": int(self.conf["ransac_min_iterations"]),
+                "max_iterations": int(self.conf["ransac_max_iterations"]), **extra}
+
+    def chain(self, k: int) -> Chain:
+        """The motion chain of view ``k`` from its memo (empty without one)."""
+        memo = self.memos[k] if k < len(self.memos) else None
+        return tuple(memo["chain"]) if memo is not None else ()
+
+    def moving(self, k: int) -> np.ndarray | None:
+        """The moving-pixel grid mask of view ``k`` from its memo (None without one)."""
+        memo = self.memos[k] if k < len(self.memos) else None
+        return None if memo is None or memo["moving"] is None else np.asarray(memo["moving"], bool)
+
+    def remember(self, d: int, T_cur_d: np.ndarray, moving: np.ndarray | None) -> None:
+        """Set the memo of view 0, placed on view ``d`` by ``T_cur_d`` (camera-``d`` points
+        into the current camera), with its moving-pixel mask."""
+        T = np.array(T_cur_d, np.float64)
+        T.setflags(write=False)
+        if moving is not None:
+            moving = np.array(moving, bool)
+            moving.setflags(write=False)
+        hops = max(int(self.conf["vote_chain_hops"]), 1)
+        chain = ((self.views[d].key, T),) + self.chain(d)[:hops - 1]
+        self.memo_out = {"image": self.feats[0].fingerprint, "chain": chain, "moving": moving}

@@ -1,0 +1,142 @@
+"""The motion vote: which rigid motion of the current view the static scene supports.
+
+RANSAC on keypoints can be won by whatever holds most keypoints: a textured object
+that moves, or a facade of repeated windows matched one period off. The vote counts
+surfaces instead: every ``vote_stride``-th pixel of the depth-prior view, moved by
+each candidate motion into the current view, counts for the motions under which it
+lands on a consistent depth *and* grey level (depth alone cannot tell forward motion
+over a flat floor from standing still; grey level alone cannot tell motions apart
+over blank walls). Older keyframes reached through the memos' motion chains vote
+too: an object that moved with the camera agrees with a wrong motion in the newest
+frame only. Pixels a view's own motion did not explain (its memo's ``moving`` mask)
+do not vote.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ..rgbd_align import grey_image
+from .context import Pass
+from .matching import map_index, pixels_to_rays
+
+
+def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
+                exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """View ``a``'s prior depth pixels on the ``vote_stride`` grid, moved into view ``b``
+    by each ``T_b_a[h]``: ``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool.
+
+    ``inside``: in front of ``b`` and within its image; ``consistent``: also ``b``'s prior
+    depth there within ``vote_depth_tol`` (relative) and its grey level (both images
+    blurred with ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a
+    prior depth, or set in ``exclude`` (``[n_grid]`` bool), are neither."""
+    import cv2
+
+    c = p.conf
+    Da = np.asarray(p.views[a].depth_m, np.float64)
+    Db = np.asarray(p.views[b].depth_m, np.float64)
+    st = max(int(c["vote_stride"]), 1)
+    sigma = float(c["vote_blur_sigma"])
+    grey = [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
+            else grey_image(p.views[k].image) for k in (a, b)]
+    H, W = p.feats[a].image_hw
+    Hb, Wb = p.feats[b].image_hw
+    hb, wb = Db.shape
+    vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
+    vv, uu = vv.ravel(), uu.ravel()
+    z = Da[map_index(vv.astype(np.float64), Da.shape[0], H), map_index(uu.astype(np.float64), Da.shape[1], W)]
+    ok = np.isfinite(z) & (z > 0)
+    if exclude is not None and exclude.shape == ok.shape:
+        ok &= ~exclude
+    sel = np.flatnonzero(ok)
+    uv = np.column_stack([uu[sel], vv[sel]]).astype(np.float64)
+    g_a = grey[0][vv[sel], uu[sel]]
+    X = pixels_to_rays(uv, p.Ks[a]) * z[sel, None]
+    inside = np.zeros((len(T_b_a), len(ok)), bool)
+    consistent = np.zeros((len(T_b_a), len(ok)), bool)
+    g_b = grey[1]
+    for h, T in enumerate(T_b_a):
+        Xb = X @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pr = Xb @ p.Ks[b].T
+            ub, vb = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
+        ins = (Xb[:, 2] > 0) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
+        inside[h, sel] = ins
+        ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
+        meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
+        x0, y0 = np.minimum(ub.astype(np.int64), Wb - 2), np.minimum(vb.astype(np.int64), Hb - 2)
+        ax, ay = ub - x0, vb - y0
+        g = ((1 - ax) * (1 - ay) * g_b[y0, x0] + ax * (1 - ay) * g_b[y0, x0 + 1]
+             + (1 - ax) * ay * g_b[y0 + 1, x0] + ax * ay * g_b[y0 + 1, x0 + 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
+        consistent[h, sel[ins]] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
+    return inside, consistent
+
+
+def motion_votes(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
+    """``[len(T_0_d)]`` counts of view ``d``'s grid pixels consistent under each motion
+    ``T_0_d[h]`` (camera-``d`` points into the current camera). Only pixels that every
+    motion keeps in view vote (the floor just below a camera moving forward leaves the
+    image and would otherwise count for standing still only); ``d``'s moving pixels do not."""
+    if not T_0_d:
+        return np.zeros(0, np.int64)
+    inside, consistent = consistency(p, d, 0, T_0_d, exclude=p.moving(d))
+    return np.count_nonzero(consistent & inside.all(axis=0), axis=1).astype(np.int64)
+
+
+def chained_views(p: Pass, d: int) -> list[tuple[int, np.ndarray]]:
+    """Other views of the pass with a depth prior whose pose relative to view ``d`` the
+    motion chain of ``d``'s memo gives: ``[(k, T_d_k)]``, at most ``vote_views``, reached
+    within ``vote_chain_hops`` hops."""
+    want = int(p.conf["vote_views"])
+    if want <= 0:
+        return []
+    index = {p.views[k].key: k for k in range(1, len(p.views))
+             if k != d and p.views[k].depth_m is not None and not p.low_tex[k]}
+    out: list[tuple[int, np.ndarray]] = []
+    T_d_key = np.eye(4)
+    for key, T_key_anchor in p.chain(d)[:int(p.conf["vote_chain_hops"])]:
+        T_d_key = T_d_key @ T_key_anchor
+        if key in index:
+            out.append((index[key], T_d_key.copy()))
+            if len(out) >= want:
+                break
+    return out
+
+
+def choose_motion(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> int:
+    """Index of the motion (camera-``d`` points into the current camera) with the most votes
+    of view ``d`` and of the views its chain reaches."""
+    votes = motion_votes(p, d, T_0_d)
+    for k, T_d_k in chained_views(p, d):
+        votes = votes + motion_votes(p, k, [T @ T_d_k for T in T_0_d])
+    return int(np.argmax(votes))
+
+
+def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray) -> np.ndarray | None:
+    """``[n_grid] bool``: the current view's grid pixels that the chosen motion ``T_d_0``
+    (current-camera points into camera ``d``) does not explain against view ``d`` (a moving
+    object, mostly); None when ``mask_moving`` is off or the current view has no prior."""
+    if not p.conf["mask_moving"] or p.views[0].depth_m is None:
+        return None
+    inside, consistent = consistency(p, 0, d, [T_d_0])
+    return inside[0] & ~consistent[0]
+
+
+def grid_mask_image(grid: np.ndarray, image_hw: tuple[int, int], stride: int) -> np.ndarray:
+    """``[H,W]`` bool image of a ``[n_grid]`` mask on the ``stride`` grid of :func:`consistency`,
+    each grid pixel covering its cell. Lone grid pixels (a grey level off at a texture
+    edge, sensor noise) are dropped by an opening; what is left, an object, grows by one
+    cell (its outline falls between grid pixels)."""
+    import cv2
+
+    H, W = image_hw
+    st = max(int(stride), 1)
+    gh, gw = len(range(st // 2, H, st)), len(range(st // 2, W, st))
+    box = np.ones((3, 3), np.uint8)
+    cells = cv2.morphologyEx(np.asarray(grid, np.uint8).reshape(gh, gw), cv2.MORPH_OPEN, box)
+    cells = cv2.dilate(cells, box)
+    rows, cols = np.minimum(np.arange(H) // st, gh - 1), np.minimum(np.arange(W) // st, gw - 1)
+    return cells[rows[:, None], cols[None, :]].astype(bool)
