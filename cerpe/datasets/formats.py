@@ -308,6 +308,34 @@ def image_size(path: Path) -> tuple[int, int] | None:
     return int(img.shape[1]), int(img.shape[0])
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_header(path: Path) -> tuple[int, int, int, int] | None:
+    """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk (24 bytes read), None if not a PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+    except OSError:
+        return None
+    if len(head) < 26 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), head[24], head[25]
+
+
+def depth_bits(path: Path) -> int | None:
+    """Bits per depth value stored in an image file (PNG header, else decoded); None for arrays or undecodable files."""
+    if Path(path).suffix.lower() == ".npy":
+        return None
+    hdr = png_header(path)
+    if hdr is not None:
+        return hdr[2]
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return None if img is None else int(img.dtype.itemsize * 8)
+
+
 def format_tum(stamps_s: np.ndarray, T: np.ndarray,
                header: str = "timestamp tx ty tz qx qy qz qw", stamp_decimals: int = 9) -> str:
     """TUM trajectory text, ``stamp tx ty tz qx qy qz qw`` per pose ``T [N,4,4]``.

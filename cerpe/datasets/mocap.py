@@ -286,7 +286,9 @@ def load_encounter(m: Manifest, e: int, enc: dict, report: LoadReport) -> Encoun
             return None
     try:
         return Encounter(name=name, robots=streams, overlap=overlap,
-                         meta={"sync": mode, "manifest": str(m.path), **(enc.get("meta") or {})})
+                         meta={"sync": mode, "manifest": str(m.path),
+                               "robot_fields": {d.rid: f"{fe}.robots[{r}]" for r, d in enumerate(datas)},
+                               **(enc.get("meta") or {})})
     except SceneError as exc:
         report.add(Problem(str(m.path), fe, str(exc)))
         return None
