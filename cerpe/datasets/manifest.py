@@ -122,6 +122,18 @@ class Manifest:
 
 
 # --------------------------------------------------------------------------- helpers
+def project_root() -> Path:
+    """The source checkout holding this package (where ``build/`` lives), else the working directory."""
+    here = Path(__file__).resolve().parents[2]
+    return here if (here / "pyproject.toml").is_file() else Path.cwd()
+
+
+def cache_base() -> Path:
+    """Where derived data is cached: ``$CERPE_CACHE``, else ``build/`` in the checkout."""
+    env = os.environ.get("CERPE_CACHE")
+    return Path(env).expanduser().resolve() if env else project_root() / "build"
+
+
 def expand_vars(text: str) -> tuple[str, list[str]]:
     """Expand ``${VAR}`` from the environment; returns the text and the unset names."""
     missing: list[str] = []
