@@ -329,3 +329,28 @@ def test_frames_bad_input_names_file_and_line(tmp_path: Path, case: str) -> None
     if case == "bad-intrinsics":
         assert "line 3" in msg
     assert check_one(str(m), None, True, False, out=io.StringIO())  # cerpe check lists it too, no traceback
+
+
+def _enabled_copy(template: str, tmp: Path) -> Path:
+    """A committed template with ``enabled: true`` (its data_root still from the environment)."""
+    src = Path(__file__).resolve().parents[1] / "datasets_manifest" / template
+    out = tmp / template
+    out.write_text(src.read_text().replace("enabled: false", "enabled: true"))
+    return out
+
+
+def test_templates_load_once_their_root_is_filled(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in ("rgbd_dataset_freiburg1_desk", "rgbd_dataset_freiburg1_desk2"):
+        seq = write_tum(tmp_path / "tum" / name, n=7)
+        for kind, arr in (("rgb", np.zeros((480, 640, 3), np.uint8)), ("depth", np.full((480, 640), 9000, np.uint16))):
+            for p in (seq / kind).iterdir():
+                cv2.imwrite(str(p), arr)
+    write_frames(tmp_path / "7s" / "chess" / "seq-01", range(9))
+    write_frames(tmp_path / "7s" / "chess" / "seq-02", range(7))
+    monkeypatch.setenv("TUM_ROOT", str(tmp_path / "tum"))
+    monkeypatch.setenv("SEVEN_SCENES_ROOT", str(tmp_path / "7s"))
+    (enc,) = load_setting(_enabled_copy("tum-rgbd-desk.yaml", tmp_path)).encounters
+    assert enc.robot_ids == ["desk", "desk2"] and enc.n_steps == 3  # 7 frames, stride 3
+    assert enc.robots[0].intrinsics.width == 640 and enc.robots[0].intrinsics.fx != 517.3  # fr1, undistorted
+    (enc,) = load_setting(_enabled_copy("seven-scenes-chess.yaml", tmp_path)).encounters
+    assert enc.robot_ids == ["seq-01", "seq-02"] and enc.n_steps == 3

@@ -8,8 +8,11 @@ Public API::
 
 Adapters: ``mocap`` (image folders + TUM/EuRoC/CSV trajectories; also what
 ``cerpe synth`` writes), ``openmars`` (nuScenes-format multi-agent tables),
-``synthetic`` (generate a suite on demand, then ``mocap``), ``example`` (a
-KITTI-odometry-style template); more through the ``cerpe.adapters`` entry points.
+``synthetic`` (generate a suite on demand, then ``mocap``), ``tum-rgbd`` (TUM RGB-D
+sequences), ``frames`` (7-Scenes / 3DMatch / SUN3D frame folders), ``pairs``
+(SuperGlue / LoFTR pair lists), ``example`` (a KITTI-odometry-style template); more
+through the ``cerpe.adapters`` entry points. Ground-truth co-visibility from depth
+and poses: :mod:`cerpe.datasets.covisibility`; downloads: ``cerpe data``.
 """
 from __future__ import annotations
 
