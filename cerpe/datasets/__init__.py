@@ -8,8 +8,11 @@ Public API::
 
 Adapters: ``mocap`` (image folders + TUM/EuRoC/CSV trajectories; also what
 ``cerpe synth`` writes), ``openmars`` (nuScenes-format multi-agent tables),
-``synthetic`` (generate a suite on demand, then ``mocap``), ``example`` (a
-KITTI-odometry-style template); more through the ``cerpe.adapters`` entry points.
+``synthetic`` (generate a suite on demand, then ``mocap``), ``tum-rgbd`` (TUM RGB-D
+sequences), ``frames`` (7-Scenes / 3DMatch / SUN3D frame folders), ``pairs``
+(SuperGlue / LoFTR pair lists), ``example`` (a KITTI-odometry-style template); more
+through the ``cerpe.adapters`` entry points. Ground-truth co-visibility from depth
+and poses: :mod:`cerpe.datasets.covisibility`; downloads: ``cerpe data``.
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ from .registry import Adapter, get_adapter, known_adapters, register_adapter
 from .report import LoadReport
 
 __all__ = [
-    "Adapter", "LoadReport", "Manifest", "ManifestError", "Problem", "find_manifests", "get_adapter",
+    "Adapter", "LoadReport", "Manifest", "ManifestError", "Problem", "disabled_reason", "find_manifests", "get_adapter",
     "known_adapters", "load_manifest", "load_setting", "register_adapter",
 ]
 
@@ -70,8 +73,7 @@ def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None
     """
     manifest = source if isinstance(source, Manifest) else load_manifest(source)
     if not manifest.enabled:
-        raise ManifestError("the manifest is disabled (enabled: false); fill data_root and set enabled: true",
-                            file=str(manifest.path), field="enabled")
+        raise ManifestError(disabled_reason(manifest), file=str(manifest.path), field="enabled")
     report = report if report is not None else LoadReport()
     setting = get_adapter(manifest.adapter, str(manifest.path)).load(manifest, report)
     report.raise_if_problems()
@@ -83,6 +85,14 @@ def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None
     setting.meta["sync_tolerance_s"] = manifest.sync_tolerance_s
     setting.meta["load_report"] = report.as_dict()
     return setting
+
+
+def disabled_reason(manifest: Manifest) -> str:
+    """Why a manifest is not loaded, in words (``enabled: false``, or ``if-present`` without its data)."""
+    if manifest.enabled_if_present:
+        root = manifest.data_root if manifest.data_root is not None else manifest.raw.get("data_root")
+        return f"disabled (not supplied): data_root {root} is not present (enabled: if-present)"
+    return "disabled (not supplied): enabled: false; fill data_root and set enabled: true"
 
 
 def find_manifests(folder: str | os.PathLike) -> list[Manifest]:

@@ -20,16 +20,26 @@ import argparse
 import math
 import sys
 
-from . import LoadReport, ManifestError, load_manifest, load_setting
+from . import LoadReport, ManifestError, disabled_reason, load_manifest, load_setting
 from .summary import summarise, verify_setting
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("manifests", nargs="+", metavar="MANIFEST", help="dataset manifest YAML file(s)")
-    parser.add_argument("--frames", type=int, default=None, metavar="N",
+    parser.add_argument("--frames", type=_at_least_one, default=None, metavar="N",
                         help="decode at most N evenly spaced frames per robot and encounter (default: all)")
     parser.add_argument("--no-verify", action="store_true", help="do not decode image/depth files")
     parser.add_argument("--per-encounter", action="store_true", help="also print one line per encounter")
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {n} (it would check no frame)")
+    return n
 
 
 def _fmt(v: float, spec: str = ".3f", unit: str = "") -> str:
@@ -44,7 +54,7 @@ def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, 
     except ManifestError as exc:
         return [str(p) for p in exc.problems]
     if not manifest.enabled:
-        print(f"{path}: {manifest.name} ({manifest.adapter}): disabled (not supplied); schema OK", file=out)
+        print(f"{path}: {manifest.name} ({manifest.adapter}): {disabled_reason(manifest)}; schema OK", file=out)
         return []
     report = LoadReport()
     try:

@@ -1,12 +1,14 @@
 """Readers for the small text files datasets come with; every error names file, field and line.
 
-* trajectories: TUM (``stamp_s tx ty tz qx qy qz qw``), EuRoC ground truth CSV
+* trajectories: TUM (``stamp_s tx ty tz qx qy qz qw``; a first row of column names is skipped), EuRoC ground truth CSV
   (``#timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z, q_RS_w, q_RS_x, q_RS_y, q_RS_z, ...``)
   and plain CSV with a header naming at least ``stamp_s,tx,ty,tz,qx,qy,qz,qw``;
 * camera intrinsics YAML (``width height fx fy cx cy [distortion]``, or EuRoC's
   ``sensor.yaml`` with ``resolution`` / ``intrinsics`` / ``distortion_coefficients``);
+* small matrix text files (3x3 ``camera-intrinsics.txt``, 4x4 ``frame-*.pose.txt``);
 * a 4x4 extrinsic (``identity``, a 4x4 nested list, or a YAML file with ``T_BS``);
-* image lists: a folder of ``<stamp>.png|jpg`` or a text file of ``stamp path`` lines.
+* image lists: a folder of ``<stamp>.png|jpg`` or a text file of ``stamp path`` lines;
+* image headers (PNG size and bit depth without decoding).
 
 Readers raise :class:`~cerpe.datasets.manifest.ManifestError` with one
 :class:`~cerpe.datasets.manifest.Problem` per bad line (up to a cap).
@@ -85,6 +87,8 @@ def read_trajectory(path: Path, fmt: str, field: str) -> Trajectory:
     wxyz = False
     if fmt == "tum":
         rows = _rows_tum(text)
+        if rows and rows[0][1] and rows[0][1][0].lower().lstrip("#") in ("timestamp", "stamp", "stamp_s", "time"):
+            rows = rows[1:]  # an uncommented column-name header ("timestamp tx ty tz qx qy qz qw")
         cols = list(range(8))
     elif fmt == "euroc":
         rows = _rows_csv(text)
@@ -141,10 +145,11 @@ def read_trajectory(path: Path, fmt: str, field: str) -> Trajectory:
     return Trajectory(np.array([s for s, _ in stamps], dtype=np.float64), T, n_nan)
 
 
-def read_intrinsics(path: Path, field: str) -> CameraIntrinsics:
+def read_camera(path: Path, field: str) -> tuple[CameraIntrinsics, list[float]]:
     """Read ``camera.yaml`` (``width height fx fy cx cy [distortion]``) or EuRoC ``sensor.yaml``.
 
-    Non-zero distortion raises: every consumer assumes undistorted pinhole images.
+    Returns the pinhole intrinsics and the distortion coefficients as written
+    (OpenCV order ``k1 k2 p1 p2 [k3 ...]``; ``[]`` when absent).
     """
     f = str(path)
     doc = read_yaml(path, "camera intrinsics", field)
@@ -169,15 +174,59 @@ def read_intrinsics(path: Path, field: str) -> CameraIntrinsics:
         dist = []
     if not isinstance(dist, list) or not all(is_number(d) for d in dist):
         probs.append(Problem(f, f"{field}.distortion", f"expected a list of numbers, got {dist!r}"))
-    elif any(abs(float(d)) > 1e-12 for d in dist):
-        probs.append(Problem(f, f"{field}.distortion", f"non-zero distortion {dist}: images must be undistorted first (cerpe assumes pinhole images)"))
     if probs:
         raise ManifestError(probs)
     try:
-        return CameraIntrinsics(fx=float(vals["fx"]), fy=float(vals["fy"]), cx=float(vals["cx"]), cy=float(vals["cy"]),
-                                width=int(vals["width"]), height=int(vals["height"]))
+        K = CameraIntrinsics(fx=float(vals["fx"]), fy=float(vals["fy"]), cx=float(vals["cx"]), cy=float(vals["cy"]),
+                             width=int(vals["width"]), height=int(vals["height"]))
     except SceneError as exc:
         raise ManifestError([Problem(f, field, str(exc))]) from None
+    return K, [float(d) for d in dist]
+
+
+def read_intrinsics(path: Path, field: str) -> CameraIntrinsics:
+    """Read a pinhole camera file (see :func:`read_camera`).
+
+    Non-zero distortion raises: every consumer assumes undistorted pinhole images
+    (the ``tum-rgbd`` adapter undistorts itself and reads :func:`read_camera`).
+    """
+    K, dist = read_camera(path, field)
+    if any(abs(d) > 1e-12 for d in dist):
+        raise ManifestError([Problem(str(path), f"{field}.distortion", f"non-zero distortion {dist}: images must be undistorted first (cerpe assumes pinhole images)")])
+    return K
+
+
+def read_matrix(path: Path, field: str, shape: tuple[int, int], what: str) -> np.ndarray:
+    """A whitespace-separated ``rows x cols`` matrix file (``#`` comments); errors name file and line.
+
+    E.g. 3DMatch/SUN3D ``camera-intrinsics.txt`` (3x3) and 7-Scenes ``frame-*.pose.txt`` (4x4).
+    Non-finite entries are kept (callers decide what they mean).
+    """
+    f = str(path)
+    if not path.is_file():
+        raise ManifestError([Problem(f, field, f"{what} file not found")])
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError([Problem(f, field, f"cannot read {what}: {exc}")]) from None
+    rows, cols = shape
+    out: list[list[float]] = []
+    for k, ln in enumerate(text.splitlines(), 1):
+        if not ln.strip() or ln.lstrip().startswith("#"):
+            continue
+        parts = ln.split()
+        if len(out) == rows:
+            raise ManifestError([Problem(f, f"{field} line {k}", f"{what}: more than {rows} rows (expected a {rows}x{cols} matrix)")])
+        if len(parts) != cols:
+            raise ManifestError([Problem(f, f"{field} line {k}", f"{what}: expected {cols} numbers, got {len(parts)}")])
+        try:
+            out.append([float(x) for x in parts])
+        except ValueError:
+            raise ManifestError([Problem(f, f"{field} line {k}", f"{what}: not a number in {parts}")]) from None
+    if len(out) != rows:
+        n_lines = len(text.splitlines())
+        raise ManifestError([Problem(f, f"{field} line {n_lines + 1}", f"{what}: {len(out)} rows, expected a {rows}x{cols} matrix")])
+    return np.array(out, dtype=np.float64)
 
 
 def parse_transform(value: Any, field: str, manifest_file: str, resolve=None) -> np.ndarray:
@@ -227,61 +276,82 @@ def parse_stamp(text: str, units: str) -> float:
     return float(text) * STAMP_UNITS[units]
 
 
+def read_list_file(path: Path, field: str, units: str = "s") -> tuple[np.ndarray, list[Path], list[int]]:
+    """A text file of ``stamp path`` lines (TUM's ``rgb.txt``/``depth.txt``; ``#`` comments).
+
+    Paths are relative to the file's folder; stamps must increase. Returns the
+    stamps (seconds), the resolved paths and each entry's line number.
+    """
+    f = str(path)
+    if not path.is_file():
+        raise ManifestError([Problem(f, field, "list file not found")])
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError([Problem(f, field, f"cannot read image list: {exc}")]) from None
+    probs: list[Problem] = []
+    stamps: list[float] = []
+    paths: list[Path] = []
+    lines: list[int] = []
+    for k, ln in enumerate(text.splitlines(), 1):
+        if not ln.strip() or ln.lstrip().startswith("#"):
+            continue
+        parts = ln.split()
+        if len(parts) < 2:
+            probs.append(Problem(f, f"{field} line {k}", "expected 'stamp path'"))
+            continue
+        try:
+            s = parse_stamp(parts[0], units)
+        except ValueError:
+            probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]!r} is not a number"))
+            continue
+        if not np.isfinite(s):
+            probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]!r} is not finite"))
+            continue
+        if stamps and s <= stamps[-1]:
+            probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]} is not after the previous line's (stamps must increase)"))
+        stamps.append(s)
+        paths.append((path.parent / parts[1]).resolve())
+        lines.append(k)
+        if len(probs) >= MAX_LINE_PROBLEMS:
+            break
+    if probs:
+        raise ManifestError(probs)
+    if not stamps:
+        raise ManifestError([Problem(f, field, "no 'stamp path' lines found")])
+    return np.array(stamps, dtype=np.float64), paths, lines
+
+
 def list_images(path: Path, field: str, units: str = "s") -> tuple[np.ndarray, list[Path]]:
     """Image stamps and files, sorted by stamp.
 
     Args:
         path: a folder of ``<stamp>.png|jpg|jpeg`` (the stem is the stamp) or a text
-            file with ``stamp path`` per line (paths relative to the file's folder;
-            stamps must increase).
+            file with ``stamp path`` per line (see :func:`read_list_file`).
         field: dotted field path for messages.
         units: unit of the stamps in names/lines: ``s``, ``ms``, ``us`` or ``ns``.
     """
     f = str(path)
-    probs: list[Problem] = []
-    if path.is_dir():
-        items = []
-        for p in sorted(path.iterdir()):
-            if p.suffix.lower() not in IMAGE_SUFFIXES:
-                continue
-            try:
-                items.append((parse_stamp(p.stem, units), p))
-            except ValueError:
-                probs.append(Problem(str(p), field, f"image file name must be its stamp in {units} (like 1341847980.722988.png)"))
-        if probs:
-            raise ManifestError(probs[:MAX_LINE_PROBLEMS])
-        items.sort(key=lambda x: x[0])
-        for (a, pa), (b, pb) in zip(items, items[1:]):
-            if b == a:
-                probs.append(Problem(f, field, f"two images with the same stamp: {pa.name}, {pb.name}"))
-    elif path.is_file():
-        items = []
-        try:
-            text = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ManifestError([Problem(f, field, f"cannot read image list: {exc}")]) from None
-        for k, ln in enumerate(text.splitlines(), 1):
-            if not ln.strip() or ln.lstrip().startswith("#"):
-                continue
-            parts = ln.split()
-            if len(parts) < 2:
-                probs.append(Problem(f, f"{field} line {k}", "expected 'stamp path'"))
-                continue
-            try:
-                s = parse_stamp(parts[0], units)
-            except ValueError:
-                probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]!r} is not a number"))
-                continue
-            if not np.isfinite(s):
-                probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]!r} is not finite"))
-                continue
-            if items and s <= items[-1][0]:
-                probs.append(Problem(f, f"{field} line {k}", f"stamp {parts[0]} is not after the previous line's (stamps must increase)"))
-            items.append((s, (path.parent / parts[1]).resolve()))
-            if len(probs) >= MAX_LINE_PROBLEMS:
-                break
-    else:
+    if path.is_file():
+        stamps, paths, _ = read_list_file(path, field, units)
+        return stamps, paths
+    if not path.is_dir():
         raise ManifestError([Problem(f, field, "image folder or list file not found")])
+    probs: list[Problem] = []
+    items = []
+    for p in sorted(path.iterdir()):
+        if p.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        try:
+            items.append((parse_stamp(p.stem, units), p))
+        except ValueError:
+            probs.append(Problem(str(p), field, f"image file name must be its stamp in {units} (like 1341847980.722988.png)"))
+    if probs:
+        raise ManifestError(probs[:MAX_LINE_PROBLEMS])
+    items.sort(key=lambda x: x[0])
+    for (a, pa), (b, pb) in zip(items, items[1:]):
+        if b == a:
+            probs.append(Problem(f, field, f"two images with the same stamp: {pa.name}, {pb.name}"))
     if probs:
         raise ManifestError(probs)
     if not items:
@@ -306,6 +376,55 @@ def image_size(path: Path) -> tuple[int, int] | None:
     if img is None:
         return None
     return int(img.shape[1]), int(img.shape[0])
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_header(path: Path) -> tuple[int, int, int, int] | None:
+    """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk (24 bytes read), None if not a PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+    except OSError:
+        return None
+    if len(head) < 26 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), head[24], head[25]
+
+
+def file_problems(items: Sequence[tuple[Path, str]], what: str, size: tuple[int, int], min_bits: int = 0,
+                  cap: int = 5) -> list[Problem]:
+    """Files among ``(path, field)`` that are missing, or whose PNG header says another size or too few bits.
+
+    Reads 26 bytes per PNG (other formats are checked when decoded, by ``cerpe check``);
+    stops after ``cap`` problems.
+    """
+    probs = []
+    for p, field in items:
+        hdr = png_header(p) if p.is_file() else None
+        if not p.is_file():
+            probs.append(Problem(str(p), field, f"{what} file not found"))
+        elif hdr is not None and hdr[:2] != tuple(size):
+            probs.append(Problem(str(p), field, f"{what} is {hdr[0]}x{hdr[1]}, expected {size[0]}x{size[1]}"))
+        elif hdr is not None and hdr[2] < min_bits:
+            probs.append(Problem(str(p), field, f"{what} is a {hdr[2]}-bit PNG, expected {min_bits}-bit"))
+        if len(probs) >= cap:
+            break
+    return probs
+
+
+def depth_bits(path: Path) -> int | None:
+    """Bits per depth value stored in an image file (PNG header, else decoded); None for arrays or undecodable files."""
+    if Path(path).suffix.lower() == ".npy":
+        return None
+    hdr = png_header(path)
+    if hdr is not None:
+        return hdr[2]
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return None if img is None else int(img.dtype.itemsize * 8)
 
 
 def format_tum(stamps_s: np.ndarray, T: np.ndarray,

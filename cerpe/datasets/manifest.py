@@ -8,7 +8,8 @@ Common fields (adapter-specific ones are checked by the adapter)::
 
     name: synthetic-cad        # str, the setting name (column group of Table I)
     adapter: mocap             # a registered adapter (see cerpe.datasets.registry)
-    enabled: true              # false: the setting is listed as "not supplied"
+    enabled: true              # false: the setting is listed as "not supplied";
+                               # if-present: enabled when data_root exists, else "not supplied"
     data_root: ../build/x      # relative to the manifest file; ${VAR} expands from the environment
     metric_depth: sensor       # sensor | mono-sim | dataset | metric3d | none
     metric_depth_options: {max_m: 40}   # optional keyword options of that source (numbers, booleans, strings)
@@ -32,6 +33,7 @@ import yaml
 from ..errors import CerpeError
 
 METRIC_DEPTH_CHOICES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
+ENABLED_IF_PRESENT = "if-present"  # enabled exactly when data_root exists (e.g. development data)
 COMMON_FIELDS: tuple[str, ...] = (
     "name", "adapter", "enabled", "data_root", "metric_depth", "metric_depth_options", "sync_tolerance_s",
     "evaluation", "encounters", "description",
@@ -80,7 +82,10 @@ class Manifest:
 
     Attributes:
         path: the manifest file (absolute).
-        name, adapter, enabled, metric_depth, sync_tolerance_s: common fields.
+        name, adapter, metric_depth, sync_tolerance_s: common fields.
+        enabled: whether the setting is loaded; for ``enabled: if-present`` it is
+            true exactly when ``data_root`` resolves to an existing folder.
+        enabled_if_present: the manifest said ``enabled: if-present``.
         metric_depth_options: keyword options of the depth source (``{}`` when absent),
             e.g. ``{min_m: 0.5, max_m: 40}`` for an outdoor ``sensor``.
         data_root: absolute data folder (None when it cannot be resolved, which is
@@ -101,6 +106,7 @@ class Manifest:
     encounters: Any
     raw: dict = field(default_factory=dict)
     metric_depth_options: dict = field(default_factory=dict)
+    enabled_if_present: bool = False
 
     def resolve(self, rel: str | os.PathLike) -> Path:
         """A path from the manifest, relative to ``data_root`` (absolute paths pass through)."""
@@ -116,6 +122,18 @@ class Manifest:
 
 
 # --------------------------------------------------------------------------- helpers
+def project_root() -> Path:
+    """The source checkout holding this package (where ``build/`` lives), else the working directory."""
+    here = Path(__file__).resolve().parents[2]
+    return here if (here / "pyproject.toml").is_file() else Path.cwd()
+
+
+def cache_base() -> Path:
+    """Where derived data is cached: ``$CERPE_CACHE``, else ``build/`` in the checkout."""
+    env = os.environ.get("CERPE_CACHE")
+    return Path(env).expanduser().resolve() if env else project_root() / "build"
+
+
 def expand_vars(text: str) -> tuple[str, list[str]]:
     """Expand ``${VAR}`` from the environment; returns the text and the unset names."""
     missing: list[str] = []
@@ -194,8 +212,8 @@ def validate(raw: Any, path: Path, adapter_fields: Iterable[str] | None = ()) ->
     if not isinstance(adapter, str) or not adapter:
         probs.append(Problem(f, "adapter", f"required: the adapter name (a string), got {type_name(adapter)}"))
     enabled = raw.get("enabled", True)
-    if not isinstance(enabled, bool):
-        probs.append(Problem(f, "enabled", f"expected true or false, got {enabled!r}"))
+    if not isinstance(enabled, bool) and enabled != ENABLED_IF_PRESENT:
+        probs.append(Problem(f, "enabled", f"expected true, false or {ENABLED_IF_PRESENT!r}, got {enabled!r}"))
     md = raw.get("metric_depth", "dataset")
     if md not in METRIC_DEPTH_CHOICES:
         probs.append(Problem(f, "metric_depth", f"expected one of {', '.join(METRIC_DEPTH_CHOICES)}, got {md!r}"))
@@ -249,11 +267,14 @@ def build_manifest(raw: dict, path: Path) -> Manifest:
     ev = raw.get("evaluation")
     every = ev.get("every", 1) if isinstance(ev, dict) else 1
     tol = raw.get("sync_tolerance_s", 0.02)
+    if_present = raw.get("enabled", True) == ENABLED_IF_PRESENT
+    enabled = raw.get("enabled", True) is True or (if_present and data_root is not None and data_root.is_dir())
     return Manifest(
         path=path,
         name=str(raw.get("name")),
         adapter=str(raw.get("adapter")),
-        enabled=raw.get("enabled", True) is True,
+        enabled=enabled,
+        enabled_if_present=if_present,
         data_root=data_root,
         metric_depth=str(raw.get("metric_depth", "dataset")),
         # invalid values were reported by validate(); defaults keep adapter checks running

@@ -32,11 +32,13 @@ from typing import Any
 import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
+from . import covisibility
 from .formats import (STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
                       parse_transform, read_intrinsics, read_trajectory)
 from .manifest import Manifest, ManifestError, Problem, is_number, mapping_problems, not_a_mapping, type_name
 from .report import LoadReport
-from .sync import poses_at, synchronise, window_mask
+from .sequence import positive_number, synchronise_robots, validate_encounter_list
+from .sync import check_window, poses_at, window_mask
 
 ENCOUNTER_FIELDS = ("name", "sync", "window_s", "overlap", "robots", "meta")
 ROBOT_FIELDS = (
@@ -46,92 +48,45 @@ ROBOT_FIELDS = (
 SYNC_MODES = ("stamp", "index")
 
 
-def _check_window(v: Any, f: str, field: str) -> list[Problem]:
-    if v is None:
-        return []
-    if not (isinstance(v, list) and len(v) == 2 and all(x is None or is_number(x) for x in v)):
-        return [Problem(f, field, f"expected [start_s, end_s] (numbers or null), got {v!r}")]
-    a, b = v
-    if a is not None and b is not None and (float(a) >= 0) == (float(b) >= 0) and float(b) <= float(a):
-        return [Problem(f, field, f"end {b} must be after start {a}")]
-    return []
+def _check_encounter(enc: dict, f: str, fe: str) -> list[Problem]:
+    probs = check_window(enc.get("window_s"), f, f"{fe}.window_s")
+    if "overlap" in enc and not isinstance(enc["overlap"], str):
+        probs.append(Problem(f, f"{fe}.overlap", f"expected a path to a .npy file, got {type_name(enc['overlap'])}"))
+    return probs
+
+
+def _check_robot(rob: dict, f: str, fr: str) -> list[Problem]:
+    probs = []
+    for k in ("images", "intrinsics"):
+        if not isinstance(rob.get(k), str) or not rob.get(k):
+            probs.append(Problem(f, f"{fr}.{k}", f"required: a path string, got {type_name(rob.get(k))}"))
+    for k in ("trajectory", "depth"):
+        if k in rob and not isinstance(rob[k], str):
+            probs.append(Problem(f, f"{fr}.{k}", f"expected a path string, got {type_name(rob[k])}"))
+    if rob.get("trajectory_format", "tum") not in TRAJECTORY_FORMATS:
+        probs.append(Problem(f, f"{fr}.trajectory_format",
+                             f"expected one of {', '.join(TRAJECTORY_FORMATS)}, got {rob.get('trajectory_format')!r}"))
+    if rob.get("image_stamp_units", "s") not in STAMP_UNITS:
+        probs.append(Problem(f, f"{fr}.image_stamp_units",
+                             f"expected one of {', '.join(STAMP_UNITS)}, got {rob.get('image_stamp_units')!r}"))
+    for k in ("gt_tolerance_s", "interpolate_max_gap_s", "depth_units_per_m"):
+        probs += positive_number(rob, k, f, fr)
+    if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
+        probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
+    tb = rob.get("T_body_cam", "identity")
+    if not (tb == "identity" or isinstance(tb, (list, str))):
+        probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
+    elif isinstance(tb, list):
+        try:
+            parse_transform(tb, f"{fr}.T_body_cam", f)
+        except ManifestError as exc:
+            probs += exc.problems
+    return probs + check_window(rob.get("window_s"), f, f"{fr}.window_s")
 
 
 def validate_encounters(m: Manifest) -> list[Problem]:
     """Structure of a mocap ``encounters`` list (types, required fields, unique names); no file access."""
-    f = str(m.path)
-    encs = m.encounters
-    if not isinstance(encs, list) or not encs:
-        got = "an empty list" if isinstance(encs, list) else type_name(encs)
-        return [Problem(f, "encounters", f"expected a non-empty list of encounters, got {got}")]
-    probs: list[Problem] = []
-    names: set[str] = set()
-    for e, enc in enumerate(encs):
-        fe = f"encounters[{e}]"
-        unknown = mapping_problems(enc, f, fe, ENCOUNTER_FIELDS)
-        if unknown is None:
-            probs.append(not_a_mapping(enc, f, fe))
-            continue
-        probs += unknown
-        name = enc.get("name")
-        if not isinstance(name, str) or not name:
-            probs.append(Problem(f, f"{fe}.name", f"required: a non-empty string, got {type_name(name)}"))
-        elif name in names:
-            probs.append(Problem(f, f"{fe}.name", f"duplicate encounter name {name!r}"))
-        else:
-            names.add(name)
-        if enc.get("sync", "stamp") not in SYNC_MODES:
-            probs.append(Problem(f, f"{fe}.sync", f"expected one of {', '.join(SYNC_MODES)}, got {enc.get('sync')!r}"))
-        probs += _check_window(enc.get("window_s"), f, f"{fe}.window_s")
-        if "overlap" in enc and not isinstance(enc["overlap"], str):
-            probs.append(Problem(f, f"{fe}.overlap", f"expected a path to a .npy file, got {type_name(enc['overlap'])}"))
-        robots = enc.get("robots")
-        if not isinstance(robots, list) or len(robots) < 2:
-            n = len(robots) if isinstance(robots, list) else type_name(robots)
-            probs.append(Problem(f, f"{fe}.robots", f"expected a list of at least 2 robots, got {n}"))
-            continue
-        ids: set[str] = set()
-        for r, rob in enumerate(robots):
-            fr = f"{fe}.robots[{r}]"
-            unknown = mapping_problems(rob, f, fr, ROBOT_FIELDS)
-            if unknown is None:
-                probs.append(not_a_mapping(rob, f, fr))
-                continue
-            probs += unknown
-            rid = rob.get("id")
-            if not isinstance(rid, str) or not rid:
-                probs.append(Problem(f, f"{fr}.id", f"required: a non-empty string, got {type_name(rid)}"))
-            elif rid in ids:
-                probs.append(Problem(f, f"{fr}.id", f"duplicate robot id {rid!r} in this encounter"))
-            else:
-                ids.add(rid)
-            for k in ("images", "intrinsics"):
-                if not isinstance(rob.get(k), str) or not rob.get(k):
-                    probs.append(Problem(f, f"{fr}.{k}", f"required: a path string, got {type_name(rob.get(k))}"))
-            for k in ("trajectory", "depth"):
-                if k in rob and not isinstance(rob[k], str):
-                    probs.append(Problem(f, f"{fr}.{k}", f"expected a path string, got {type_name(rob[k])}"))
-            if rob.get("trajectory_format", "tum") not in TRAJECTORY_FORMATS:
-                probs.append(Problem(f, f"{fr}.trajectory_format",
-                                     f"expected one of {', '.join(TRAJECTORY_FORMATS)}, got {rob.get('trajectory_format')!r}"))
-            if rob.get("image_stamp_units", "s") not in STAMP_UNITS:
-                probs.append(Problem(f, f"{fr}.image_stamp_units",
-                                     f"expected one of {', '.join(STAMP_UNITS)}, got {rob.get('image_stamp_units')!r}"))
-            for k in ("gt_tolerance_s", "interpolate_max_gap_s", "depth_units_per_m"):
-                if k in rob and (not is_number(rob[k]) or float(rob[k]) <= 0):
-                    probs.append(Problem(f, f"{fr}.{k}", f"expected a positive number, got {rob[k]!r}"))
-            if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
-                probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
-            tb = rob.get("T_body_cam", "identity")
-            if not (tb == "identity" or isinstance(tb, (list, str))):
-                probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
-            elif isinstance(tb, list):
-                try:
-                    parse_transform(tb, f"{fr}.T_body_cam", f)
-                except ManifestError as exc:
-                    probs += exc.problems
-            probs += _check_window(rob.get("window_s"), f, f"{fr}.window_s")
-    return probs
+    return validate_encounter_list(m, ENCOUNTER_FIELDS, ROBOT_FIELDS, SYNC_MODES, "stamp", _check_encounter, _check_robot)
 
 
 @dataclass
@@ -249,15 +204,11 @@ def load_encounter(m: Manifest, e: int, enc: dict, report: LoadReport) -> Encoun
             if d.depth is not None:
                 d.depth = [p for p, kk in zip(d.depth, k) if kk]
     mode = enc.get("sync", "stamp")
-    idx, res, dropped = synchronise([d.stamps_s for d in datas], m.sync_tolerance_s, mode)
-    T = len(idx[0])
-    if T == 0:
-        report.add(Problem(str(m.path), f"{fe}.robots", f"no common steps: no frames of the robots lie within "
-                                                         f"sync_tolerance_s={m.sync_tolerance_s} of each other"))
+    got = synchronise_robots(m, fe, name, [d.stamps_s for d in datas], mode, report)
+    if got is None:
         return None
-    report.count(name, "reference frames without partner frames within sync_tolerance_s (dropped)"
-                 if mode == "stamp" else "frames beyond the shortest robot (dropped)", dropped)
-    report.sync[name] = {}
+    idx, res = got
+    T = len(idx[0])
     streams = []
     for d, ix, r in zip(datas, idx, res):
         stamps = d.stamps_s[ix]
@@ -285,21 +236,25 @@ def load_encounter(m: Manifest, e: int, enc: dict, report: LoadReport) -> Encoun
         if overlap is None:
             return None
     try:
-        return Encounter(name=name, robots=streams, overlap=overlap,
-                         meta={"sync": mode, "manifest": str(m.path), **(enc.get("meta") or {})})
+        out = Encounter(name=name, robots=streams, overlap=overlap,
+                         meta={"sync": mode, "manifest": str(m.path),
+                               "robot_fields": {d.rid: f"{fe}.robots[{r}]" for r, d in enumerate(datas)},
+                               **(enc.get("meta") or {})})
     except SceneError as exc:
         report.add(Problem(str(m.path), fe, str(exc)))
         return None
+    covisibility.attach(m, out, report)  # no overlap file: from depth + poses where there is depth
+    return out
 
 
 class MocapAdapter:
     """Image folders + trajectories (TUM / EuRoC / CSV) + camera.yaml per robot."""
 
     name = "mocap"
-    top_level_fields: tuple[str, ...] = ()
+    top_level_fields: tuple[str, ...] = ("covisibility",)
 
     def validate(self, manifest: Manifest) -> list[Problem]:
-        return validate_encounters(manifest)
+        return covisibility.validate(manifest) + validate_encounters(manifest)
 
     def load(self, manifest: Manifest, report: LoadReport) -> Setting:
         encounters = []

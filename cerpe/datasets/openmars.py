@@ -38,7 +38,7 @@ import numpy as np
 from ..geometry import GeometryError, make_se3, quat_wxyz_to_matrix, se3_inverse
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
 from .manifest import Manifest, Problem, is_number, mapping_problems, not_a_mapping, type_name
-from .mocap import _check_window
+from .sync import check_window
 from .report import LoadReport
 from .sync import nearest, synchronise, window_mask
 
@@ -238,7 +238,7 @@ class OpenMarsAdapter:
             if v is not None and not (isinstance(v, list) and len(v) >= 2 and all(isinstance(x, str) for x in v)
                                       and len(set(v)) == len(v)):
                 probs.append(Problem(f, f"{fe}.vehicles", f"expected a list of at least 2 distinct vehicle names, got {v!r}"))
-            probs += _check_window(enc.get("window_s"), f, f"{fe}.window_s")
+            probs += check_window(enc.get("window_s"), f, f"{fe}.window_s")
             nm = enc.get("name", enc.get("scene"))
             if isinstance(nm, str):
                 if nm in names:

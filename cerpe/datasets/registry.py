@@ -52,6 +52,9 @@ _BUILTIN: dict[str, str] = {
     "openmars": "cerpe.datasets.openmars:OpenMarsAdapter",
     "synthetic": "cerpe.datasets.synthetic:SyntheticAdapter",
     "example": "cerpe.datasets.example:KittiStyleAdapter",
+    "tum-rgbd": "cerpe.datasets.tum_rgbd:TumRgbdAdapter",
+    "frames": "cerpe.datasets.frames:FramesAdapter",
+    "pairs": "cerpe.datasets.pairs:PairsAdapter",
 }
 _REGISTERED: dict[str, Callable[[], Adapter] | Adapter] = {}
 

@@ -1,14 +1,15 @@
 """Time association shared by the adapters: nearest stamps, pose lookup, multi-robot sync.
 
-All functions are pure numpy on stamps in seconds.
+All functions are pure numpy on stamps in seconds (:func:`check_window` validates a manifest value).
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..geometry import interpolate_pose
+from .manifest import Problem, is_number
 
 
 def nearest(query_s: np.ndarray, stamps_s: np.ndarray, tol_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -72,6 +73,18 @@ def poses_at(
             a = (query_s[q] - t0) / (t1 - t0)
             out[q] = interpolate_pose(T_world_body[h - 1], T_world_body[h], float(a))
     return out
+
+
+def check_window(v: Any, f: str, field: str) -> list[Problem]:
+    """Problems of a manifest ``window_s`` value (``[start, end]``, numbers or null; see :func:`window_mask`)."""
+    if v is None:
+        return []
+    if not (isinstance(v, list) and len(v) == 2 and all(x is None or is_number(x) for x in v)):
+        return [Problem(f, field, f"expected [start_s, end_s] (numbers or null), got {v!r}")]
+    a, b = v
+    if a is not None and b is not None and (float(a) >= 0) == (float(b) >= 0) and float(b) <= float(a):
+        return [Problem(f, field, f"end {b} must be after start {a}")]
+    return []
 
 
 def window_mask(stamps_s: np.ndarray, window: Sequence[float | None] | None) -> np.ndarray:
@@ -139,3 +152,34 @@ def synchronise(
         indices.append(idx[steps])
         residuals.append(dt[steps])
     return indices, residuals, int(len(ref) - len(steps))
+
+
+def associate(first_s: np.ndarray, second_s: np.ndarray, tol_s: float,
+              offset_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pair two stamp lists the way TUM RGB-D's ``associate.py`` does.
+
+    Every pair with ``|first - (second + offset)| < tol_s`` is a candidate; candidates
+    are taken in order of increasing difference, each stamp used at most once.
+
+    Returns:
+        ``(i_first, i_second)`` index arrays of the pairs, sorted by ``i_first``.
+    """
+    a = np.asarray(first_s, dtype=np.float64)
+    b = np.asarray(second_s, dtype=np.float64) + offset_s
+    order = np.argsort(b, kind="stable")
+    bs = b[order]
+    cand: list[tuple[float, int, int]] = []
+    for i, s in enumerate(a):
+        lo, hi = np.searchsorted(bs, s - tol_s, "left"), np.searchsorted(bs, s + tol_s, "right")
+        cand += [(abs(s - bs[k]), i, int(order[k])) for k in range(lo, hi) if abs(s - bs[k]) < tol_s]
+    cand.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, j in cand:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    pairs.sort()
+    return (np.array([i for i, _ in pairs], dtype=np.int64), np.array([j for _, j in pairs], dtype=np.int64))

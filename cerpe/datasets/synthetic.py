@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
 from pathlib import Path
 from typing import Callable
 
 from ..errors import CerpeError
 from ..scene import Setting
-from .manifest import Manifest, ManifestError, Problem, type_name
+from .manifest import Manifest, ManifestError, Problem, cache_base, type_name
 from .report import LoadReport
 
 log = logging.getLogger("cerpe.datasets.synthetic")
@@ -37,20 +36,11 @@ WORLDS: tuple[str, ...] = ("cad-intersection", "indoor-team")
 SUITES: tuple[str, ...] = ("fixture", "paper-default")
 
 
-def project_root() -> Path:
-    """The source checkout holding this package (where ``build/`` lives), else the working directory."""
-    here = Path(__file__).resolve().parents[2]
-    return here if (here / "pyproject.toml").is_file() else Path.cwd()
-
-
 def cache_root(manifest: Manifest | None = None) -> Path:
     """Where generated suites go: manifest ``cache_dir``, else ``$CERPE_CACHE/synth``, else ``build/synth``."""
     if manifest is not None and manifest.raw.get("cache_dir"):
         return manifest.resolve(manifest.raw["cache_dir"])
-    env = os.environ.get("CERPE_CACHE")
-    if env:
-        return Path(env).expanduser().resolve() / "synth"
-    return project_root() / "build" / "synth"
+    return cache_base() / "synth"
 
 
 def _synth_api() -> tuple[Callable[..., Path], dict]:
