@@ -58,6 +58,32 @@ class View:
     memo: Mapping[str, Any] | None = None
 
 
+@dataclass(frozen=True)
+class Registration:
+    """One independent placement of a view against ONE other view of the pass.
+
+    The offline backbone registers each collaborator image against each of the
+    robot's own views that carries a depth prior (current frame, previous frame,
+    keyframes), so the algorithm can (a) place a collaborator seen only from an
+    older keyframe, through that keyframe's odometry pose, and (b) verify a
+    direct estimate by the agreement of two registrations through different views.
+
+    Attributes:
+        via: index (in the pass) of the view it was registered against.
+        T_via_cam: ``[4,4]`` pose of the registered view in the ``via`` view's
+            camera (maps its camera points into ``via``'s camera), in the pass's
+            translation unit (metres when :attr:`BackboneOutput.metric_unit`).
+        inliers: verified correspondences that support it (RANSAC inliers).
+        matches: putative matches it was found among (inliers / matches is the
+            inlier ratio).
+    """
+
+    via: int
+    T_via_cam: np.ndarray
+    inliers: int
+    matches: int = 0
+
+
 @dataclass
 class BackboneOutput:
     """Result of one joint pass over ``S`` views, in the order they were given.
@@ -87,6 +113,10 @@ class BackboneOutput:
         memos: per view, what the backbone wants handed back with that view in later
             passes (:attr:`View.memo`), or None; the algorithm stores the current
             view's (index 0) with the frame it keeps. Empty: no memos.
+        registrations: view index -> its independent :class:`Registration` s against
+            single other views of the pass, most inliers first (offline backbone:
+            collaborator views). Empty for backbones that place all views jointly
+            (VGGT); the algorithm then uses ``T_frame_cam`` alone.
     """
 
     T_frame_cam: np.ndarray
@@ -100,6 +130,7 @@ class BackboneOutput:
     metric_unit: bool = False
     reference: int | None = None
     memos: list[Mapping[str, Any] | None] = field(default_factory=list)
+    registrations: dict[int, list[Registration]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         S = len(self.valid)
@@ -115,6 +146,10 @@ class BackboneOutput:
             self.memos = [None for _ in range(S)]
         elif len(self.memos) != S:
             raise BackboneError(f"BackboneOutput: {len(self.memos)} memos for {S} views")
+        for k, regs in self.registrations.items():
+            if not 0 <= k < S or any(not 0 <= r.via < S or r.via == k for r in regs):
+                raise BackboneError(f"BackboneOutput: registration of view {k} names a view outside 0..{S - 1} "
+                                    "or itself")
 
 
 @runtime_checkable
