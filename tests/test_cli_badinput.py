@@ -53,6 +53,8 @@ def test_run_out_is_a_file_or_under_one(capsys, afile, tmp_path):
     assert rc == 2 and f"--out {afile}: exists and is not a folder" in err
     rc, err = _cli(capsys, "run", manifest, "--method", "sift-ransac", "--out", afile / "sub", "--no-progress")
     assert rc == 2 and f"{afile} is a file, not a folder" in err
+    rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", "--seed", "-1")
+    assert rc == 2 and "--seed -1: must be >= 0" in err
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "thesis.tex").write_text("keep me")
     rc, err = _cli(capsys, "run", manifest, "--method", "sift-ransac", "--out", tmp_path / "mine", "--no-progress")

@@ -335,6 +335,8 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     ``overwrite`` (then it is replaced). Returns ``out``.
     """
     check_method(method)
+    if int(seed) < 0:
+        raise RunError(f"--seed {seed}: must be >= 0")
     manifest = Path(manifest).resolve()
     out = Path(out)
     ensure_dir(out, "--out", create=False)
