@@ -230,3 +230,13 @@ def test_e_rot_matches_roma():
     ours = ev.frame_errors(df, metric_scale=True)["e_rot_rad"].to_numpy()
     ref = roma.unitquat_geodesic_distance(torch.tensor(q1), torch.tensor(q2)).numpy()
     np.testing.assert_allclose(ours, ref, atol=1e-6)
+
+
+def test_code_hash_lists_name_existing_files():
+    """A renamed file must not fall silently out of (or into) a method's code hash."""
+    from cerpe.pipeline import provenance as pv
+
+    for rel in (*pv.NOT_RESULTS, *pv.BASELINE_CODE):
+        assert (pv.PACKAGE_ROOT / rel).is_file(), rel
+    assert pv.code_hash("cerpe") != pv.code_hash("sift-ransac")
+    assert pv.code_hash("cerpe") == pv.code_hash("cerpe-wo-em")
