@@ -18,7 +18,7 @@ export OMP_NUM_THREADS ?= 2
 help:
 	@echo "make paper   - every table and figure (sets itself up first)"
 	@echo "make test    - every test, notebooks included (sets itself up first)"
-	@echo "make bench   - latency / memory / bytes benchmark (prints figures)"
+	@echo "make bench   - latency / memory / bytes benchmark, 2 and 3 robots (prints figures; renders its suite once)"
 	@echo "make setup   - create .venv (torch==2.13.0 CPU first, then cerpe[dev,notebooks])"
 	@echo "make clean   - remove generated tables, figures and run caches"
 

@@ -1,4 +1,4 @@
-"""`cerpe bench` accuracy checks (issue 4) on known trajectories; no models run."""
+"""`cerpe bench` accuracy checks (issue 4) on known trajectories, and the command itself on a tiny suite."""
 from __future__ import annotations
 
 import numpy as np
@@ -70,3 +70,25 @@ def test_suite_printout_carries_the_gate_figures():
     assert f"precision {gate['precision']:.3f}, recall {gate['recall']:.3f}" in text
     assert "symmetric score can reach 0.967" in text and "25 % of ordered pairs" in text
     assert "gate" not in "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([]), "ego_per_robot": {}}))
+
+
+def test_bench_renders_the_default_suite_once_then_reuses_it(tmp_path, monkeypatch, capsys):
+    """A fresh clone: `cerpe bench` renders its default suite into the cache `make paper` uses
+    ($CERPE_CACHE here), runs 2 and 3 robots against the paper's 438 / 780 ms; the next run renders nothing."""
+    from cerpe.cli import main
+    from cerpe.synth import writer
+
+    tiny = {"seed": 0, "n_encounters": 1, "n_frames": 3, "fps": 2.0, "size": (160, 120), "n_robots": 3}
+    monkeypatch.setitem(writer.SUITES, "paper-default", {"synthetic-indoor": ("indoor-team", tiny)})
+    monkeypatch.setenv("CERPE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)  # the default manifest is the checkout's, wherever bench runs from
+    argv = ["bench", "--steps", "2", "--warmup", "0", "--encounters", "1", "--width", "160", "--height", "120"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "== 2 robots" in out and "(target 438 ms:" in out
+    assert "== 3 robots" in out and "(target 780 ms:" in out
+    suite = tmp_path / "cache" / "synth" / "paper-default" / "indoor-team-seed0"
+    png = next(suite.rglob("*.png"))
+    before = png.stat().st_mtime_ns
+    assert main(argv) == 0  # as after `make paper`: the suite is there
+    assert png.stat().st_mtime_ns == before

@@ -8,15 +8,15 @@ import pandas as pd
 import pytest
 
 from cerpe import plotting
-from cerpe.pipeline import paper
+from cerpe.pipeline import paper, table1
 from cerpe.pipeline import run as rp
 
-from test_pipeline_run_eval import _fake_steps, _setting
+from test_pipeline_run_eval import _setting, fake_prepare
 
 
 @pytest.fixture()
 def ctx(tmp_path, monkeypatch) -> paper.PaperContext:
-    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1, depth_options=None: ({"fake": True}, _fake_steps()))
+    monkeypatch.setattr(rp, "prepare_method", fake_prepare())
     m = tmp_path / "toy.yaml"
     m.write_text("name: toy\n")
     s = _setting(n_steps=8)
@@ -31,10 +31,10 @@ def ctx(tmp_path, monkeypatch) -> paper.PaperContext:
 
 
 def test_main_results_table(ctx):
-    df = paper.main_results(ctx)
+    df = table1.main_results(ctx)
     assert list(df.columns[:7]) == ["setting", "method", "e_pos_m", "e_pos_gt_scale_m", "e_rot_rad",
                                     "success_pct", "n_frames"]
-    assert len(df) == 2 * len(paper.TABLE_METHODS)
+    assert len(df) == 2 * len(table1.TABLE_METHODS)
     row = df[(df.setting == "toy") & (df.method == "cerpe")].iloc[0]
     assert row.status == "ok" and row.e_rot_rad == pytest.approx(0.1, abs=1e-6)
     assert row.success_pct == pytest.approx(100 * 6 / 8) and row.n_frames == 2 * 2 * 8
@@ -48,8 +48,8 @@ def test_main_results_table(ctx):
 
 
 def test_markdown_and_latex_layout(ctx, tmp_path):
-    df = paper.main_results(ctx)
-    paths = paper.write_main_results(df, ctx.tables_dir)
+    df = table1.main_results(ctx)
+    paths = table1.write_main_results(df, ctx.tables_dir)
     assert [p.name for p in paths] == ["main_results.csv", "main_results.md", "main_results.tex"]
     md = paths[1].read_text()
     assert "not supplied" in md and "n/a" in md and "SuperGlue stand-in (ALIKED+LightGlue)" in md
@@ -92,3 +92,25 @@ def test_run_is_current(ctx):
     assert paper.run_is_current(out, man, "sift-ransac", "offline")
     man.write_text("name: toy\n# edited\n")
     assert not paper.run_is_current(out, man, "sift-ransac", "offline")
+
+
+def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
+    """Table I's caption reads the CERPE runs' recorded config: no scale step (metric passes), previous frame."""
+    recorded = {"cerpe": {"backbone_metric_unit": True, "track_previous": True}, "preset": "offline"}
+    monkeypatch.setattr(rp, "prepare_method", fake_prepare(recorded))
+    m = tmp_path / "toy.yaml"
+    m.write_text("name: toy\n")
+    c = paper.PaperContext("fixture", "fixture", "offline", tmp_path / "runs", tmp_path / "fig", tmp_path / "tab",
+                           tmp_path / "nb")
+    c.settings = [paper.SettingEntry("toy", m, "ok", run_manifest=m, setting=_setting(n_steps=4))]
+    c.run_dirs[("toy", "cerpe")] = rp.run_method(m, "cerpe", c.runs_root / "toy" / "cerpe",
+                                                 setting=c.settings[0].setting, progress=False)
+    md_path, tex_path = table1.write_main_results(table1.main_results(c), c.tables_dir)[1:]
+    md, tex = md_path.read_text(), tex_path.read_text()
+    for text in (md, tex):
+        assert "skips the scale step" in text and "metric_unit" in text.replace("\\_", "_")
+        assert "previous frame" in text and "track_previous" in text.replace("\\_", "_")
+        assert "offline backbone preset" in text
+    other = table1.cerpe_row_note("paper", [{"backbone_metric_unit": True, "track_previous": False}])
+    assert "skips the scale step" not in other and "keyframes, as in the paper" in other
+    assert "VGGT" in other

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from cerpe.datasets.formats import read_trajectory
 from cerpe.geometry import make_se3, paper_T_ij, random_se3, se3_to_tq_xyzw, so3_exp
 from cerpe.pipeline import evaluate as ev
 from cerpe.pipeline import run as rp
@@ -51,6 +52,20 @@ def _fake_steps(fail_first: int = 2, noise_rad: float = 0.1):
     return steps
 
 
+def fake_prepare(recorded: dict | None = None):
+    """A stand-in for ``run.prepare_method``: the fake method, recording ``recorded`` as its config."""
+    return lambda method, profile, seed, depth=None, every=1, depth_options=None: (
+        recorded or {"fake": True}, _fake_steps())
+
+
+def fake_run(tmp_path: Path, monkeypatch, method: str = "sift-ransac", **setting_kw) -> Path:
+    """A finished run folder ``tmp_path/run`` of the fake method under ``method``'s name."""
+    monkeypatch.setattr(rp, "prepare_method", fake_prepare())
+    m = tmp_path / "toy.yaml"
+    m.write_text("name: toy\nadapter: example\n")
+    return rp.run_method(m, method, tmp_path / "run", setting=_setting(**setting_kw), progress=False)
+
+
 @pytest.fixture()
 def manifest(tmp_path: Path) -> Path:
     m = tmp_path / "toy.yaml"
@@ -60,7 +75,7 @@ def manifest(tmp_path: Path) -> Path:
 
 @pytest.fixture()
 def fake_method(monkeypatch):
-    monkeypatch.setattr(rp, "prepare_method", lambda method, profile, seed, depth=None, every=1, depth_options=None: ({"fake": True}, _fake_steps()))
+    monkeypatch.setattr(rp, "prepare_method", fake_prepare())
 
 
 def test_run_folder_layout_and_known_metrics(tmp_path, manifest, fake_method):
@@ -91,7 +106,8 @@ def test_run_folder_layout_and_known_metrics(tmp_path, manifest, fake_method):
 def test_tum_roundtrip_matches_steps(tmp_path, manifest, fake_method):
     s = _setting()
     out = rp.run_method(manifest, "sift-ransac", tmp_path / "run", setting=s, progress=False)
-    stamps, T = rp.read_tum(out / "enc0" / "poses" / "r1__r0.gt.tum")
+    tr = read_trajectory(out / "enc0" / "poses" / "r1__r0.gt.tum", "tum", "gt")
+    stamps, T = tr.stamps_s, tr.T_world_body
     enc = s.encounters[0]
     for k, st in enumerate(stamps):
         t = int(np.argmin(np.abs(enc.robots[1].stamps_s - st)))
@@ -214,3 +230,13 @@ def test_e_rot_matches_roma():
     ours = ev.frame_errors(df, metric_scale=True)["e_rot_rad"].to_numpy()
     ref = roma.unitquat_geodesic_distance(torch.tensor(q1), torch.tensor(q2)).numpy()
     np.testing.assert_allclose(ours, ref, atol=1e-6)
+
+
+def test_code_hash_lists_name_existing_files():
+    """A renamed file must not fall silently out of (or into) a method's code hash."""
+    from cerpe.pipeline import provenance as pv
+
+    for rel in (*pv.NOT_RESULTS, *pv.BASELINE_CODE):
+        assert (pv.PACKAGE_ROOT / rel).is_file(), rel
+    assert pv.code_hash("cerpe") != pv.code_hash("sift-ransac")
+    assert pv.code_hash("cerpe") == pv.code_hash("cerpe-wo-em")

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cerpe.datasets.formats import read_trajectory
 from cerpe.pipeline import evaluate, run
 
 from test_datasets_mocap import TUM, tum_split_manifest
@@ -33,7 +34,7 @@ def test_cerpe_run_on_real_tum_split(tmp_path: Path, capsys) -> None:
     robots = pd.read_csv(out / "office" / "robots.csv")
     assert robots.degradations.fillna("").str.contains("scale:unit-no-depth").any()
     for rid in ("first", "last"):
-        _, T = run.read_tum(out / "office" / "odometry" / f"{rid}.tum")
+        T = read_trajectory(out / "office" / "odometry" / f"{rid}.tum", "tum", "odometry").T_world_body
         assert len(T) == 8 and np.all(np.isfinite(T))
     assert np.isnan(table["e_pos_m"]).all()  # no metric depth: GT-scale translation only
     print("TUM split, cerpe:", df.source.value_counts().to_dict())

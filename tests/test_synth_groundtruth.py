@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cerpe.depthsim import MonoDepthSim, SensorDepthSim
 from cerpe.geometry import paper_T_ij
 from cerpe.protocols import FrameContext, MetricDepthSource, View
-from cerpe.synth import MonoDepthSim, SensorDepthSim, render_encounter
+from cerpe.synth import render_encounter
 from cerpe.synth.groundtruth import backproject, overlap_ratio, reproject_check
 from cerpe.synth.worlds import plan_encounter
 

@@ -91,7 +91,7 @@ def test_force_replaces_and_leaves_nothing_half_written(tmp_path):
     m = generate_suite("indoor-team", tmp_path / "a", conf, progress=False)
     m2 = generate_suite("indoor-team", tmp_path / "a", {**conf, "seed": 3}, force=True, progress=False)
     assert m2 == m and json.loads((tmp_path / "a" / "meta.json").read_text())["key"]["args"]["seed"] == 3
-    assert sorted(os.listdir(tmp_path)) == ["a"]
+    assert sorted(os.listdir(tmp_path)) == [".a.lock", "a"]  # the lock file stays (deleting it would race)
 
 
 @pytest.mark.parametrize("world,conf,match", [

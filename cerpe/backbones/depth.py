@@ -3,9 +3,9 @@
 ``build_depth_source(name, conf)`` with ``name`` one of :data:`DEPTH_SOURCES`:
 
 * ``sensor``   -- simulated RGB-D sensor over the renderer's exact depth
-  (:class:`cerpe.synth.SensorDepthSim`: noise, range limits, holes);
+  (:class:`cerpe.depthsim.SensorDepthSim`: noise, range limits, holes);
 * ``mono-sim`` -- simulated monocular metric-depth network
-  (:class:`cerpe.synth.MonoDepthSim`: global scale bias and structured error),
+  (:class:`cerpe.depthsim.MonoDepthSim`: global scale bias and structured error),
   the stand-in for Metric3Dv2 on synthetic data;
 * ``dataset``  -- the dataset's own metric depth, :attr:`FrameContext.sensor_depth_m`
   (RGB-D images, LiDAR projected into the camera by the adapter);
@@ -16,10 +16,12 @@ Heavy or optional modules are imported only when their source is built.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
+from ..depthsim import MonoDepthSim, SensorDepthSim
 from ..protocols import BackboneError, FrameContext, View
 
 DEPTH_SOURCES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
@@ -65,24 +67,17 @@ class NoDepth:
         return None
 
 
-def _from_module(module: str, names: tuple[str, ...], conf: dict[str, Any], what: str,
-                 keywords: bool = False) -> Any:
-    import importlib
-
+def _simulation(cls: type, conf: dict[str, Any], what: str) -> Any:
+    """A depth simulation (a dataclass) from the manifest's ``metric_depth_options``."""
+    known = [f.name for f in dataclasses.fields(cls) if f.name != "name"]
+    unknown = sorted(set(conf) - set(known))
+    if unknown:
+        raise DepthSourceError(f"depth source {what!r}: bad options {sorted(conf)}: unknown option(s) {unknown}; "
+                               f"known: {known}")
     try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        raise DepthSourceError(f"depth source {what!r}: module {module} is not available ({exc})") from None
-    for n in names:
-        obj = getattr(mod, n, None)
-        if obj is not None:
-            try:
-                if keywords:  # dataclass-style constructors take the fields as keywords
-                    return obj(**conf)
-                return obj(conf) if conf else obj()
-            except TypeError as exc:  # an option the source does not have (manifest metric_depth_options)
-                raise DepthSourceError(f"depth source {what!r}: bad options {sorted(conf)}: {exc}") from None
-    raise DepthSourceError(f"depth source {what!r}: {module} defines none of {list(names)}")
+        return cls(**conf)
+    except (TypeError, ValueError) as exc:
+        raise DepthSourceError(f"depth source {what!r}: bad options {sorted(conf)}: {exc}") from None
 
 
 def build_depth_source(name: str, conf: dict[str, Any] | None = None) -> Any:
@@ -98,9 +93,16 @@ def build_depth_source(name: str, conf: dict[str, Any] | None = None) -> Any:
     if name == "none":
         return NoDepth(conf)
     if name == "sensor":
-        return _from_module("cerpe.synth", ("SensorDepthSim",), conf, name, keywords=True)
+        return _simulation(SensorDepthSim, conf, name)
     if name == "mono-sim":
-        return _from_module("cerpe.synth", ("MonoDepthSim",), conf, name, keywords=True)
+        return _simulation(MonoDepthSim, conf, name)
     if name == "metric3d":
-        return _from_module("cerpe.backbones.metric3d", ("build_metric3d", "Metric3DDepth", "Metric3D"), conf, name)
+        try:
+            from .metric3d import Metric3DDepth  # heavy and optional: only when asked for
+        except ModuleNotFoundError as exc:
+            raise DepthSourceError(f"depth source {name!r}: {exc}") from None
+        try:
+            return Metric3DDepth(conf) if conf else Metric3DDepth()
+        except TypeError as exc:
+            raise DepthSourceError(f"depth source {name!r}: bad options {sorted(conf)}: {exc}") from None
     raise DepthSourceError(f"unknown depth source {name!r}; valid: {', '.join(DEPTH_SOURCES)}")

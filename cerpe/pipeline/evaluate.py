@@ -29,6 +29,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
+from ..atomicio import AtomicIOError, atomic_write_text, read_json
 from ..errors import CerpeError
 from ..geometry import e_pos, e_rot_quat, gt_scale_translation
 
@@ -88,6 +89,8 @@ def _read_csv(path: Path, required: Sequence[str] = ()) -> pd.DataFrame:
         raise EvalError(f"missing results file: {path}") from None
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise EvalError(f"corrupt or half-written results file {path}: {exc}") from None
+    except OSError as exc:
+        raise EvalError(f"cannot read results file {path}: {exc.strerror or exc}") from None
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise EvalError(f"{path}: missing columns {missing} (half-written or from another version?)")
@@ -101,16 +104,20 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
     an unfinished encounter (unless ``allow_partial``), an encounter finished
     under another fingerprint, or a corrupt CSV.
     """
-    from .run import RunError, read_json
-
     path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise EvalError(f"{path}: a file, not a run folder (pass the folder `cerpe run --out` wrote)")
+    if not path.exists():
+        raise EvalError(f"{path}: run folder not found (no {path / 'run.json'})")
     try:
         meta = read_json(path / "run.json", "run.json")
-    except RunError as exc:
-        raise EvalError(str(exc)) from None
+    except AtomicIOError as exc:
+        raise EvalError(f"{path}: not a run folder ({exc})") from None
     for k in ("method", "setting", "fingerprint", "config"):
         if k not in meta:
             raise EvalError(f"{path / 'run.json'}: missing field {k!r}")
+    if not isinstance(meta["config"], dict):
+        raise EvalError(f"{path / 'run.json'}: field 'config' is not a mapping")
     steps, robots = [], []
     for enc in meta["config"].get("encounters", []):
         done = path / enc / "DONE.json"
@@ -121,7 +128,7 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
                             f"rerun `cerpe run` with the same arguments to resume")
         try:
             d = read_json(done, "DONE.json")
-        except RunError as exc:
+        except AtomicIOError as exc:
             raise EvalError(str(exc)) from None
         if d.get("fingerprint") != meta["fingerprint"]:
             raise EvalError(f"{done}: encounter finished under configuration {d.get('fingerprint')}, "
@@ -383,8 +390,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .run import atomic_write_text
-
     table = evaluate(args.rundirs, by=args.by)
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))

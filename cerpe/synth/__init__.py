@@ -1,24 +1,25 @@
 """Synthetic encounter worlds: a numpy CPU renderer, two seeded world generators
-(``cad-intersection``, ``indoor-team``), simulated depth sources, and the writer
-behind ``cerpe synth`` (mocap-style dataset with manifest).
+(``cad-intersection``, ``indoor-team``) and the writer behind ``cerpe synth``
+(mocap-style dataset with manifest). The simulated depth sources the written
+manifests name live in :mod:`cerpe.depthsim`.
 
 Public API (imported lazily so ``import cerpe.synth`` stays cheap)::
 
     generate_suite(world, out_dir, conf) -> manifest path
     generate_suites(name, out_root) -> {setting: manifest path}     # SUITES: fixture, paper-default
     render_encounter(world, seed, index, conf) -> cerpe.scene.Encounter   (in memory)
-    SensorDepthSim, MonoDepthSim, sensor_options                     (MetricDepthSource simulations)
+    sensor_options(world) -> SensorDepthSim options that suit the world
 """
 from __future__ import annotations
 
 from .errors import SynthError
 
-__all__ = ["SynthError", "generate_suite", "generate_suites", "render_encounter", "SUITES", "WORLDS",
-           "SensorDepthSim", "MonoDepthSim"]
+__all__ = ["SynthError", "generate_suite", "generate_suites", "render_encounter", "sensor_options", "SUITES",
+           "WORLDS"]
 
 
 def __getattr__(name: str):
-    if name in ("generate_suite", "generate_suites", "render_encounter", "SUITES"):
+    if name in ("generate_suite", "generate_suites", "render_encounter", "sensor_options", "SUITES"):
         from . import writer
 
         return getattr(writer, name)
@@ -26,8 +27,4 @@ def __getattr__(name: str):
         from .worlds import WORLDS
 
         return WORLDS
-    if name in ("SensorDepthSim", "MonoDepthSim", "sensor_options"):
-        from . import depthsim
-
-        return getattr(depthsim, name)
     raise AttributeError(name)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .errors import SynthError
 
 WORLD_CHOICES = ("cad-intersection", "indoor-team", "all")
 
@@ -64,8 +63,6 @@ def main(args: argparse.Namespace) -> int:
         setting = SETTING_OF_WORLD[world]
         base = dict(SUITES[args.preset][setting][1]) if args.preset else {}
         out = args.out / setting if args.world == "all" else args.out
-        if out.exists() and not out.is_dir():
-            raise SynthError(f"--out {out} exists and is not a folder")
         manifest = generate_suite(world, out, {**base, **overrides}, force=args.force,
                                   progress=not args.no_progress, setting=setting)
         print(f"{setting}: {manifest}")

@@ -1,9 +1,12 @@
 """Simulated metric depth sources (:class:`cerpe.protocols.MetricDepthSource`).
 
-Both read the renderer's exact depth from ``FrameContext.sensor_depth_m`` and
-degrade it in a documented, seeded way; both are *simulations* and say so in
-their names. Output is ``[H,W] float32`` metres, 0 = unknown. Randomness is a
-function of ``(seed, robot_id, step)`` only, so a rerun gives identical depth.
+Both read the exact depth from ``FrameContext.sensor_depth_m`` (the synthetic
+renderer's) and degrade it in a documented, seeded way; both are *simulations*
+and say so in their names. Output is ``[H,W] float32`` metres, 0 = unknown.
+Randomness is a function of ``(seed, robot_id, step)`` only, so a rerun gives
+identical depth. The depth sources (:mod:`cerpe.backbones.depth`) build them by
+name; the synthetic generator (:mod:`cerpe.synth`) names their options in the
+manifests it writes. This module knows neither.
 """
 from __future__ import annotations
 
@@ -13,8 +16,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..protocols import FrameContext, View
-from .errors import SynthError
+from .errors import CerpeError
+from .protocols import FrameContext, View
+
+
+class DepthSimError(CerpeError, ValueError):
+    """A frame whose exact depth a simulation cannot use (the message names robot and step)."""
 
 
 def _rng(seed: int, robot_id: str, step: int, salt: int) -> np.random.Generator:
@@ -27,7 +34,7 @@ def _exact(frame: FrameContext, who: str) -> np.ndarray | None:
         return None
     d = np.asarray(d, np.float32)
     if d.ndim != 2:
-        raise SynthError(f"{who}: FrameContext.sensor_depth_m of robot {frame.robot_id} step {frame.step} "
+        raise DepthSimError(f"{who}: FrameContext.sensor_depth_m of robot {frame.robot_id} step {frame.step} "
                          f"must be [H,W], got shape {d.shape}")
     return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
 
@@ -142,12 +149,5 @@ class MonoDepthSim:
         return np.where(z > 0, out, 0.0).astype(np.float32)
 
 
-# A 0.3-10 m RGB-D range sees little of a street: most keypoints of the CAD world lie farther,
-# and scale alignment then starves (measured: 0-23 usable depth pixels per keyframe).
+# An outdoor stereo-like range (``SensorDepthSim.outdoor``).
 OUTDOOR_SENSOR: dict[str, float] = {"min_m": 0.5, "max_m": 40.0}
-SENSOR_OPTIONS_BY_WORLD: dict[str, dict[str, float]] = {"cad-intersection": OUTDOOR_SENSOR}
-
-
-def sensor_options(world: str) -> dict[str, float]:
-    """``SensorDepthSim`` keyword options that suit ``world`` (``{}``: the indoor defaults)."""
-    return dict(SENSOR_OPTIONS_BY_WORLD.get(world, {}))

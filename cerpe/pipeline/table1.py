@@ -1,0 +1,190 @@
+"""Table I of the paper: one row per (setting, method) with the paper's metrics, in long form
+(CSV) and in the paper's layout (Markdown, LaTeX), with a caption that says what the rows are.
+
+Reads finished run folders only (:func:`cerpe.pipeline.evaluate.evaluate_runs`); never runs a method.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..atomicio import AtomicIOError, atomic_write_text, read_json
+from .evaluate import evaluate_runs, summarise
+from .methods import CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
+
+if TYPE_CHECKING:
+    from .paper import PaperContext
+
+TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe")
+EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
+
+
+def main_results(ctx: "PaperContext") -> pd.DataFrame:
+    """Table I, long form: one row per (setting, method) with the paper's metrics.
+
+    Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
+    n_frames, status``. ``status`` is ``ok``, ``not available offline``,
+    ``not supplied`` or ``error``; metrics are NaN unless ``ok``. ``df.attrs["caption"]``
+    is the caption (:func:`table_caption`) the Markdown and LaTeX layouts print.
+    """
+    ok = [p for p in ctx.run_dirs.values() if (p / "run.json").exists()]
+    summ = pd.DataFrame()
+    if ok:
+        f, _ = evaluate_runs(ok)
+        summ = summarise(f, ["setting", "method"]).set_index(["setting", "method"])
+    rows = []
+    for e in ctx.settings:
+        for m in TABLE_METHODS:
+            row = {"setting": e.name, "method": m, "e_pos_m": np.nan, "e_pos_gt_scale_m": np.nan,
+                   "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0}
+            if e.status != "ok":
+                row["status"] = f"{e.status}: {e.detail}" if e.detail else e.status
+            elif m in UNAVAILABLE:
+                row["status"] = "not available offline"
+            elif (e.name, m) in summ.index:
+                s = summ.loc[(e.name, m)]
+                row.update({k: float(s[k]) for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct")})
+                row["n_frames"] = int(s["n_frames"])
+                row["status"] = "ok"
+            else:
+                row["status"] = "error: run missing (see log)"
+            rows.append(row)
+    df = pd.DataFrame(rows)
+    df.attrs["caption"] = table_caption(ctx)
+    return df
+
+
+def _fmt(v: float, nd: int = 3) -> str:
+    return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def _cells(r: pd.Series) -> tuple[str, str, str]:
+    st = str(r["status"])
+    if st == "not available offline":
+        return "n/a", "n/a", "n/a"
+    if st.startswith("not supplied"):
+        return "not supplied", "", ""
+    if st.startswith("skipped"):
+        return "skipped", "", ""
+    if st != "ok":
+        return "error", "", ""
+    if r["method"] in CERPE_METHODS:
+        pos = f"{_fmt(r['e_pos_m'], 2)} / {_fmt(r['e_pos_gt_scale_m'], 2)}†"
+    else:
+        pos = f"{_fmt(r['e_pos_gt_scale_m'], 2)}†"
+    return pos, _fmt(r["e_rot_rad"]), _fmt(r["success_pct"], 1)
+
+
+CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with an estimate; "
+           "a frame without an estimate counts as a failure in Succ.). † translation with ground-truth "
+           "scale; CERPE rows show predicted / GT-scale. The SuperGlue row of the paper is replaced by "
+           "ALIKED+LightGlue (SuperPoint/SuperGlue weights exist nowhere offline). NOPE and Co-VisNet: "
+           "not available offline (no code/weights).")
+PRESET_NOTES = {
+    "offline": "CERPE here uses the offline backbone preset (XFeat + SALAD-style descriptor + multi-view "
+               "geometry), not VGGT.",
+    "paper": "CERPE uses the paper preset (VGGT + SALAD/DINOv2 + Metric3Dv2).",
+}
+
+
+def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
+    """What the CERPE rows are, from the ``CerpeConfig`` their runs recorded (``run.json``).
+
+    Says whether the scale step ran (it is skipped for passes whose unit is already the
+    metre, ``BackboneOutput.metric_unit``, when ``backbone_metric_unit`` is on: the offline
+    backbone anchors its passes on the metric depth priors) and through which view ego-motion
+    is chained (``track_previous``: the previous frame; off: keyframes only, the paper's pass).
+    """
+    note = [PRESET_NOTES.get(preset, f"CERPE uses the {preset!r} backbone preset.")]
+    metric = {bool(c["backbone_metric_unit"]) for c in cerpe_configs if "backbone_metric_unit" in c}
+    prev = {bool(c["track_previous"]) for c in cerpe_configs if "track_previous" in c}
+    if metric == {True} and preset == "offline":
+        note.append("The default CERPE row skips the scale step (s = 1): the offline backbone's passes are "
+                    "already metric, anchored on the depth priors (BackboneOutput.metric_unit, "
+                    "CerpeConfig.backbone_metric_unit).")
+    elif metric == {True}:
+        note.append("The scale step is skipped for passes that say they are metric (BackboneOutput.metric_unit); "
+                    "the others are scaled by the metric depth.")
+    elif metric == {False}:
+        note.append("Every pass is scaled by the metric depth (CerpeConfig.backbone_metric_unit off).")
+    if prev == {True}:
+        note.append("Ego-motion is chained through the previous frame (CerpeConfig.track_previous), not only "
+                    "through the keyframes as in the paper's pass.")
+    elif prev == {False}:
+        note.append("Ego-motion is chained through the keyframes, as in the paper's pass (track_previous off).")
+    if len(metric) > 1 or len(prev) > 1:
+        note.append("These settings differ between the CERPE runs (see their run.json).")
+    return " ".join(note)
+
+
+def table_caption(ctx: "PaperContext") -> str:
+    """Table I's caption for the runs of ``ctx``: :data:`CAPTION` and :func:`cerpe_row_note`."""
+    configs = []
+    for (_, m), p in sorted(ctx.run_dirs.items()):
+        if m in CERPE_METHODS and (p / "run.json").is_file():
+            try:
+                mc = read_json(p / "run.json", "run.json").get("config", {}).get("method_config", {})
+            except AtomicIOError:
+                continue
+            if isinstance(mc, dict) and isinstance(mc.get("cerpe"), dict):
+                configs.append(mc["cerpe"])
+    return CAPTION + " " + cerpe_row_note(ctx.preset, configs)
+
+
+def _caption(df: pd.DataFrame, caption: str | None) -> str:
+    return caption if caption is not None else df.attrs.get("caption", CAPTION)
+
+
+def main_results_markdown(df: pd.DataFrame, caption: str | None = None) -> str:
+    """Table I in Markdown: settings as column groups (e_pos, e_rot, Succ. each), then the caption."""
+    settings = list(dict.fromkeys(df["setting"]))
+    head = "| Method | " + " | ".join(f"{s}: e_pos (m) | {s}: e_rot (rad) | {s}: Succ. (%)" for s in settings) + " |"
+    sep = "|---|" + "---|" * (3 * len(settings))
+    lines = [head, sep]
+    for m in TABLE_METHODS:
+        cells = []
+        for s in settings:
+            r = df[(df["setting"] == s) & (df["method"] == m)]
+            cells += list(_cells(r.iloc[0])) if len(r) else ["", "", ""]
+        lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
+    notes = [f"- {s}: {df[df['setting'] == s]['status'].iloc[0]}" for s in settings
+             if not df[df["setting"] == s]["status"].iloc[0] in ("ok", "not available offline")
+             and not (df[df["setting"] == s]["status"] == "ok").any()]
+    return "\n".join(lines) + "\n\n" + _caption(df, caption) + "\n" + ("\n".join(notes) + "\n" if notes else "")
+
+
+def main_results_latex(df: pd.DataFrame, caption: str | None = None) -> str:
+    """Table I in LaTeX (booktabs), the paper's layout."""
+    settings = list(dict.fromkeys(df["setting"]))
+    esc = lambda s: str(s).replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")
+    cols = "l" + "ccc" * len(settings)
+    out = [r"\begin{table*}[t]", r"\centering",
+           r"\caption{" + esc(_caption(df, caption)).replace("†", r"$^{\dagger}$") + r"}", r"\label{tab:main_results}",
+           r"\resizebox{\textwidth}{!}{%", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+           "Method & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{esc(s)}}}" for s in settings) + r" \\",
+           " ".join(rf"\cmidrule(lr){{{2 + 3 * k}-{4 + 3 * k}}}" for k in range(len(settings))),
+           " & " + " & ".join([r"$e_{\mathrm{pos}}$ (m) $\downarrow$ & $e_{\mathrm{rot}}$ (rad) $\downarrow$ & Succ. (\%) $\uparrow$"] * len(settings)) + r" \\",
+           r"\midrule"]
+    for m in TABLE_METHODS:
+        cells = []
+        for s in settings:
+            r = df[(df["setting"] == s) & (df["method"] == m)]
+            cells += [esc(c).replace("†", r"$^{\dagger}$") for c in (_cells(r.iloc[0]) if len(r) else ("", "", ""))]
+        if m == "cerpe-wo-em":
+            out.append(r"\midrule")
+        out.append(esc(METHOD_LABELS[m]) + " & " + " & ".join(cells) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}%", "}", r"\end{table*}"]
+    return "\n".join(out) + "\n"
+
+
+def write_main_results(df: pd.DataFrame, tables_dir: Path) -> list[Path]:
+    """``main_results.csv`` (long form), ``.md`` and ``.tex`` (paper layout), atomically."""
+    tables_dir = Path(tables_dir)
+    paths = [tables_dir / n for n in EXPECTED_TABLES]
+    atomic_write_text(paths[0], df.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(paths[1], main_results_markdown(df))
+    atomic_write_text(paths[2], main_results_latex(df))
+    return paths

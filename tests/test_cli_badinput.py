@@ -1,0 +1,157 @@
+"""The command line as a new user meets it: malformed arguments give one clear line and exit 2,
+never a traceback; a closed pipe ends quietly; a sub-command whose import fails stays listed and
+says why; -v / -q set the log level."""
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cerpe import cli
+
+from test_pipeline_run_eval import fake_run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _cli(capsys, *argv: str) -> tuple[int, str]:
+    rc = cli.main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return rc, err
+
+
+@pytest.fixture()
+def afile(tmp_path: Path) -> Path:
+    f = tmp_path / "afile"
+    f.write_text("not a folder\n")
+    return f
+
+
+@pytest.fixture()
+def run_dir(tmp_path: Path, monkeypatch) -> Path:
+    """A small finished run folder (fake per-frame method)."""
+    return fake_run(tmp_path, monkeypatch, n_steps=40, n_enc=2)
+
+
+@pytest.fixture()
+def log_levels():
+    """Restore cerpe's logger level after a test that sets it through the CLI."""
+    lg = logging.getLogger("cerpe")
+    old = lg.level
+    yield lg
+    lg.setLevel(old)
+
+
+def test_run_out_is_a_file_or_under_one(capsys, afile, tmp_path):
+    manifest = ROOT / "datasets_manifest" / "synthetic-indoor.yaml"
+    rc, err = _cli(capsys, "run", manifest, "--method", "sift-ransac", "--out", afile, "--no-progress")
+    assert rc == 2 and f"--out {afile}: exists and is not a folder" in err
+    rc, err = _cli(capsys, "run", manifest, "--method", "sift-ransac", "--out", afile / "sub", "--no-progress")
+    assert rc == 2 and f"{afile} is a file, not a folder" in err
+    rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", "--seed", "-1")
+    assert rc == 2 and "--seed -1: must be >= 0" in err
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("keep me")
+    rc, err = _cli(capsys, "run", manifest, "--method", "sift-ransac", "--out", tmp_path / "mine", "--no-progress")
+    assert rc == 2 and "not a run folder" in err and (tmp_path / "mine" / "thesis.tex").exists()
+
+
+def test_eval_of_a_file_a_manifest_and_bad_csv_targets(capsys, afile, run_dir, tmp_path):
+    rc, err = _cli(capsys, "eval", afile)
+    assert rc == 2 and f"{afile}: a file, not a run folder" in err
+    rc, err = _cli(capsys, "eval", ROOT / "datasets_manifest" / "synthetic-indoor.yaml")
+    assert rc == 2 and "not a run folder" in err
+    rc, err = _cli(capsys, "eval", tmp_path)  # a folder without run.json
+    assert rc == 2 and "run.json" in err
+    rc, err = _cli(capsys, "eval", run_dir, "--csv", tmp_path)
+    assert rc == 2 and "it is a folder" in err
+    rc, err = _cli(capsys, "eval", run_dir, "--csv", afile / "x.csv")
+    assert rc == 2 and f"{afile} is a file, not a folder" in err
+    rc, _ = _cli(capsys, "eval", run_dir, "--csv", tmp_path / "new" / "table.csv")
+    assert rc == 0 and (tmp_path / "new" / "table.csv").is_file()
+
+
+def test_eval_into_a_closed_pipe_ends_quietly(run_dir):
+    """`cerpe eval ... | head`: the reader is gone before cerpe writes; exit like a Unix tool, no traceback."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
+    proc = subprocess.Popen([sys.executable, "-m", "cerpe.cli", "eval", str(run_dir), "--by", "encounter"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT)
+    proc.stdout.close()  # `head` read nothing and left
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == cli.EXIT_BROKEN_PIPE
+    assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--steps", "0"], "--steps 0: must be >= 1"),
+    (["--robots", "1", "3"], "a team has at least 2 robots"),
+    (["--warmup", "5", "--steps", "3"], "leaves none of --steps 3"),
+    (["--encounters", "0"], "--encounters 0"),
+    (["--width", "0"], "--width 0"),
+    (["--synth", "foo"], "expected SETTING:INDEX"),
+    (["--synth", "synthetic-foo:0"], "expected SETTING:INDEX"),
+    (["--synth", "synthetic-indoor:x"], "expected SETTING:INDEX"),
+    (["--synth", "synthetic-indoor:99"], "encounters 0..3"),
+    (["--manifest", "no/such/manifest.yaml"], "not found"),
+    (["--manifest", "datasets_manifest"], "not a file"),
+])
+def test_bench_refuses_impossible_options_before_any_work(capsys, monkeypatch, args, match):
+    monkeypatch.chdir(ROOT)
+    rc, err = _cli(capsys, "bench", *args)
+    assert rc == 2 and match in err
+
+
+def test_bench_out_must_be_a_writable_file_name(capsys, afile, tmp_path):
+    rc, err = _cli(capsys, "bench", "--out", tmp_path)
+    assert rc == 2 and "is a folder; give a file name" in err
+    rc, err = _cli(capsys, "bench", "--out", afile / "b.json")
+    assert rc == 2 and f"{afile} is a file, not a folder" in err
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--seed", "-1"], "seed -1: must be >= 0"),
+    (["--workers", "0"], "workers 0: must be >= 1"),
+    (["--encounters", "2", "--three", "5"], "n_three 5"),
+])
+def test_synth_refuses_bad_numbers(capsys, tmp_path, args, match):
+    rc, err = _cli(capsys, "synth", "cad-intersection", "--out", tmp_path / "s", "--no-progress", *args)
+    assert rc == 2 and match in err and not (tmp_path / "s").exists()
+
+
+def test_synth_out_is_a_file_or_under_one(capsys, afile):
+    rc, err = _cli(capsys, "synth", "indoor-team", "--out", afile, "--no-progress")
+    assert rc == 2 and "exists and is not a folder" in err
+    for world in ("indoor-team", "all"):
+        rc, err = _cli(capsys, "synth", world, "--out", afile / "sub", "--no-progress")
+        assert rc == 2 and f"{afile} is a file, not a folder" in err
+
+
+def test_paper_profile_without_weights_is_one_error(capsys, monkeypatch):
+    monkeypatch.setenv("CERPE_WEIGHTS_DIR", "/nonexistent-weights")
+    rc, err = _cli(capsys, "paper", "--profile", "paper", "--suite", "fixture", "--no-progress")
+    assert rc == 2 and "the 'paper' profile cannot start" in err and "docs/PAPER_MODELS.md" in err
+
+
+def test_a_subcommand_whose_import_fails_is_listed_and_says_why(capsys, monkeypatch):
+    monkeypatch.setitem(cli.SUBCOMMANDS, "run", ("cerpe.pipeline.no_such_module", "run a method"))
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    assert "run" in out and "UNAVAILABLE" in out and "no_such_module" in out
+    assert "eval" in out  # the others are still there
+    rc, err = _cli(capsys, "run", "x.yaml", "--method", "cerpe", "--out", "somewhere")
+    assert rc == 2 and "cerpe run: error: this command is unavailable here" in err and "no_such_module" in err
+
+
+@pytest.mark.parametrize("flags,level", [([], logging.INFO), (["-v"], logging.DEBUG), (["-q"], logging.WARNING),
+                                         (["-qq"], logging.ERROR)])
+def test_verbosity_flags_set_the_log_level(capsys, log_levels, flags, level):
+    rc, _ = _cli(capsys, *flags, "eval", "no-such-run")
+    assert rc == 2 and log_levels.level == level
+    rc, _ = _cli(capsys, "eval", "no-such-run", *flags)  # after the sub-command too
+    assert rc == 2 and log_levels.level == level
