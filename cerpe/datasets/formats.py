@@ -23,8 +23,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw, se3_to_tq_xyzw
+from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw
 from ..scene import CameraIntrinsics, SceneError
+from ..tum import format_tum  # noqa: F401  (re-exported: the one TUM writer)
 from .manifest import ManifestError, Problem, is_number, read_yaml, type_name
 
 TRAJECTORY_FORMATS: tuple[str, ...] = ("tum", "euroc", "csv")
@@ -425,16 +426,3 @@ def depth_bits(path: Path) -> int | None:
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     return None if img is None else int(img.dtype.itemsize * 8)
-
-
-def format_tum(stamps_s: np.ndarray, T: np.ndarray,
-               header: str = "timestamp tx ty tz qx qy qz qw", stamp_decimals: int = 9) -> str:
-    """TUM trajectory text, ``stamp tx ty tz qx qy qz qw`` per pose ``T [N,4,4]``.
-
-    Quaternions scalar-last; evo and :func:`read_trajectory` (``fmt="tum"``) read it unchanged.
-    """
-    lines = [f"# {header}"]
-    for s, Tk in zip(stamps_s, T):
-        t, q = se3_to_tq_xyzw(Tk)
-        lines.append(f"{s:.{stamp_decimals}f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
-    return "\n".join(lines) + "\n"

@@ -20,7 +20,6 @@ setting keeps this manifest's ``name``, ``metric_depth`` and ``evaluation``.
 """
 from __future__ import annotations
 
-import importlib
 import logging
 from pathlib import Path
 from typing import Callable
@@ -45,13 +44,9 @@ def cache_root(manifest: Manifest | None = None) -> Path:
 
 def _synth_api() -> tuple[Callable[..., Path], dict]:
     """``(generate_suite, SUITES)`` from ``cerpe.synth`` (the only coupling to the generator)."""
-    try:
-        mod = importlib.import_module("cerpe.synth")
-        if not hasattr(mod, "generate_suite"):
-            mod = importlib.import_module("cerpe.synth.writer")
-    except ModuleNotFoundError as exc:
-        raise ManifestError(f"the synthetic generator (cerpe.synth) is not available: {exc}", field="adapter") from None
-    return mod.generate_suite, mod.SUITES
+    from ..synth import SUITES, generate_suite  # heavy (renderer): only when a synthetic setting is loaded
+
+    return generate_suite, SUITES
 
 
 def suite_conf(suites: dict, suite: str, world: str, seed: int) -> dict:

@@ -130,7 +130,7 @@ def _derived_manifest(man: Any, suite: str, out_dir: Path) -> Path:
 def discover_settings(profile: str, suite: str, manifests_dir: Path, derived_dir: Path,
                       load: bool = True) -> list[SettingEntry]:
     """Every manifest as a Table I column group, synthetic ones first; loads enabled settings."""
-    from ..datasets import ManifestError, find_manifests, load_setting
+    from ..datasets import ManifestError, disabled_reason, find_manifests, load_setting
 
     if not manifests_dir.is_dir():
         raise PaperError(f"manifest folder not found: {manifests_dir}")
@@ -139,7 +139,9 @@ def discover_settings(profile: str, suite: str, manifests_dir: Path, derived_dir
         world = str(man.raw.get("world", "")) if man.adapter == "synthetic" else ""
         e = SettingEntry(man.name, Path(man.path), "ok", world=world)
         if not man.enabled:
-            e.status, e.detail = "not supplied", f"fill {man.path.relative_to(ROOT) if man.path.is_relative_to(ROOT) else man.path} and set enabled: true"
+            where = man.path.relative_to(ROOT) if man.path.is_relative_to(ROOT) else man.path
+            e.status, e.detail = "not supplied", (disabled_reason(man) if man.enabled_if_present
+                                                  else f"fill {where} and set enabled: true")
         elif man.adapter != "synthetic" and suite == "fixture":
             e.status, e.detail = "skipped", "real datasets are not run in the fixture suite"
         else:

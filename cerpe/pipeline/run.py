@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, ensure_dir, read_json
-from ..datasets.formats import format_tum
+from ..tum import format_tum
 from ..errors import CerpeError
 from ..geometry import se3_inverse, se3_to_tq_xyzw
 from ..records import STAGES, PairRecord, RobotRecord, StepResult

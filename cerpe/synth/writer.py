@@ -198,7 +198,7 @@ def _camera_yaml(plan: EncounterPlan) -> str:
 
 
 def _tum(stamps: np.ndarray, T_world_cam: np.ndarray) -> str:
-    from ..datasets.formats import format_tum
+    from ..tum import format_tum
 
     return format_tum(stamps, T_world_cam, stamp_decimals=6,
                       header="timestamp tx ty tz qx qy qz qw  (camera-to-world, OpenCV camera axes)")
