@@ -28,7 +28,7 @@ _register("run", "cerpe.pipeline.run", "run a method (cerpe, cerpe-wo-em, baseli
 _register("eval", "cerpe.pipeline.evaluate", "compute the paper's metrics for a run folder")
 _register("bench", "cerpe.pipeline.bench", "benchmark per-stage latency, memory and bytes")
 _register("paper", "cerpe.pipeline.paper", "build every table and figure (what `make paper` runs)")
-_register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over TCP")
+_register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over Zenoh")
 
 
 def build_parser() -> argparse.ArgumentParser:
