@@ -55,6 +55,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
+import json
 import logging
 import sys
 import tempfile
@@ -213,6 +214,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="peer: robots talk directly (default); client: through the router given in --connect")
     z.add_argument("--no-multicast", action="store_true",
                    help="no UDP multicast scouting: find peers only through --connect/--listen")
+    z.add_argument("--zenoh", action="append", default=[], metavar="PATH=VALUE",
+                   help="any other Zenoh setting (json5 path of Zenoh's configuration, JSON value), repeatable, "
+                        "e.g. transport/shared_memory/enabled=false")
     z.add_argument("--timeout", type=float, default=node_defaults["step_timeout_s"],
                    help="seconds to wait per phase for the peers' frames of the same step (default %(default)s)")
     z.add_argument("--connect-timeout", type=float, default=node_defaults["connect_timeout_s"],
@@ -236,8 +240,17 @@ def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict]:
                     ("--linger", args.linger)):
         if not v >= 0:
             raise OnlineError(f"{name} must be >= 0, got {v}")
+    extra = {}
+    for item in args.zenoh:
+        path, eq, value = item.partition("=")
+        if not eq or not path:
+            raise OnlineError(f"--zenoh {item!r}: expected PATH=VALUE, e.g. transport/shared_memory/enabled=false")
+        try:
+            extra[path] = json.loads(value)
+        except json.JSONDecodeError:
+            extra[path] = value  # a bare string
     link = {"team": args.team, "mode": args.mode, "connect": list(args.connect), "listen": list(args.listen),
-            "multicast_scouting": not args.no_multicast}
+            "multicast_scouting": not args.no_multicast, "zenoh": extra or None}
     node = {"step_timeout_s": args.timeout, "connect_timeout_s": args.connect_timeout, "rate_hz": args.rate,
             "linger_s": args.linger,
             "ros": {"key_format": args.ros_keys, "domain_id": args.ros_domain, "distro": args.ros_distro}}
