@@ -1,7 +1,8 @@
 """The real ``cerpe online`` command: one robot process each, on loopback, on the synthetic fixture suite.
 
 Robots use explicit tcp/127.0.0.1 endpoints on free ports with multicast scouting off
-(robot k listens on its port and dials the robots before it), the offline backbone
+(each listens on its port; all dial r0 only, as the README shows: Zenoh's gossip
+connects the others with each other), the offline backbone
 preset, and a render cache of their own that none of them finds rendered: they start
 together, so the machine lock around loading the manifest is exercised too.
 
@@ -73,8 +74,8 @@ def launch(manifest: Path, robots: list[str], out: Path, team: str, *extra: str,
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     procs = {}
     for k, r in enumerate(robots):
-        cmd = robot_cmd(manifest, r, out, team, endpoint(ports[r]),
-                        [endpoint(ports[q]) for q in robots[:k]] + list(also_connect), *extra)
+        cmd = robot_cmd(manifest, r, out, team, endpoint(ports[r]),  # a star: the others find each other
+                        [endpoint(ports[robots[0]])] * (k > 0) + list(also_connect), *extra)  # through r0
         procs[r] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     return procs
 
