@@ -242,13 +242,10 @@ def test_cli_errors_are_one_line(manifests):
            "--no-multicast", "--ros-keys", "off"]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     for extra, match in [(["--listen", "nonsense"], "zenoh config listen/endpoints"),
-                         (["--listen", "tcp/10.255.255.1:7447"], "Zenoh session cannot open"),
                          (["--mode", "client", "--connect", "tcp/127.0.0.1:1"], "Zenoh session cannot open"),
-                         (["--mode", "client"], "needs a router endpoint"),
                          (["--timeout", "-1"], "--timeout must be >= 0"),
                          (["--team", "a/b"], "--team 'a/b'"),
-                         (["--robot", "r9"], "--robot 'r9'"),
-                         (["--encounter", "nope"], "no encounter 'nope'")]:
+                         (["--robot", "r9"], "--robot 'r9'")]:  # more cases: test_online_zenoh_link, test_online
         proc = subprocess.run(cmd + extra, capture_output=True, text=True, timeout=120, env=env)
         assert proc.returncode == 2, (extra, proc.stderr)
         assert "Traceback" not in proc.stderr and match in proc.stderr, (extra, proc.stderr)

@@ -18,8 +18,12 @@ handed out in its :class:`~cerpe.algorithm.link.Inbox`:
   queries are queued and answered by the handler given to :meth:`ZenohLink.serve`
   on the thread that calls the link (inside ``begin``, ``gather``, ``request``,
   ``wait_peers``, ``poll``, ``close``), once the owner has begun the query's step,
-  so the handler reads the robot's state without locks, as over TCP. One thread
+  so the handler reads the robot's state without locks. One thread
   calls a link.
+* Presence: the session and its subscribers open in the constructor (a bad
+  endpoint fails there, before a robot loads its models); the liveliness token
+  that tells the peers this robot is up is declared by :meth:`ZenohLink.announce`
+  (or the first :meth:`ZenohLink.wait_peers`), once the robot is ready to step.
 
 Counting (one entry per event in the next :class:`Inbox`'s ``degradations``;
 :meth:`ZenohLink.take_degradations` drains what no inbox delivered yet):
@@ -35,7 +39,8 @@ duplicate and far-ahead frames, refused queries and the bytes really sent (frame
 + header) go to :attr:`ZenohLink.stats`.
 
 Every wait has a deadline; a session that cannot open is one
-:class:`ZenohLinkError` naming the endpoints; nothing else raises on bad input.
+:class:`~cerpe.online.zenoh_session.ZenohSessionError` naming mode and endpoints;
+nothing else raises on bad input.
 """
 from __future__ import annotations
 
