@@ -359,12 +359,14 @@ class ZenohLink:
     # ------------------------------------------------------------------ the Link
     def begin(self, step: int) -> None:
         """This robot is at ``step``: earlier frames are dropped, requests up to ``step`` answered."""
-        step = int(step)
+        self._begin(int(step))
+        self._serve_queries()
+
+    def _begin(self, step: int) -> None:
         with self._cond:
             if step < self.box.step:
                 raise ZenohLinkError(f"robot {self.robot_id}: step {step} begun after step {self.box.step}")
             self.box.begin(step)
-        self._serve_queries()
 
     def broadcast(self, kind: str, frame: bytes) -> int:
         """Put ``frame`` on this robot's ``kind`` key; returns its bytes (counted once)."""
@@ -422,7 +424,7 @@ class ZenohLink:
         step = int(step)
         self._check_peers(list(frames), f"request({step})")
         if step != self.box.step:
-            self.begin(step)
+            self._begin(step)  # the peers' queries are answered in the wait below, once ours are out
         reqs = {}
         for p, frame in frames.items():
             try:
