@@ -6,8 +6,7 @@ import numpy as np
 from cerpe.algorithm import CerpeConfig, Link, Mailbox, Team
 from cerpe.algorithm.channel_link import ChannelHub
 from cerpe.messages import DescriptorMessage, ImageRequest, PoseMessage
-from cerpe.online.net import Address, NetTransport
-from cerpe.online.tcp_link import TcpLink
+from cerpe.online.zenoh_link import ZenohLink
 from cerpe.transport import Channel
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
@@ -49,11 +48,11 @@ def test_mailbox_files_by_step_and_counts_what_it_drops():
 def test_both_links_satisfy_the_protocol():
     hub = ChannelHub(Channel(), ["a", "b"])
     assert isinstance(hub.link("a"), Link)
-    net = NetTransport("a", Address("127.0.0.1", 0))
+    link = ZenohLink("a", ["a", "b"], {"multicast_scouting": False, "listen": ["tcp/127.0.0.1:0"]})
     try:
-        assert isinstance(TcpLink(net, ["a", "b"]), Link)
+        assert isinstance(link, Link)
     finally:
-        net.abort()
+        link.close(0.0)
 
 
 def test_lossy_team_is_deterministic():

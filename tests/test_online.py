@@ -1,16 +1,18 @@
-"""cerpe.online: robot nodes in threads on localhost (ephemeral ports) against the in-process Team.
+"""cerpe.online: robot nodes in threads of this process, each over its own Zenoh session, against the Team.
 
-The key test: with no loss, every robot's per-step relative poses, gate scores,
-sources, reasons and bytes equal what :class:`cerpe.algorithm.Team` produces for
-the same encounter (GT test-double backbone, tests/gt_backbone.py). Each node has
-its own backbone instance, which draws other random frames and units than the
-Team's shared one: poses agree to floating-point precision, not bit for bit.
+Every node has a :class:`ZenohLink` on an explicit tcp/127.0.0.1 endpoint on a free
+port (multicast scouting off: tests never need multicast); robot k dials the
+robots before it. The key test: with no loss, every robot's per-step relative
+poses, gate scores, sources, reasons, bytes and degradations equal what
+:class:`cerpe.algorithm.Team` produces for the same encounter (GT test-double
+backbone, tests/gt_backbone.py). Each node has its own backbone instance, which
+draws other random frames and units than the Team's shared one: poses agree to
+floating-point precision, not bit for bit. The real ``cerpe online`` command in
+robot processes is tested in tests/test_online_cli.py.
 """
 from __future__ import annotations
 
-import socket
-import subprocess
-import sys
+import json
 import threading
 import time
 from pathlib import Path
@@ -19,19 +21,29 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cerpe.algorithm import CerpeConfig, RobotAgent, Team
-from cerpe.messages import PoseMessage
-from cerpe.online import net as netmod
-from cerpe.online.cli import run_online
-from cerpe.online.net import Address, NetTransport, OnlineError, parse_address, parse_peer
-from cerpe.online.node import RobotNode
-from cerpe.protocols import FrameContext
-from cerpe.scene import Setting
-from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
+zenoh = pytest.importorskip("zenoh")
+
+from cerpe.algorithm import CerpeConfig, RobotAgent, Team  # noqa: E402
+from cerpe.config import ConfigError  # noqa: E402
+from cerpe.geometry import se3_to_tq_xyzw  # noqa: E402
+from cerpe.online import ros  # noqa: E402
+from cerpe.online.cli import run_online  # noqa: E402
+from cerpe.online.node import OnlineError, RobotNode  # noqa: E402
+from cerpe.online.zenoh_link import ZenohLink  # noqa: E402
+from cerpe.protocols import FrameContext  # noqa: E402
+from cerpe.scene import Setting  # noqa: E402
+from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world  # noqa: E402
+from test_online_zenoh_link import endpoint, free_ports  # noqa: E402
 
 CFG = CerpeConfig(min_scale_pixels=20)
-LOCAL = Address("127.0.0.1", 0)
-FAST = {"step_timeout_s": 5.0, "connect_timeout_s": 10.0}
+FAST = {"step_timeout_s": 5.0, "connect_timeout_s": 10.0, "linger_s": 3.0, "ros": {"key_format": "off"}}
+
+
+def link_confs(robots, team="online", ports=None) -> dict[str, dict]:
+    """Robot k listens on its own port and dials the robots before it; no multicast."""
+    ports = ports or dict(zip(robots, free_ports(len(robots))))
+    return {r: {"team": team, "multicast_scouting": False, "listen": [endpoint(ports[r])],
+                "connect": [endpoint(ports[q]) for q in robots[:k]]} for k, r in enumerate(robots)}
 
 
 def frames(world, rid: str, n_steps: int | None = None):
@@ -41,21 +53,15 @@ def frames(world, rid: str, n_steps: int | None = None):
         yield r.image(t), FrameContext(rid, t, r.intrinsics, r.depth_m(t), 0), float(r.stamps_s[t])
 
 
-def make_nodes(world, conf=None, robots=None):
-    """One node per robot (own plug-in instances), transports bound on ephemeral ports, not yet connected."""
-    robots = robots or world.robot_ids
-    nets = {r: NetTransport(r, LOCAL) for r in robots}
-    nodes = {}
-    for r in robots:
-        agent = RobotAgent(r, world.index(r), CFG, OverlapDescriptor(world), GTBackbone(world, seed=7),
-                           SensorDepthDouble())
-        nodes[r] = RobotNode(agent, world.robot_ids, [p for p in robots if p != r], nets[r], {**FAST, **(conf or {})})
-    return nets, nodes
+def make_node(world, rid, lconf, conf=None, backbone=None):
+    agent = RobotAgent(rid, world.index(rid), CFG, OverlapDescriptor(world), backbone or GTBackbone(world, seed=7),
+                       SensorDepthDouble())
+    return RobotNode(agent, ZenohLink(rid, world.robot_ids, lconf), world.robot_ids, conf={**FAST, **(conf or {})})
 
 
-def connect(nets):
-    for r, n in nets.items():
-        n.connect({p: m.address for p, m in nets.items() if p != r})
+def make_nodes(world, conf=None):
+    confs = link_confs(world.robot_ids)
+    return {r: make_node(world, r, confs[r], conf) for r in world.robot_ids}
 
 
 def run_threads(targets: dict) -> dict:
@@ -72,20 +78,20 @@ def run_threads(targets: dict) -> dict:
     for th in ths:
         th.start()
     for th in ths:
-        th.join(60)
+        th.join(90)
     assert not any(th.is_alive() for th in ths), "a node hung"
     if errors:
         raise next(iter(errors.values()))
     return results
 
 
-def node_job(node, net, world, rid, n_steps=None, close=True):
+def node_job(node, world, rid, n_steps=None, close=True):
     def job():
         try:
             return list(node.run(frames(world, rid, n_steps)))
         finally:
             if close:
-                net.close(linger_s=2.0)
+                node.close()
     return job
 
 
@@ -115,158 +121,55 @@ def assert_same_as_team(world, online: dict, tol: float = 1e-8) -> int:
 
 @pytest.mark.parametrize("n_robots", [2, 3])
 def test_lossless_nodes_equal_team(n_robots):
-    world = make_world(n_robots, 16, seed=3, windows={(a, b): [(3, 6), (10, 12)] for a in range(n_robots)
+    world = make_world(n_robots, 12, seed=3, windows={(a, b): [(3, 6), (9, 11)] for a in range(n_robots)
                                                        for b in range(a + 1, n_robots)})
-    nets, nodes = make_nodes(world)
-    connect(nets)
-    out = run_threads({r: node_job(nodes[r], nets[r], world, r) for r in world.robot_ids})
+    nodes = make_nodes(world)
+    out = run_threads({r: node_job(nodes[r], world, r) for r in world.robot_ids})
     n_direct = assert_same_as_team(world, out)
     assert n_direct == n_robots * (n_robots - 1) * 5  # the test exercises image exchange
-    replies = sum(r.robots[0].bytes_sent.get("reply", 0) for rs in out.values() for r in rs)
-    assert replies > 0
-    for r in world.robot_ids:
-        assert nodes[r].stats["msg:lost"] == 0 and nets[r].stats["peer_lost"] == 0
+    for r, node in nodes.items():
+        assert node.stats["msg:lost"] == 0 and node.stats["replies_sent"] > 0, (r, dict(node.stats))
+        assert node.stats["net:peer-lost"] == 0 and len(node.step_s) == world.n_steps
 
 
 def test_peer_comes_up_late_then_same_as_team():
-    """r1 binds its port only after r0 has dialed it for a while: r0 retries, both then run in step."""
+    """r1 opens its session only after r0 has been dialing it for a while: Zenoh retries, both run in step."""
     world = make_world(2, 8, seed=4, windows={(0, 1): [(2, 5)]})
-    with socket.socket() as s:  # reserve a free port for the late robot, release it
-        s.bind(("127.0.0.1", 0))
-        port1 = s.getsockname()[1]
-    net0 = NetTransport("r0", LOCAL)
-    agent0 = RobotAgent("r0", 0, CFG, OverlapDescriptor(world), GTBackbone(world, seed=2), SensorDepthDouble())
-    node0 = RobotNode(agent0, world.robot_ids, ["r1"], net0, FAST)
-    net0.connect({"r1": Address("127.0.0.1", port1)})
-    box = {}
+    p0, p1 = free_ports(2)
+    node0 = make_node(world, "r0", {"team": "late", "multicast_scouting": False, "listen": [endpoint(p0)],
+                                    "connect": [endpoint(p1)]})
 
     def late():
-        time.sleep(1.0)
-        net1 = NetTransport("r1", Address("127.0.0.1", port1))
-        agent1 = RobotAgent("r1", 1, CFG, OverlapDescriptor(world), GTBackbone(world, seed=3), SensorDepthDouble())
-        node1 = RobotNode(agent1, world.robot_ids, ["r0"], net1, FAST)
-        net1.connect({"r0": net0.address})
-        box["net1"] = net1
-        return node_job(node1, net1, world, "r1")()
+        time.sleep(1.5)
+        node1 = make_node(world, "r1", {"team": "late", "multicast_scouting": False, "listen": [endpoint(p1)]})
+        return node_job(node1, world, "r1")()
 
-    out = run_threads({"r0": node_job(node0, net0, world, "r0"), "r1": late})
-    assert net0.stats["dial_failures"] >= 1
+    out = run_threads({"r0": node_job(node0, world, "r0"), "r1": late})
     assert assert_same_as_team(world, out) > 0
 
 
 def test_killed_peer_is_counted_and_robot_goes_on():
-    world = make_world(2, 14, seed=5, windows={(0, 1): [(1, 4)]})
-    nets, nodes = make_nodes(world, conf={"step_timeout_s": 3.0})
-    connect(nets)
+    world = make_world(2, 12, seed=5, windows={(0, 1): [(1, 4)]})
+    nodes = make_nodes(world, conf={"step_timeout_s": 3.0})
 
-    def crash():  # r1 runs 6 steps, then its process "dies": sockets closed without a bye
-        res = node_job(nodes["r1"], nets["r1"], world, "r1", n_steps=6, close=False)()
-        nets["r1"].abort()
+    def crash():  # r1 runs 6 steps, then its process "dies": the session ends without a bye
+        res = node_job(nodes["r1"], world, "r1", n_steps=6, close=False)()
+        nodes["r1"].link.session.close()
         return res
 
-    out = run_threads({"r0": node_job(nodes["r0"], nets["r0"], world, "r0"), "r1": crash})
+    t0 = time.monotonic()
+    out = run_threads({"r0": node_job(nodes["r0"], world, "r0"), "r1": crash})
     r0 = out["r0"]
     assert len(r0) == world.n_steps
     degr = [d for res in r0 for d in res.robots[0].degradations]
     assert degr.count("net:peer-lost") == 1
-    assert nets["r0"].stats["peer_lost"] == 1
-    # every later step misses r1's descriptor and pose: two lost frames each, no waiting
-    for res in r0[7:]:
+    # every later step misses r1's descriptor and pose: two lost frames each, without waiting for them
+    for res in r0[8:]:
         assert res.robots[0].degradations.count("msg:lost") == 2
         (p,) = res.pairs
         assert p.source == "propagated" and "descriptor-missing" in p.reason and "stale-pose" in p.reason
-
-
-def test_garbled_frames_and_garbage_are_counted_not_raised():
-    """A fake r1 speaks the protocol, then sends a frame with a bad checksum, then raw garbage."""
-    world = make_world(2, 6, seed=6)
-    net0 = NetTransport("r0", LOCAL)
-    agent0 = RobotAgent("r0", 0, CFG, OverlapDescriptor(world), GTBackbone(world, seed=2), SensorDepthDouble())
-    node0 = RobotNode(agent0, world.robot_ids, ["r1"], net0, {"step_timeout_s": 1.0, "connect_timeout_s": 10.0})
-    fake = socket.socket()
-    fake.bind(("127.0.0.1", 0))
-    fake.listen(1)
-    net0.connect({"r1": Address("127.0.0.1", fake.getsockname()[1])})  # r0 < r1: r0 dials the fake
-    stranger = socket.create_connection(("127.0.0.1", net0.address.port))  # no hello at all
-    stranger.sendall(b"GET / HTTP/1.0\r\n\r\n")
-
-    def fake_r1():
-        sock, _ = fake.accept()
-        sock.settimeout(5)
-        netmod.read_envelope(sock, threading.Event(), 4096)  # r0's hello
-        sock.sendall(netmod.pack(netmod.T_HELLO, netmod.hello_payload("r1")))
-        good = bytearray(PoseMessage(1, 0, np.eye(4)).encode())
-        good[20] ^= 0xFF  # checksum no longer matches
-        sock.sendall(netmod.pack(netmod.T_MSG, bytes(good)))
-        sock.sendall(netmod.pack(netmod.T_MSG, b"xx"))  # too short to be a frame
-        time.sleep(0.3)
-        sock.sendall(b"\x00garbage that is no envelope" * 10)
-        time.sleep(0.5)
-        sock.close()
-
-    out = run_threads({"r0": node_job(node0, net0, world, "r0"), "r1": fake_r1})
-    stranger.close()
-    fake.close()
-    degr = [d for res in out["r0"] for d in res.robots[0].degradations]
-    assert degr.count("msg:garbled") == 3
-    assert net0.stats["garbled"] == 3 and net0.stats["bad_hello"] >= 1
-    assert len(out["r0"]) == world.n_steps and all(p.source == "none" for res in out["r0"] for p in res.pairs)
-
-
-def test_run_online_writes_a_run_folder(tmp_path: Path):
-    world = make_world(2, 6, seed=8, windows={(0, 1): [(1, 4)]})
-    setting = Setting("toy-online", [world.to_encounter("enc")])
-    with socket.socket() as a, socket.socket() as b:
-        a.bind(("127.0.0.1", 0))
-        b.bind(("127.0.0.1", 0))
-        ports = {"r0": a.getsockname()[1], "r1": b.getsockname()[1]}
-
-    def job(rid):
-        other = "r1" if rid == "r0" else "r0"
-        plugins = type("P", (), {"descriptor": OverlapDescriptor(world), "backbone": GTBackbone(world, seed=1),
-                                 "depth": SensorDepthDouble()})
-        return lambda: run_online(tmp_path / "m.yaml", "enc", rid, Address("127.0.0.1", ports[rid]),
-                                  {other: Address("127.0.0.1", ports[other])}, tmp_path / rid, setting=setting,
-                                  plugins=plugins, config=CFG, node_conf=FAST, progress=False)
-
-    run_threads({r: job(r) for r in ("r0", "r1")})
-    for rid in ("r0", "r1"):
-        enc = tmp_path / rid / "enc"
-        steps = pd.read_csv(enc / "steps.csv")
-        assert set(steps["ego"]) == {rid} and len(steps) == world.n_steps
-        assert (steps["source"] == "direct").sum() == 3 and steps["bytes_pair"].sum() > 0
-        assert (enc / "DONE.json").is_file() and (enc / "online.json").is_file()
-        assert (enc / "odometry" / f"{rid}.tum").is_file()
-    with pytest.raises(Exception, match="already finished"):
-        job("r0")()
-
-
-def test_addresses_and_cli_errors(tmp_path: Path):
-    assert parse_address("10.0.0.2:7000") == Address("10.0.0.2", 7000)
-    assert parse_address("[::1]:7001") == Address("::1", 7001)
-    assert parse_peer("r1=host:7") == ("r1", Address("host", 7))
-    for bad in ("10.0.0.2", "host:99999", ":7000", "host:port"):
-        with pytest.raises(OnlineError, match="HOST:PORT"):
-            parse_address(bad)
-    with pytest.raises(OnlineError, match="ROBOT_ID=HOST:PORT"):
-        parse_peer("10.0.0.2:7000")
-    cmd = [sys.executable, "-m", "cerpe.cli", "online"]
-    bad = subprocess.run(cmd + ["--robot", "r0", "--listen", "0.0.0.0", "--peer", "r1=127.0.0.1:1",
-                                "--manifest", "x.yaml", "--encounter", "e"], capture_output=True, text=True)
-    assert bad.returncode == 2 and "--listen '0.0.0.0'" in bad.stderr and "Traceback" not in bad.stderr
-    world = make_world(2, 3, seed=9)
-    setting = Setting("toy", [world.to_encounter("enc")])
-    with pytest.raises(OnlineError, match=r"--robot 'r7'.*robots \['r0', 'r1'\]"):
-        run_online(tmp_path / "m.yaml", "enc", "r7", LOCAL, {"r1": Address("127.0.0.1", 1)}, tmp_path,
-                   setting=setting)
-    with pytest.raises(OnlineError, match="no encounter 'nope'"):
-        run_online(tmp_path / "m.yaml", "nope", "r0", LOCAL, {"r1": Address("127.0.0.1", 1)}, tmp_path,
-                   setting=setting)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        s.listen(1)
-        with pytest.raises(OnlineError, match="cannot listen"):
-            NetTransport("r0", Address("127.0.0.1", s.getsockname()[1]))
+    assert sum(nodes["r0"].step_s[8:]) < 3.0  # no deadline spent on a robot known gone
+    assert time.monotonic() - t0 < 60
 
 
 class SlowBackbone(GTBackbone):
@@ -284,11 +187,103 @@ class SlowBackbone(GTBackbone):
 def test_slow_robot_neither_deadlocks_nor_stalls_its_peer():
     """r1's pass outlasts r0's step timeout: both finish every step, r0 counts what r1 delivered too late."""
     world = make_world(2, 8, seed=10)
-    nets, nodes = make_nodes(world, conf={"step_timeout_s": 0.05, "max_lag_steps": 1})
-    nodes["r1"].agent.backbone = SlowBackbone(world, seed=7)
-    connect(nets)
-    out = run_threads({r: node_job(nodes[r], nets[r], world, r) for r in world.robot_ids})
+    confs = link_confs(world.robot_ids)
+    conf = {"step_timeout_s": 0.05}
+    nodes = {"r0": make_node(world, "r0", confs["r0"], conf),
+             "r1": make_node(world, "r1", confs["r1"], conf, backbone=SlowBackbone(world, seed=7))}
+    out = run_threads({r: node_job(nodes[r], world, r) for r in world.robot_ids})
     assert [len(out[r]) for r in world.robot_ids] == [8, 8]
     assert nodes["r0"].stats["msg:lost"] > 0
     assert nodes["r0"].stats["msg:lost"] == sum(res.robots[0].degradations.count("msg:lost") for res in out["r0"])
-    assert nets["r0"].stats["peer_lost"] == 0 and nets["r1"].stats["peer_lost"] == 0
+    assert nodes["r0"].stats["net:peer-lost"] == 0 and nodes["r1"].stats["net:peer-lost"] == 0
+
+
+def test_run_online_writes_a_run_folder_and_publishes_the_estimates(tmp_path: Path):
+    """Two robots through run_online (GT plug-ins); a ROS 2 listener on r0's session decodes what they
+    publish: one PoseWithCovarianceStamped per estimate, equal to the estimate in steps.csv."""
+    world = make_world(2, 6, seed=8, windows={(0, 1): [(1, 4)]})
+    setting = Setting("toy-online", [world.to_encounter("enc")])
+    confs = link_confs(world.robot_ids, team="lab")
+    (port,) = free_ports(1)
+    for c in confs.values():  # the robots dial the listener: it hears them from their first sample on
+        c["connect"].append(endpoint(port))
+    got: list[tuple[str, bytes, bytes]] = []
+    listener = zenoh.open(_raw_conf([], [endpoint(port)]))
+    sub = listener.declare_subscriber("0/cerpe/lab/**", lambda s: got.append(
+        (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())))
+
+    def job(rid):
+        plugins = type("P", (), {"descriptor": OverlapDescriptor(world), "backbone": GTBackbone(world, seed=1),
+                                 "depth": SensorDepthDouble()})
+        node_conf = {**FAST, "ros": {"key_format": "rmw_zenoh", "distro": "jazzy"}}
+        return lambda: run_online(tmp_path / "m.yaml", None, rid, tmp_path / rid, link_conf=confs[rid],
+                                  node_conf=node_conf, setting=setting, plugins=plugins, config=CFG, progress=False)
+
+    try:
+        run_threads({r: job(r) for r in world.robot_ids})
+        time.sleep(0.3)
+    finally:
+        sub.undeclare()
+        listener.close()
+    published = {}
+    for key, cdr, att in got:
+        seq, _, _ = ros.parse_rmw_attachment(att)
+        msg = ros.decode_pose_cdr(cdr)
+        published[(key, round(msg["stamp_s"], 6))] = msg
+        assert seq >= 1 and np.all(msg["covariance"] == 0)
+    for rid in world.robot_ids:
+        other = "r1" if rid == "r0" else "r0"
+        enc = tmp_path / rid / "enc"
+        steps = pd.read_csv(enc / "steps.csv")
+        assert set(steps["ego"]) == {rid} and len(steps) == world.n_steps
+        assert (steps["source"] == "direct").sum() == 3 and steps["bytes_pair"].sum() > 0
+        assert (enc / "DONE.json").is_file() and (enc / "odometry" / f"{rid}.tum").is_file()
+        report = json.loads((enc / "online.json").read_text())
+        assert report["n_steps"] == world.n_steps and report["link"].get("msg:lost", 0) == 0
+        key = ros.zenoh_key(ros.topic_name("lab", rid, other), {**ros.default_conf})
+        assert report["ros_keys"] == {other: key}
+        est = steps[steps["source"] != "none"]
+        assert report["estimates_published"] == len(est) > 0
+        for _, row in est.iterrows():
+            msg = published[(key, round(float(row["stamp_s"]), 6))]
+            assert msg["frame_id"] == f"lab/{other}/camera_optical"
+            t, qxyzw = se3_to_tq_xyzw(msg["T_cj_ci"])
+            np.testing.assert_allclose(t, row[["est_tx", "est_ty", "est_tz"]].to_numpy(float), atol=1e-6)
+            want = row[["est_qx", "est_qy", "est_qz", "est_qw"]].to_numpy(float)
+            assert min(np.abs(qxyzw - want).max(), np.abs(qxyzw + want).max()) < 1e-6
+    with pytest.raises(Exception, match="already finished"):
+        job("r0")()
+
+
+def _raw_conf(connect: list[str], listen: list[str]):
+    c = zenoh.Config()
+    for k, v in (("mode", "peer"), ("scouting/multicast/enabled", False), ("connect/endpoints", connect),
+                 ("listen/endpoints", listen)):
+        c.insert_json5(k, json.dumps(v))
+    return c
+
+
+def test_node_and_run_online_errors(tmp_path: Path):
+    world = make_world(2, 3, seed=9)
+    setting = Setting("toy", [world.to_encounter("enc"), world.to_encounter("enc2")])
+    lconf = {"multicast_scouting": False, "listen": ["tcp/127.0.0.1:0"]}
+    with pytest.raises(OnlineError, match=r"--robot 'r7'.*robots \['r0', 'r1'\]"):
+        run_online(tmp_path / "m.yaml", "enc", "r7", tmp_path, link_conf=lconf, setting=setting)
+    with pytest.raises(OnlineError, match="no encounter 'nope'"):
+        run_online(tmp_path / "m.yaml", "nope", "r0", tmp_path, link_conf=lconf, setting=setting)
+    with pytest.raises(OnlineError, match="has 2 encounters.*--encounter"):
+        run_online(tmp_path / "m.yaml", None, "r0", tmp_path, link_conf=lconf, setting=setting)
+    with pytest.raises(OnlineError, match="--method 'sift-ransac'"):
+        run_online(tmp_path / "m.yaml", "enc", "r0", tmp_path, method="sift-ransac", setting=setting)
+    for conf, err, match in [({"rate_hz": -1.0}, OnlineError, "rate_hz must be >= 0"),
+                             ({"ros": {"key_format": "dds"}}, OnlineError, "--ros-keys 'dds'"),
+                             ({"step_timout_s": 1.0}, ConfigError, "unknown option"),
+                             ({"ros": {"key_format": "rmw_zenoh"}}, Exception, "--team 'my-lab'.*ROS name token")]:
+        link = ZenohLink("r0", world.robot_ids, {**lconf, "team": "my-lab"})
+        try:
+            agent = RobotAgent("r0", 0, CFG, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble())
+            with pytest.raises(err, match=match):
+                RobotNode(agent, link, world.robot_ids, conf=conf)
+        finally:
+            link.close(0.0)
+

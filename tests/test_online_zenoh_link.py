@@ -58,6 +58,8 @@ class Team:
             conf = {"team": (teams or {}).get(r, team), "multicast_scouting": False,
                     "listen": [endpoint(self.ports[r])], "connect": [endpoint(self.ports[q]) for q in up[:k]]}
             self.links[r] = ZenohLink(r, self.roster, conf)
+        for link in self.links.values():  # every robot up before any waits for the others
+            link.announce()
         for r, link in self.links.items():
             same = [q for q in self.links if q != r and self.links[q].team == link.team]
             assert link.wait_peers(same, 10.0) == [], f"{r} does not see {same}"
@@ -269,7 +271,7 @@ def test_killed_peer_is_counted_and_not_waited_for(team_of, tmp_path):
     code = ("import sys, time; sys.path.insert(0, %r)\n"
             "from cerpe.online.zenoh_link import ZenohLink\n"
             "link = ZenohLink('r1', ['r0', 'r1'], {'team': 't', 'multicast_scouting': False, "
-            "'listen': ['tcp/127.0.0.1:%d'], 'connect': ['tcp/127.0.0.1:%d']})\n"
+            "'listen': ['tcp/127.0.0.1:%d'], 'connect': ['tcp/127.0.0.1:%d']}); link.announce()\n"
             "print('up', flush=True); time.sleep(60)\n") % (str(TESTS.parent), port, team.ports["r0"])
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:

@@ -1,15 +1,17 @@
 """Two robots in two network namespaces joined by a veth pair, optionally impaired with tc netem.
 
-Each robot is a driver process (tests/zenoh_peer_driver.py) exchanging real cerpe frames step
-by step over ZenohLink: descriptors, image request/reply through the owner's queryable, poses.
-Runs only as root where ``ip netns add`` works (skipped cleanly otherwise); the lossy cases
-(10 % and 30 % loss, 50 ms delay each way) also need the netem qdisc (skipped where the kernel
-has none). Checks: frames flow, every frame that did not arrive is counted (``msg:lost`` or
-``msg:image-not-held``), contents are right, nothing hangs. Prints per robot: steps, frames
-lost, bytes per step, step latency median and p90.
+Each robot is a real ``cerpe online`` process (offline backbone preset, the synthetic cad
+fixture, 12 steps) in its own namespace. Runs only as root where ``ip netns add`` works
+(skipped cleanly otherwise); the lossy cases (10 % and 30 % loss, 50 ms delay each way) also
+need the netem qdisc (skipped where the kernel has none, as on the development machine).
+Checks: both robots finish every step, nothing hangs, every frame that did not arrive in time is
+counted in the records as in the link's counters (``msg:lost``, ``msg:image-not-held``); without
+loss nothing is lost. Prints per robot: steps, frames lost, bytes of our frames per step, the
+bytes the veth really carried per step (Zenoh, TCP/IP, scouting and keep-alives included), step
+latency median and p90.
 
 The robots use explicit endpoints (r0 listens, r1 dials), except the ``multicast`` case, which
-uses Zenoh's default discovery (UDP multicast scouting) inside the isolated namespaces.
+uses ``cerpe online``'s default discovery (UDP multicast scouting) inside the namespaces.
 """
 from __future__ import annotations
 
@@ -19,15 +21,16 @@ import shutil
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 pytest.importorskip("zenoh")
 
 TESTS = Path(__file__).resolve().parent
-DRIVER = TESTS / "zenoh_peer_driver.py"
 ADDR = {"r0": "10.77.0.1", "r1": "10.77.0.2"}
 PORT = 7447
 
@@ -92,39 +95,54 @@ class VethPair:
             _ip("netns", "del", ns, check=False)
 
 
-def run_pair(pair: VethPair, out: Path, steps: int, deadline_s: float, multicast: bool) -> dict[str, dict]:
+def veth_bytes(ns: str, dev: str) -> int:
+    """Bytes the device has sent so far (``ip -s`` counters)."""
+    info = json.loads(_ip("-n", ns, "-j", "-s", "link", "show", "dev", dev).stdout)
+    return int(info[0]["stats64"]["tx"]["bytes"])
+
+
+def run_pair(pair: VethPair, manifest: Path, out: Path, tag: str, timeout_s: float,
+             multicast: bool) -> dict[str, dict]:
     procs = {}
+    devs = {"r0": "v0", "r1": "v1"}
+    before = {r: veth_bytes(pair.ns[r], devs[r]) for r in devs}
     for r in ("r0", "r1"):
-        cmd = ["ip", "netns", "exec", pair.ns[r], sys.executable, str(DRIVER), "--robot", r, "--roster", "r0,r1",
-               "--steps", str(steps), "--deadline", str(deadline_s), "--connect-timeout", "20",
-               "--linger", "5", "--out", str(out / f"{r}.json")]
-        if multicast:
-            cmd.append("--multicast")
-        elif r == "r0":
-            cmd += ["--listen", f"tcp/{ADDR['r0']}:{PORT}"]
-        else:
-            cmd += ["--connect", f"tcp/{ADDR['r0']}:{PORT}"]
+        cmd = ["ip", "netns", "exec", pair.ns[r], sys.executable, "-m", "cerpe.cli", "online", "--robot", r,
+               "--manifest", str(manifest), "--team", f"ns{tag}", "--timeout", str(timeout_s),
+               "--connect-timeout", "60", "--linger", "5", "--out", str(out / r), "--no-progress",
+               "--zenoh", "transport/shared_memory/enabled=false"]  # two machines share no memory
+        if not multicast:
+            cmd += ["--no-multicast"]
+            cmd += ["--listen", f"tcp/{ADDR['r0']}:{PORT}"] if r == "r0" else ["--connect", f"tcp/{ADDR['r0']}:{PORT}"]
         env = {**os.environ, "PYTHONPATH": str(TESTS.parent)}
         procs[r] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         for r, p in procs.items():
-            log, _ = p.communicate(timeout=30 + steps * 3 * (deadline_s + 1))
+            log, _ = p.communicate(timeout=300)
             assert p.returncode == 0, f"robot {r} failed:\n{log}"
     finally:
         for p in procs.values():
             if p.poll() is None:
                 p.kill()
-    return {r: json.loads((out / f"{r}.json").read_text()) for r in procs}
+    reps = {}
+    for r in procs:
+        enc = next((out / r).glob("*/DONE.json")).parent
+        rob = pd.read_csv(enc / "robots.csv", dtype={"degradations": str}, keep_default_na=False)
+        reps[r] = {**json.loads((enc / "online.json").read_text()), "robot": r,
+                   "records": Counter(d for ds in rob["degradations"] for d in (ds.split(";") if ds else [])),
+                   "veth_bytes": veth_bytes(pair.ns[r], devs[r]) - before[r]}
+    return reps
 
 
 def figures(rep: dict) -> str:
+    link, n = rep["link"], rep["n_steps"]
     lat = np.asarray(rep["step_s"]) * 1e3
-    lost = rep["expected"] - rep["received"]
-    per_step = sum(rep["bytes_per_step"].values())
-    return (f"{rep['robot']}: {rep['steps']} steps, {lost}/{rep['expected']} frames lost, "
-            f"{per_step:.0f} B/step sent ({', '.join(f'{k} {v:.0f}' for k, v in rep['bytes_per_step'].items())}), "
-            f"step latency median {np.median(lat):.1f} ms, p90 {np.percentile(lat, 90):.1f} ms, "
-            f"degradations {rep['degradations']}")
+    lost = link.get("msg:lost", 0) + link.get("msg:image-not-held", 0)
+    wire = {k[len("wire_bytes_"):]: v / n for k, v in sorted(link.items()) if k.startswith("wire_bytes_")}
+    return (f"{rep['robot']}: {n} steps, {lost} frames lost (late after their deadline: {link.get('late', 0)}), "
+            f"{sum(wire.values()):.0f} B/step of frames ({', '.join(f'{k} {v:.0f}' for k, v in wire.items())}), "
+            f"{rep['veth_bytes'] / n:.0f} B/step sent on the veth, "
+            f"step latency median {np.median(lat):.0f} ms, p90 {np.percentile(lat, 90):.0f} ms")
 
 
 CASES = [  # tag, loss %, delay ms, multicast, needs netem
@@ -135,20 +153,34 @@ CASES = [  # tag, loss %, delay ms, multicast, needs netem
 ]
 
 
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory) -> Path:
+    """The synthetic cad fixture (2 robots, 12 steps), rendered before the robots start."""
+    m = tmp_path_factory.mktemp("netns") / "cad.yaml"
+    m.write_text(f"name: netns-cad\nadapter: synthetic\nworld: cad-intersection\nsuite: fixture\nseed: 0\n"
+                 f"metric_depth: sensor\ncache_dir: {m.parent / 'cache'}\n")
+    from cerpe.pipeline.run import load_manifest_setting
+
+    load_manifest_setting(m)
+    return m
+
+
 @pytest.mark.skipif(NO_NETNS is not None, reason=f"network namespaces: {NO_NETNS}")
 @pytest.mark.parametrize("tag, loss_pct, delay_ms, multicast, needs_netem", CASES, ids=[c[0] for c in CASES])
-def test_two_robots_in_network_namespaces(tmp_path, tag, loss_pct, delay_ms, multicast, needs_netem):
+def test_two_robots_in_network_namespaces(manifest, tmp_path, tag, loss_pct, delay_ms, multicast, needs_netem):
     if needs_netem and not _PROBE.get("netem"):
         pytest.skip("the kernel has no netem qdisc (tc qdisc add ... netem fails)")
-    steps, deadline_s = (6, 0.8) if needs_netem else (5, 2.0)
     with VethPair(tag[:3], loss_pct, delay_ms) as pair:
-        reps = run_pair(pair, tmp_path, steps, deadline_s, multicast)
+        reps = run_pair(pair, manifest, tmp_path, tag[:3], 1.0 if needs_netem else 30.0, multicast)
     for rep in reps.values():
         print(f"[netns {tag}: loss {loss_pct} %, delay {delay_ms} ms] {figures(rep)}")
-        assert rep["missing_at_start"] == [] and rep["bad_content"] == 0
-        assert rep["received"] > 0  # frames flow
-        deg = rep["degradations"]
-        # every frame that did not arrive is counted, once
-        assert rep["expected"] - rep["received"] == deg.get("msg:lost", 0) + deg.get("msg:image-not-held", 0)
+        link, records = rep["link"], rep["records"]
+        assert rep["n_steps"] == 12 and rep["missing_at_start"] == []
+        assert link.get("net:peer-lost", 0) == 0
+        # every frame that did not arrive in time is counted, and it is in the records
+        for name in ("msg:lost", "msg:image-not-held", "msg:garbled"):
+            assert records.get(name, 0) == link.get(name, 0), (name, records, link)
+        assert link.get("msg:lost", 0) <= 12 * 2 + link.get("frames_sent_request", 0)
+        assert rep["veth_bytes"] > sum(v for k, v in link.items() if k.startswith("wire_bytes_"))
         if not loss_pct:
-            assert rep["received"] == rep["expected"] and deg == {}
+            assert link.get("msg:lost", 0) == 0 and link.get("msg:garbled", 0) == 0

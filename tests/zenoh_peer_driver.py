@@ -1,7 +1,9 @@
 """A small robot stand-in over ZenohLink: real cerpe frames, step by step, no models.
 
-Used by the loopback-subprocess and network-namespace tests until the step engine
-drives ZenohLink. Per step it does what a robot's phases do on the wire:
+Used by the link-level subprocess test (tests/test_online_zenoh_link.py), which checks
+ZenohLink across processes without loading any model (the real robot processes, ``cerpe
+online``, are tested in tests/test_online_cli.py and tests/test_online_zenoh_netns.py).
+Per step it does what a robot's phases do on the wire:
 broadcast its DescriptorMessage, gather the peers', request every peer's image
 (ImageRequest -> ImageReply through the owner's queryable), broadcast its
 PoseMessage, gather the peers'. Every frame's content is a function of

@@ -31,7 +31,12 @@ DEGRADATIONS: dict[str, str] = {
     "msg:stale-request": "an image request for a step this robot is not at",
     "msg:stale-reply": "an image reply for another step",
     "msg:undecodable-jpeg": "an image reply whose JPEG does not decode",
-    "net:peer-lost": "online: a connection to a peer ended without a bye",
+    "msg:image-not-held": "online: the owner answered an image request with 'not held' (it has moved on)",
+    "net:peer-lost": "online: a peer's session ended without a bye",
+    "link:protocol-mismatch": "online: a robot speaks another link protocol or message version (once per robot "
+                              "and version): its frames and requests are ignored",
+    "link:team-mismatch": "online: a robot of the roster is up in another team (once per robot and team)",
+    "link:duplicate-robot": "online: another session uses this robot's id in this team (once)",
 }
 
 

@@ -4,7 +4,7 @@ A :class:`Link` moves the unchanged :mod:`cerpe.messages` wire frames; the step
 engine (:mod:`cerpe.algorithm.engine`) runs the phases of Algorithm 1 over it.
 Two implementations: :class:`cerpe.algorithm.channel_link.ChannelLink` (a team
 in one process, over the lossy :class:`cerpe.transport.Channel`) and
-:class:`cerpe.online.tcp_link.TcpLink` (one robot per process). Every wait has a
+:class:`cerpe.online.zenoh_link.ZenohLink` (one robot per process). Every wait has a
 deadline; faults come back counted in an :class:`Inbox`, never raised.
 """
 from __future__ import annotations

@@ -1,90 +1,148 @@
-"""Run ONE robot of a team online: this process talks to its peers over TCP.
+"""Run ONE robot of a team online: this process talks to its peers over Zenoh.
 
-Usage (one command per robot/machine; the same manifest and encounter on every one)::
+One command per robot (machine); the same manifest, encounter and --team on every one:
 
-    cerpe online --robot r0 --listen 0.0.0.0:7000 --peer r1=10.0.0.2:7000 \\
-        --manifest datasets_manifest/synthetic-cad.yaml --encounter cad-l0-s0-e00 --rate 10
+    cerpe online --robot r0 --manifest datasets_manifest/synthetic-indoor.yaml \\
+        --encounter indoor-s0-e00 --rate 10
 
-The robot replays its own frames of ENCOUNTER from MANIFEST (``--rate`` frames
-per second; 0 = as fast as the team allows), exchanges descriptors, image
-requests/replies and poses with the robots given by ``--peer`` (ID=HOST:PORT,
-repeatable) and writes its own run folder in the format of ``cerpe run``
-(``run.json``, ``<encounter>/steps.csv`` with this robot as ego,
-``robots.csv``, ``poses/``, ``odometry/``, ``DONE.json``) plus
-``<encounter>/online.json`` (network counters: frames lost, garbled, late, wait
-time, bytes really written per kind). Other robots' images are never read; their
-ground truth is (for the gt columns), so every machine needs the manifest's
-trajectory files.
+What it does: replays this robot's frames of ENCOUNTER from MANIFEST (--rate
+frames per second; 0 = as fast as the team allows) and runs Algorithm 1 with its
+peers, the other robots of the encounter: descriptors and poses are published on
+Zenoh keys cerpe/<team>/<robot>/{descriptor,pose}, image requests are Zenoh
+queries to the owner's cerpe/<team>/<robot>/image. Other robots' images are
+never read; their ground truth is (for the gt columns), so every machine needs
+the manifest's trajectory files. Wire format: docs/ARCHITECTURE.md, "Online
+transport".
 
-Robots start when all peers are connected (or after ``--connect-timeout``; a
-peer that is not up yet is redialed with backoff). At each phase a robot waits
-at most ``--timeout`` seconds for its peers' frames of the same step, then goes
-on and counts what is missing (``msg:lost``); a peer that disappears is logged
-and counted (``net:peer-lost``) and the robot continues alone (propagation, then
-no estimate). See ``docs/ARCHITECTURE.md``, "Online transport".
+Finding the peers: by default Zenoh peer mode with UDP multicast scouting
+(224.0.0.224:7446) on the LAN: nothing to configure. Where multicast does not
+pass (Wi-Fi, VPN, another subnet), let one robot listen on a fixed endpoint,
+--listen tcp/0.0.0.0:7447, and give the others --connect tcp/<its IP>:7447
+(add --no-multicast to rely on endpoints only). Robots start in any order; a
+--connect endpoint that is not up yet is retried. With a Zenoh router (zenohd,
+or ROS 2's rmw_zenohd), --mode client --connect tcp/<router>:7447. Firewall:
+open the TCP port of --listen (Zenoh's 7447 by convention) and UDP 7446 for
+multicast scouting. Robots of another --team, or of another cerpe protocol
+version, are named in a warning and counted (link:team-mismatch,
+link:protocol-mismatch), never mixed in.
+
+Timing: a robot starts when all its peers are up (or after --connect-timeout).
+At each phase of a step it waits at most --timeout seconds for its peers'
+frames of the same step, then goes on and counts what is missing (msg:lost); a
+peer whose session ends without saying bye is counted (net:peer-lost) and the
+robot continues without it (propagation, then no estimate).
+
+ROS 2: every step, each relative-pose estimate T_cj_ci (pose of this robot's
+camera in robot j's camera, OpenCV/ROS optical axes, metres) is published as a
+geometry_msgs/msg/PoseWithCovarianceStamped (CDR) for topic
+/cerpe/<team>/<robot>/relative_pose/<j>, frame_id <team>/<j>/camera_optical,
+stamp = the frame's capture time, covariance all zeros (unknown). --ros-keys
+rmw_zenoh (default) puts it on rmw_zenoh's key <domain>/<topic>/<type>/<hash>
+(--ros-domain, --ros-distro); ros2dds on the key zenoh-bridge-ros2dds uses;
+off publishes nothing. --team and robot ids must then be ROS name tokens
+(a letter, then letters, digits, '_').
+
+Output: the run folder of `cerpe run` with only this robot as ego (run.json,
+<encounter>/steps.csv, robots.csv, poses/, odometry/, DONE.json) plus
+<encounter>/online.json (link counters: frames and bytes sent per kind, losses,
+late frames, waits; per-step wall times; estimates published). `cerpe eval`
+reads it. A bad option, an unknown robot or encounter, or a Zenoh session that
+cannot open (bad endpoint, router not reachable, address not on this machine) is
+one line on stderr and exit code 2.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hashlib
 import json
 import logging
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
+from ..config import merge_conf
 from ..pipeline import run as rp
-from .net import Address, NetTransport, OnlineError, parse_address, parse_peer, resolve
-from .node import RobotNode
+from . import zenoh_session, zenoh_wire
+from .node import ROS_KEYS, OnlineError, RobotNode
 from .node import default_conf as node_defaults
+from .zenoh_link import ZenohLink
+from .zenoh_link import default_conf as link_defaults
 
 log = logging.getLogger(__name__)
 
 
-def _encounter(setting: Any, name: str, manifest: Path) -> Any:
+def _encounter(setting: Any, name: str | None, manifest: Path) -> Any:
+    names = [e.name for e in setting.encounters]
+    if name is None:
+        if len(names) != 1:
+            raise OnlineError(f"{manifest} has {len(names)} encounters {names}: choose one with --encounter")
+        return setting.encounters[0]
     for enc in setting.encounters:
         if enc.name == name:
             return enc
-    raise OnlineError(f"{manifest}: no encounter {name!r}; it has {[e.name for e in setting.encounters]}")
+    raise OnlineError(f"{manifest}: no encounter {name!r}; it has {names}")
 
 
-def _check_robots(enc: Any, robot: str, peers: Mapping[str, Address], manifest: Path) -> None:
-    for what, rid in [("--robot", robot)] + [("--peer", p) for p in peers]:
-        if rid not in enc.robot_ids:
-            raise OnlineError(f"{what} {rid!r}: encounter {enc.name} of {manifest} has robots {enc.robot_ids}")
-    if robot in peers:
-        raise OnlineError(f"--peer {robot}: that is this robot itself (--robot {robot})")
+@contextlib.contextmanager
+def _machine_lock(manifest: Path) -> Iterator[None]:
+    """Serialise loading ``manifest`` between the robot processes of one machine.
+
+    A synthetic manifest renders its suite into a shared cache on first load; two
+    robots started together would otherwise render into the same folder at once.
+    """
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock (start the robots one after the other there)
+        yield
+        return
+    key = hashlib.sha1(str(manifest).encode()).hexdigest()[:16]
+    path = Path(tempfile.gettempdir()) / f"cerpe-online-{key}.lock"
+    with open(path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address, peers: Mapping[str, Address],
-               out: Path | str, *, method: str = "cerpe", profile: str = "offline", seed: int = 0,
-               node_conf: Mapping[str, Any] | None = None, overwrite: bool = False, progress: bool = True,
-               setting: Any = None, plugins: Any = None, config: Any = None) -> Path:
+def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Path | str, *,
+               link_conf: Mapping[str, Any] | None = None, node_conf: Mapping[str, Any] | None = None,
+               method: str = "cerpe", profile: str = "offline", seed: int = 0, overwrite: bool = False,
+               progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None) -> Path:
     """Run robot ``robot`` of ``encounter`` online and write its run folder ``out``.
 
-    ``setting``, ``plugins`` (an object with ``descriptor``, ``backbone``,
-    ``depth``) and ``config`` (a :class:`~cerpe.algorithm.CerpeConfig`) may be
-    given instead of being loaded (tests, embedding in a robot's own process).
-    Raises :class:`OnlineError` / :class:`~cerpe.pipeline.run.RunError` naming
-    the argument or file at fault.
+    ``link_conf``: options of :class:`~cerpe.online.zenoh_link.ZenohLink` (team,
+    endpoints, mode, scouting); ``node_conf``: of :class:`~cerpe.online.node.RobotNode`
+    (timeouts, rate, ROS keys). ``setting``, ``plugins`` (an object with
+    ``descriptor``, ``backbone``, ``depth``) and ``config`` (a
+    :class:`~cerpe.algorithm.CerpeConfig`) may be given instead of being loaded
+    (tests, embedding in a robot's own process). Raises a
+    :class:`~cerpe.errors.CerpeError` naming the argument, file or endpoint at fault.
     """
     from ..algorithm import CerpeConfig, RobotAgent
     from ..protocols import FrameContext
 
     if method not in rp.CERPE_METHODS:
         raise OnlineError(f"--method {method!r}: online runs support {list(rp.CERPE_METHODS)}")
+    lconf, nconf = merge_conf(link_defaults, link_conf, "zenoh link conf"), dict(node_conf or {})
+    zenoh_wire.check_chunk(lconf["team"], "--team")
+    zenoh_session.zenoh_config({k: lconf[k] for k in zenoh_session.default_conf})  # bad options fail now
     manifest = Path(manifest).resolve()
-    setting = setting if setting is not None else rp.load_manifest_setting(manifest)
+    if setting is None:
+        with _machine_lock(manifest):
+            setting = rp.load_manifest_setting(manifest)
     enc = _encounter(setting, encounter, manifest)
-    _check_robots(enc, robot, peers, manifest)
-    for rid, addr in peers.items():
-        resolve(addr, f"--peer {rid}")
+    if robot not in enc.robot_ids:
+        raise OnlineError(f"--robot {robot!r}: encounter {enc.name} of {manifest} has robots {enc.robot_ids}")
     out = Path(out)
     done = out / enc.name / "DONE.json"
     if done.exists() and not overwrite:
         raise rp.RunError(f"{done}: this robot already finished encounter {enc.name}; "
                           f"use --overwrite to run it again (with its peers)")
-    net = NetTransport(robot, listen)  # binds now: a port in use fails before models load
+    link = ZenohLink(robot, enc.robot_ids, lconf)  # opens now: a bad endpoint fails before models load
     try:
         if plugins is None:
             plugins, config, mconf = rp.cerpe_plugins_and_config(
@@ -92,11 +150,18 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
         else:
             config = config if config is not None else CerpeConfig()
             mconf = {"cerpe": rp.config_dict(config), "preset": "given", "plugins": "given"}
-        nconf = {**node_defaults, **(node_conf or {})}
+        k = enc.robot_ids.index(robot)
+        agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth)
+        node = RobotNode(agent, link, enc.robot_ids, conf=nconf)
+    except BaseException:
+        link.close(0.0)
+        raise
+    with node:
         run_conf = {"format": rp.RUN_FORMAT, "method": method, "profile": profile, "seed": int(seed),
                     "setting": setting.name, "encounters": [enc.name], "method_config": mconf,
-                    "code": rp.code_hash(method), "online": {"robot": robot, "team": sorted([robot, *peers]),
-                                                             "node": nconf}}
+                    "code": rp.code_hash(method),
+                    "online": {"robot": robot, "team": link.team, "robots": list(enc.robot_ids),
+                               "link": rp.config_dict(link.conf), "node": rp.config_dict(node.conf)}}
         fp = rp.fingerprint(run_conf)
         out.mkdir(parents=True, exist_ok=True)
         rp.atomic_write_json(out / "run.json", {
@@ -104,12 +169,7 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
             "config": run_conf, "metric_scale": getattr(setting, "metric_depth", None) != "none",
             "manifest": str(manifest), "package_versions": rp.package_versions(),
             "git_revision": rp.git_revision(), "seed": int(seed), "profile": profile, "setting": setting.name,
-            "command": " ".join(sys.argv), "listen": str(net.address),
-            "peers": {p: str(a) for p, a in peers.items()}})
-        k = enc.robot_ids.index(robot)
-        agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth)
-        node = RobotNode(agent, enc.robot_ids, list(peers), net, nconf)
-        net.connect(peers)
+            "command": " ".join(sys.argv), "zenoh_id": link.zid})
         stream = enc.robots[k]
 
         def frames() -> Iterator[tuple]:
@@ -119,55 +179,90 @@ def run_online(manifest: Path | str, encounter: str, robot: str, listen: Address
 
         t0 = time.perf_counter()
         rp.run_encounter_to_folder(enc, lambda _enc: node.run(frames()), out / enc.name, fp, progress=progress)
-        stats = {"node": dict(node.stats), "transport": dict(net.stats), "wall_time_s": time.perf_counter() - t0}
-        rp.atomic_write_json(out / enc.name / "online.json", stats)
-        log.info("robot %s: %s", robot, json.dumps({k: v for k, v in node.stats.items() if k != "wait_s"}))
-    finally:
-        net.close()
+        report = {**node.report(), "wall_time_s": time.perf_counter() - t0}
+        rp.atomic_write_json(out / enc.name / "online.json", report)
+        lost = {k: v for k, v in node.stats.items() if ":" in k}
+        log.info("robot %s: %d steps, degradations %s", robot, report["n_steps"], lost or "none")
     return out
 
 
 # --------------------------------------------------------------------------- CLI
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", required=True, help="this robot's id (a robot of the encounter, e.g. r0)")
-    p.add_argument("--listen", required=True, help="HOST:PORT to accept peers on (e.g. 0.0.0.0:7000)")
-    p.add_argument("--peer", action="append", default=[], metavar="ID=HOST:PORT",
-                   help="a peer robot and where it listens (repeat per peer), e.g. r1=10.0.0.2:7000")
-    p.add_argument("--manifest", required=True, type=Path, help="dataset manifest (the same on every robot)")
-    p.add_argument("--encounter", required=True, help="encounter name in the manifest")
-    p.add_argument("--out", type=Path, default=None,
+    g = p.add_argument_group("what to run")
+    g.add_argument("--robot", required=True, help="this robot's id (a robot of the encounter, e.g. r0)")
+    g.add_argument("--manifest", required=True, type=Path, help="dataset manifest (the same on every robot)")
+    g.add_argument("--encounter", default=None,
+                   help="encounter name in the manifest (may be left out when it has only one)")
+    g.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS, help="cerpe | cerpe-wo-em")
+    g.add_argument("--profile", default="offline", help="backbone preset (default: offline)")
+    g.add_argument("--seed", type=int, default=0, help="random seed (the same on every robot)")
+    g.add_argument("--rate", type=float, default=node_defaults["rate_hz"],
+                   help="replay rate in frames/s (default 0: as fast as the team allows)")
+    g.add_argument("--out", type=Path, default=None,
                    help="run folder (default build/online/<manifest name>/<method>/<robot>)")
-    p.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS, help="cerpe | cerpe-wo-em")
-    p.add_argument("--profile", default="offline", help="backbone preset (default: offline)")
-    p.add_argument("--rate", type=float, default=0.0, help="replay rate in frames/s (default 0: as fast as the team)")
-    p.add_argument("--timeout", type=float, default=node_defaults["step_timeout_s"],
+    g.add_argument("--overwrite", action="store_true", help="run again although this robot's folder is finished")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    z = p.add_argument_group("network (Zenoh)")
+    z.add_argument("--team", default=link_defaults["team"],
+                   help="team name: robots talk only to robots of the same team (default %(default)s)")
+    z.add_argument("--listen", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint to listen on, repeatable, e.g. tcp/0.0.0.0:7447 "
+                        "(default: any free port, announced by multicast scouting)")
+    z.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint of a peer or router to dial, repeatable, e.g. tcp/10.0.0.1:7447")
+    z.add_argument("--mode", default=link_defaults["mode"], choices=zenoh_session.MODES,
+                   help="peer: robots talk directly (default); client: through the router given in --connect")
+    z.add_argument("--no-multicast", action="store_true",
+                   help="no UDP multicast scouting: find peers only through --connect/--listen")
+    z.add_argument("--zenoh", action="append", default=[], metavar="PATH=VALUE",
+                   help="any other Zenoh setting (json5 path of Zenoh's configuration, JSON value), repeatable, "
+                        "e.g. transport/shared_memory/enabled=false")
+    z.add_argument("--timeout", type=float, default=node_defaults["step_timeout_s"],
                    help="seconds to wait per phase for the peers' frames of the same step (default %(default)s)")
-    p.add_argument("--connect-timeout", type=float, default=node_defaults["connect_timeout_s"],
+    z.add_argument("--connect-timeout", type=float, default=node_defaults["connect_timeout_s"],
                    help="seconds to wait for all peers before step 0 (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--overwrite", action="store_true", help="run again although this robot's folder is finished")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    z.add_argument("--linger", type=float, default=node_defaults["linger_s"],
+                   help="after the last step, answer late image requests until every peer said bye, "
+                        "at most this many seconds (default %(default)s)")
+    r = p.add_argument_group("estimates out to ROS 2")
+    r.add_argument("--ros-keys", default=node_defaults["ros"]["key_format"], choices=ROS_KEYS,
+                   help="rmw_zenoh: rmw_zenoh's key (a ROS 2 graph on rmw_zenoh reads it); ros2dds: the key of "
+                        "zenoh-bridge-ros2dds (a DDS graph through the bridge); off (default %(default)s)")
+    r.add_argument("--ros-domain", type=int, default=node_defaults["ros"]["domain_id"],
+                   help="ROS_DOMAIN_ID of the graph (rmw_zenoh keys; default %(default)s)")
+    r.add_argument("--ros-distro", default=node_defaults["ros"]["distro"],
+                   help="humble (no type hash) or jazzy and later (default %(default)s)")
+
+
+def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict]:
+    """``(link_conf, node_conf)`` of the command-line options."""
+    for name, v in (("--rate", args.rate), ("--timeout", args.timeout), ("--connect-timeout", args.connect_timeout),
+                    ("--linger", args.linger)):
+        if not v >= 0:
+            raise OnlineError(f"{name} must be >= 0, got {v}")
+    extra = {}
+    for item in args.zenoh:
+        path, eq, value = item.partition("=")
+        if not eq or not path:
+            raise OnlineError(f"--zenoh {item!r}: expected PATH=VALUE, e.g. transport/shared_memory/enabled=false")
+        try:
+            extra[path] = json.loads(value)
+        except json.JSONDecodeError:
+            extra[path] = value  # a bare string
+    link = {"team": args.team, "mode": args.mode, "connect": list(args.connect), "listen": list(args.listen),
+            "multicast_scouting": not args.no_multicast, "zenoh": extra or None}
+    node = {"step_timeout_s": args.timeout, "connect_timeout_s": args.connect_timeout, "rate_hz": args.rate,
+            "linger_s": args.linger,
+            "ros": {"key_format": args.ros_keys, "domain_id": args.ros_domain, "distro": args.ros_distro}}
+    return link, node
 
 
 def main(args: argparse.Namespace) -> int:
-    listen = parse_address(args.listen, "--listen")
-    peers: dict[str, Address] = {}
-    for text in args.peer:
-        rid, addr = parse_peer(text)
-        if rid in peers:
-            raise OnlineError(f"--peer {rid}: given twice")
-        peers[rid] = addr
-    if not peers:
-        raise OnlineError("no --peer given: an online robot needs at least one peer (ID=HOST:PORT)")
-    for name, v in (("--rate", args.rate), ("--timeout", args.timeout), ("--connect-timeout", args.connect_timeout)):
-        if not (v >= 0):
-            raise OnlineError(f"{name} must be >= 0, got {v}")
+    link, node = confs_from_args(args)
     out = args.out
     if out is None:
         out = Path("build") / "online" / Path(args.manifest).stem / args.method / args.robot
-    conf = {"step_timeout_s": args.timeout, "connect_timeout_s": args.connect_timeout, "rate_hz": args.rate}
-    run_online(args.manifest, args.encounter, args.robot, listen, peers, out, method=args.method,
-               profile=args.profile, seed=args.seed, node_conf=conf, overwrite=args.overwrite,
-               progress=not args.no_progress)
+    run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node, method=args.method,
+               profile=args.profile, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress)
     print(f"run folder: {out}")
     return 0

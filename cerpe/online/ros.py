@@ -1,36 +1,13 @@
 """Estimates out to ROS 2: each robot's relative poses as ``geometry_msgs/msg/PoseWithCovarianceStamped``.
 
-Robot ``i`` (this robot) publishes, for every other robot ``j`` it has an
-estimate of at a step:
-
-* topic ``/cerpe/<team>/<i>/relative_pose/<j>`` (team and robot ids must be ROS
-  name tokens: a letter, then letters, digits or ``_``);
-* pose: the paper's ``T_ij = T_cj_ci`` (:func:`cerpe.geometry.paper_T_ij`), the
-  pose of camera ``i`` in camera ``j``; position = its translation (metres),
-  orientation = its rotation. Both cameras use OpenCV axes (x right, y down, z
-  forward), which is ROS's ``*_optical`` frame convention (REP 103);
-* ``header.frame_id`` = ``<team>/<j>/camera_optical`` (the frame the pose is
-  expressed in); the pose is that of ``<team>/<i>/camera_optical``;
-* ``header.stamp`` = the step's capture time (the data's clock), seconds split
-  into ``sec`` / ``nanosec``;
-* covariance: 6x6, row-major, ROS order ``(x, y, z, rot_x, rot_y, rot_z)``, the
-  rotations about the fixed axes of ``header.frame_id``. A covariance that is
-  not known is sent as all zeros, the ROS convention for "covariance unknown"
-  (``sensor_msgs/Imu``, ``NavSatFix`` COVARIANCE_TYPE_UNKNOWN); a pair without
-  an estimate (source ``none``) is not published.
-
-Zenoh key, by ``key_format``:
-
-* ``rmw_zenoh`` (default): rmw_zenoh's data key
-  ``<domain_id>/<topic without leading />/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/<type hash>``
-  with the ``RIHS01_...`` type hash (REP 2016, computed by ``rosbags``) for Jazzy and
-  later, ``TypeHashNotSupported`` for Humble (``distro``); each sample carries the
-  33-byte attachment rmw_zenoh subscriptions require (sequence number i64 LE,
-  source timestamp ns i64 LE, GID length u8 = 16, GID 16 B). No liveliness
-  tokens are declared, so ``ros2 topic list`` does not show the topic; name the
-  type: ``ros2 topic echo /cerpe/lab/r0/relative_pose/r1 geometry_msgs/msg/PoseWithCovarianceStamped``.
-* ``ros2dds``: ``<topic without leading />`` and a bare CDR payload, the key
-  ``zenoh-bridge-ros2dds`` maps a ROS topic to (for a DDS-based ROS 2 graph).
+Topic ``/cerpe/<team>/<i>/relative_pose/<j>``, pose ``T_cj_ci`` (camera ``i`` in camera
+``j``, optical axes, metres), frame id ``<team>/<j>/camera_optical``, stamp = capture
+time, covariance all zeros when unknown (the ROS convention); CDR-encoded with
+``rosbags`` and put on rmw_zenoh's data key (with its 33-byte attachment) or on the
+key ``zenoh-bridge-ros2dds`` uses. The keys and bytes are described once, in
+``docs/ARCHITECTURE.md``, "Online transport", "Wire format"; this module builds them.
+No liveliness tokens are declared, so ``ros2 topic list`` does not show the topic; name
+the type: ``ros2 topic echo /cerpe/lab/r0/relative_pose/r1 geometry_msgs/msg/PoseWithCovarianceStamped``.
 """
 from __future__ import annotations
 

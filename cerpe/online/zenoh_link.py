@@ -2,7 +2,8 @@
 
 Keys and the link header are in :mod:`cerpe.online.zenoh_wire`. The methods are those
 of the engine's link protocol (``begin``, ``broadcast``, ``gather``, ``request``,
-``serve``; :class:`Inbox` has the shape of the engine's):
+``serve``); frames are filed in the engine's :class:`~cerpe.algorithm.link.Mailbox` and
+handed out in its :class:`~cerpe.algorithm.link.Inbox`:
 
 * :meth:`ZenohLink.broadcast` puts a frame on ``cerpe/<team>/<robot>/<kind>``;
   the bytes counted are the frame's, once (as :class:`cerpe.transport.Channel`).
@@ -17,8 +18,12 @@ of the engine's link protocol (``begin``, ``broadcast``, ``gather``, ``request``
   queries are queued and answered by the handler given to :meth:`ZenohLink.serve`
   on the thread that calls the link (inside ``begin``, ``gather``, ``request``,
   ``wait_peers``, ``poll``, ``close``), once the owner has begun the query's step,
-  so the handler reads the robot's state without locks, as over TCP. One thread
+  so the handler reads the robot's state without locks. One thread
   calls a link.
+* Presence: the session and its subscribers open in the constructor (a bad
+  endpoint fails there, before a robot loads its models); the liveliness token
+  that tells the peers this robot is up is declared by :meth:`ZenohLink.announce`
+  (or the first :meth:`ZenohLink.wait_peers`), once the robot is ready to step.
 
 Counting (one entry per event in the next :class:`Inbox`'s ``degradations``;
 :meth:`ZenohLink.take_degradations` drains what no inbox delivered yet):
@@ -34,7 +39,8 @@ duplicate and far-ahead frames, refused queries and the bytes really sent (frame
 + header) go to :attr:`ZenohLink.stats`.
 
 Every wait has a deadline; a session that cannot open is one
-:class:`ZenohLinkError` naming the endpoints; nothing else raises on bad input.
+:class:`~cerpe.online.zenoh_session.ZenohSessionError` naming mode and endpoints;
+nothing else raises on bad input.
 """
 from __future__ import annotations
 
@@ -43,9 +49,9 @@ import logging
 import threading
 import time
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
+from ..algorithm.link import Inbox, Mailbox, Received, RequestHandler
 from ..config import merge_conf
 from ..errors import CerpeError
 from ..messages import ImageReply, ImageRequest, Message, MessageError, decode
@@ -65,37 +71,6 @@ default_conf: dict[str, Any] = {
 
 class ZenohLinkError(CerpeError, ValueError):
     """Bad link configuration, or a Zenoh session that cannot open."""
-
-
-@dataclass(frozen=True)
-class Received:
-    """One decoded frame from a peer and its size on the wire (bytes)."""
-
-    message: Message
-    nbytes: int
-
-
-@dataclass
-class Inbox:
-    """What one wait brought (the engine's ``cerpe.algorithm.link.Inbox`` shape).
-
-    Attributes:
-        messages: peer -> the frame of the asked kind and step (for ``request``: its reply).
-        degradations: problems counted since the previous inbox, one entry each.
-        sent: for :meth:`ZenohLink.request`: peer -> bytes of the request frame sent.
-    """
-
-    messages: dict[str, Received] = field(default_factory=dict)
-    degradations: list[str] = field(default_factory=list)
-    sent: dict[str, int] = field(default_factory=dict)
-
-    def message(self, peer: str) -> Message | None:
-        got = self.messages.get(peer)
-        return None if got is None else got.message
-
-
-#: answers an image request: ``(peer, request) -> reply frame`` or None (image not held)
-RequestHandler = Callable[[str, ImageRequest], "bytes | None"]
 
 
 def _bytes(z: Any) -> bytes | None:
@@ -128,18 +103,17 @@ class ZenohLink:
                                  f"once and include this one")
         self.index_of = {r: k for k, r in enumerate(self.robot_ids)}
         self.index = self.index_of[self.robot_id]
-        self.stats: Counter[str] = Counter()
-        self._cond = threading.Condition()
-        self._buf: dict[int, dict[str, dict[str, Received]]] = defaultdict(lambda: defaultdict(dict))
+        self._cond = threading.Condition()   # guards everything below; Zenoh's threads file into it
+        self.box = Mailbox(self.robot_id, self.robot_ids, max_ahead_steps=int(self.conf["max_ahead_steps"]))
+        self.stats: Counter[str] = self.box.stats
         self._last: dict[str, dict[str, int]] = defaultdict(dict)  # peer -> kind -> highest step received
-        self._floor = 0                      # lowest step still filed
-        self._pending: list[str] = []        # degradations not yet handed out
         self._present: set[str] = set()      # peers whose liveliness token is up
         self._gone: set[str] = set()         # peers that were up and went (bye or lost)
         self._said_bye: set[str] = set()
         self._reported: set[tuple] = set()   # (what, robot, detail) logged and counted once
         self._queries: list[tuple[Any, str, ImageRequest]] = []  # (query, peer, request), not answered yet
         self._handler: RequestHandler | None = None
+        self._token: Any = None
         self._closed = False
         self.session = zs.open_session({k: self.conf[k] for k in zs.default_conf}, f"robot {self.robot_id}")
         try:
@@ -153,17 +127,31 @@ class ZenohLink:
                           for k in (*w.BROADCAST_KINDS, w.BYE)}
             self._alive_sub = self.session.liveliness().declare_subscriber(w.ALIVE_ALL, self._on_alive,
                                                                            history=True)
-            # the token last: a peer that sees it can reach this robot's subscriber and queryable
-            self._token = self.session.liveliness().declare_token(w.alive_key(self.team, self.robot_id, self.zid))
         except zenoh.ZError as exc:
             self.session.close()
             raise ZenohLinkError(f"robot {self.robot_id}: Zenoh declarations failed: {zs.first_line(exc)}") from None
 
+    def announce(self) -> None:
+        """Declare this robot's liveliness token: its peers see it up (and start) from now on.
+
+        Separate from opening, so that a robot can open its session first (a bad
+        endpoint fails before models load) and announce itself once it is ready to
+        step; :meth:`wait_peers` announces if this was not called.
+        """
+        import zenoh
+
+        if self._token is not None:
+            return
+        try:
+            self._token = self.session.liveliness().declare_token(w.alive_key(self.team, self.robot_id, self.zid))
+        except zenoh.ZError as exc:
+            raise ZenohLinkError(f"robot {self.robot_id}: cannot declare its liveliness token: "
+                                 f"{zs.first_line(exc)}") from None
+
     # ------------------------------------------------------------------ counting
     def _degrade(self, what: str) -> None:
-        """Queue one degradation (caller holds the lock)."""
-        self._pending.append(what)
-        self.stats[what] += 1
+        """Queue one degradation for the next inbox (caller holds the lock)."""
+        self.box.degrade(what)
 
     def _once(self, what: str, robot: str, detail: str, message: str) -> None:
         """Count ``what`` and log ``message`` the first time for ``(robot, detail)`` (lock held)."""
@@ -176,8 +164,7 @@ class ZenohLink:
     def take_degradations(self) -> list[str]:
         """Degradations counted since the last gather (and not handed out by it)."""
         with self._cond:
-            out, self._pending = self._pending, []
-        return out
+            return self.box.inbox(self.box.step, "", []).degradations
 
     # ------------------------------------------------------------------ receiving (Zenoh threads)
     def _on_sample(self, sample: Any) -> None:
@@ -238,17 +225,9 @@ class ZenohLink:
             self._degrade("msg:unknown-sender")
             log.debug("robot %s: frame on %s's key says sender index %d", self.robot_id, robot, msg.sender)
             return
-        step = int(msg.step)
         last = self._last[robot]
-        last[kind] = max(last.get(kind, -1), step)
-        if step < self._floor:
-            self.stats["late"] += 1
-        elif step > self._floor + int(self.conf["max_ahead_steps"]):
-            self.stats["too_far_ahead"] += 1
-        elif robot in self._buf[step][kind]:
-            self.stats["duplicate"] += 1
-        else:
-            self._buf[step][kind][robot] = Received(msg, len(payload))
+        last[kind] = max(last.get(kind, -1), int(msg.step))
+        self.box.file(robot, msg, len(payload))  # late, too far ahead, duplicate: counted in stats
 
     def _on_alive(self, sample: Any) -> None:
         import zenoh
@@ -288,6 +267,7 @@ class ZenohLink:
         if up:
             if robot in self._gone:  # back after leaving: a new run of that robot
                 self._last.pop(robot, None)
+                self.box.seen.pop(robot, None)
             self._present.add(robot)
             self._gone.discard(robot)
             self._said_bye.discard(robot)
@@ -351,8 +331,8 @@ class ZenohLink:
         if self._handler is None:
             return
         with self._cond:
-            ready = [q for q in self._queries if q[2].step <= self._floor]
-            self._queries = [q for q in self._queries if q[2].step > self._floor]
+            ready = [q for q in self._queries if q[2].step <= self.box.step]
+            self._queries = [q for q in self._queries if q[2].step > self.box.step]
         for query, peer, req in ready:
             with query:
                 self._answer(query, peer, req)
@@ -379,14 +359,14 @@ class ZenohLink:
     # ------------------------------------------------------------------ the Link
     def begin(self, step: int) -> None:
         """This robot is at ``step``: earlier frames are dropped, requests up to ``step`` answered."""
-        step = int(step)
-        with self._cond:
-            if step < self._floor:
-                raise ZenohLinkError(f"robot {self.robot_id}: step {step} begun after step {self._floor}")
-            self._floor = step
-            for old in [t for t in self._buf if t < step]:
-                del self._buf[old]
+        self._begin(int(step))
         self._serve_queries()
+
+    def _begin(self, step: int) -> None:
+        with self._cond:
+            if step < self.box.step:
+                raise ZenohLinkError(f"robot {self.robot_id}: step {step} begun after step {self.box.step}")
+            self.box.begin(step)
 
     def broadcast(self, kind: str, frame: bytes) -> int:
         """Put ``frame`` on this robot's ``kind`` key; returns its bytes (counted once)."""
@@ -414,24 +394,22 @@ class ZenohLink:
         if kind not in w.BROADCAST_KINDS:
             raise ZenohLinkError(f"robot {self.robot_id}: gather of kind {kind!r}; expected one of "
                                  f"{w.BROADCAST_KINDS}")
-        if step != self._floor:
+        if step != self.box.step:
             self.begin(step)
 
         def complete() -> bool:
-            have = self._buf.get(step, {}).get(kind, {})
+            have = self.box.have(step, kind)
             return all(p in have or not self._may_come(p, kind, step) for p in peers)
 
         t0 = time.perf_counter()
         self._wait(complete, time.monotonic() + max(0.0, float(deadline_s)))
         with self._cond:
             self.stats["wait_s"] += time.perf_counter() - t0
-            have = self._buf.get(step, {}).get(kind, {})
+            have = self.box.have(step, kind)
             for p in peers:
                 if p not in have:
                     self._degrade("msg:lost")
-            inbox = Inbox({p: have[p] for p in peers if p in have}, self._pending)
-            self._pending = []
-        return inbox
+            return self.box.inbox(step, kind, peers)
 
     def request(self, step: int, frames: Mapping[str, bytes], deadline_s: float) -> Inbox:
         """Send each peer its image request (a Zenoh query), wait up to ``deadline_s`` for the replies.
@@ -445,6 +423,8 @@ class ZenohLink:
 
         step = int(step)
         self._check_peers(list(frames), f"request({step})")
+        if step != self.box.step:
+            self._begin(step)  # the peers' queries are answered in the wait below, once ours are out
         reqs = {}
         for p, frame in frames.items():
             try:
@@ -489,12 +469,10 @@ class ZenohLink:
         self._wait(lambda: all(st["ok"] or st["done"] for st in state.values()), deadline)
         with self._cond:
             self.stats["wait_s"] += time.perf_counter() - t0
-            inbox = Inbox(sent={p: len(f) for p, f in frames.items()})
-            for p, req in reqs.items():
-                got = self._check_reply(p, req, state[p]["ok"], state[p]["err"])
-                if got is not None:
-                    inbox.messages[p] = got
-            inbox.degradations, self._pending = self._pending, []
+            got = {p: self._check_reply(p, req, state[p]["ok"], state[p]["err"]) for p, req in reqs.items()}
+            inbox = self.box.inbox(step, "reply", [])  # the degradations counted so far
+        inbox.messages = {p: r for p, r in got.items() if r is not None}
+        inbox.sent = {p: len(f) for p, f in frames.items()}
         return inbox
 
     def _check_peers(self, peers: Sequence[str], what: str) -> None:
@@ -541,21 +519,21 @@ class ZenohLink:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return
-                if not any(q[2].step <= self._floor for q in self._queries) or self._handler is None:
+                if not any(q[2].step <= self.box.step for q in self._queries) or self._handler is None:
                     self._cond.wait(min(left, 0.5))
 
     def _may_come(self, peer: str, kind: str, step: int) -> bool:
         """Can ``peer``'s ``kind`` frame of ``step`` still arrive? (lock held)"""
         if peer in self._gone:
             return False
-        last = self._last.get(peer, {})
-        if last.get(kind, -1) > step:
+        if self._last.get(peer, {}).get(kind, -1) > step:
             return False  # it sent a later one: Zenoh keeps a publisher's order per key
-        return max(last.values(), default=-1) >= step - int(self.conf["max_lag_steps"])
+        return self.box.seen.get(peer, -1) >= step - int(self.conf["max_lag_steps"])
 
     def wait_peers(self, peers: Iterable[str], timeout_s: float) -> list[str]:
         """Wait until every peer's link is up or ``timeout_s`` passes; returns the missing ones."""
         peers = list(peers)
+        self.announce()
         self._wait(lambda: all(p in self._present for p in peers), time.monotonic() + max(0.0, float(timeout_s)))
         with self._cond:
             missing = [p for p in peers if p not in self._present]

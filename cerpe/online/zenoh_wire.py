@@ -1,29 +1,10 @@
-"""Where cerpe frames travel on Zenoh: the key schema and the 4-byte link header.
+"""Where cerpe frames travel on Zenoh: key names, the 4-byte link header, error replies.
 
-Key schema (``<team>`` and ``<robot>`` are single key chunks, see :func:`check_chunk`)::
-
-    cerpe/<team>/<robot>/descriptor          put: <robot>'s DescriptorMessage frame of a step
-    cerpe/<team>/<robot>/pose                put: <robot>'s PoseMessage frame of a step
-    cerpe/<team>/<robot>/bye                 put: <robot> leaves after its last step (payload empty)
-    cerpe/<team>/<robot>/image               queryable of <robot>: query payload an ImageRequest
-                                             frame, reply an ImageReply frame or an error reply
-    cerpe/<team>/<robot>/alive/v<L>.<M>/<zid>    liveliness token while <robot>'s link is open
-                                             (L link protocol, M ``cerpe.messages.VERSION``,
-                                             zid the Zenoh session id)
-
-A robot subscribes to ``cerpe/<team>/*/*`` (its own team's frames only: Zenoh routes
-nothing of other teams to it) and to the liveliness tokens of ``cerpe/*/*/alive/**``
-(one small token per robot of any team: how a robot started with another ``--team``
-or another protocol version is noticed and named in a log line).
-
-Payloads are the unchanged :mod:`cerpe.messages` frames, so the bytes the
-communication figures count are the same as in the in-process channel. Every
-put, query and reply carries :data:`HEADER` as its Zenoh *attachment*::
-
-    magic b"CZ"  2 B | link protocol u8 | cerpe.messages.VERSION u8
-
-An error reply (Zenoh ``reply_err``) has no attachment; its payload is
-``HEADER + reason`` with ``reason`` one of :data:`REPLY_ERRORS` (ASCII).
+The format itself is described once, in ``docs/ARCHITECTURE.md``, "Online transport",
+"Wire format": keys ``cerpe/<team>/<robot>/{descriptor,pose,bye,image}``, liveliness
+tokens ``cerpe/<team>/<robot>/alive/v<L>.<M>/<zid>``, :data:`HEADER` as every put's,
+query's and reply's attachment, error replies ``HEADER + reason``. This module builds
+and parses them.
 """
 from __future__ import annotations
 
