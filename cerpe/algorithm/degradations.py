@@ -25,6 +25,9 @@ DEGRADATIONS: dict[str, str] = {
     "depth:none": "the depth source had nothing for the current frame",
     "pose:stale": "the other robot's pose of this step is missing: its last pose is used for propagation",
     "anchor:not-stored-pose-missing": "a direct estimate without the other's pose of this step: not an anchor",
+    "anchor:inconsistent": "a direct estimate that disagrees with the pair's verified anchor propagated to it: "
+                           "not an anchor; the anchor's propagation is reported instead",
+    "anchor:replaced": "anchor_replace_after rejected estimates that agree with each other replaced the anchor",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
     "msg:garbled": "a frame that does not decode",
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
