@@ -13,7 +13,7 @@ import numpy as np
 
 from ..geometry import scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory, cosine
-from ..messages import DescriptorMessage, ImageReply, ImageRequest, MessageError, PoseMessage, decode
+from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage, decode
 from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
@@ -178,14 +178,12 @@ class RobotAgent:
             self.degrade("msg:stale-reply")
             return None
         t0 = time.perf_counter()
-        try:
-            view = received_view(other, reply)
-        except MessageError:
-            self.degrade("msg:undecodable-jpeg")
-            st.gate_reason[other] = "reply-undecodable"
+        view, fault = received_view(other, reply)
+        st.timings["gate"] += time.perf_counter() - t0
+        if view is None:  # the pair gets no direct estimate this step
+            self.degrade(f"msg:{fault}")
+            st.gate_reason[other] = f"reply-{fault}"
             return None
-        finally:
-            st.timings["gate"] += time.perf_counter() - t0
         st.collab_views[other] = view
         return view
 

@@ -34,6 +34,9 @@ DEGRADATIONS: dict[str, str] = {
     "msg:stale-request": "an image request for a step this robot is not at",
     "msg:stale-reply": "an image reply for another step",
     "msg:undecodable-jpeg": "an image reply whose JPEG does not decode",
+    "msg:truncated-jpeg": "an image reply whose JPEG has no end marker (truncated): not used, no direct estimate",
+    "msg:image-size-mismatch": "an image reply that decodes to another size than its intrinsics (principal point "
+                               "off the centre) or below 8x8 pixels: not used, no direct estimate",
     "net:peer-lost": "online: a connection to a peer ended without a bye",
 }
 
