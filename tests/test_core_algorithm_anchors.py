@@ -4,12 +4,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cerpe.algorithm.anchors import Anchor, AnchorConfig, PairAnchors, consistent, disagreement, tolerance
+from cerpe.algorithm.anchors import (
+    Anchor,
+    AnchorConfig,
+    PairAnchors,
+    consistent,
+    disagreement,
+    tolerance,
+)
 from cerpe.geometry import make_se3, paper_T_ij, random_se3, so3_exp
 
 CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
                     replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
-                    agree_trans_m=0.1)
+                    agree_trans_m=0.1, verify_support=1)
 
 
 class Pair:
@@ -156,3 +163,24 @@ def test_consistent_is_symmetric_in_rotation_for_random_errors():
         assert r == pytest.approx(r2, abs=1e-9)
         assert ok == (r <= CONF.rot_tol_rad + CONF.rot_drift_per_step * (b - a) and t <= tolerance(
             CONF, p.est(a), p.est(b, err))[1])
+
+
+def test_an_interleaved_outlier_does_not_stop_a_replacement():
+    p = Pair(11)
+    pa = PairAnchors(CONF, anchor=p.est(0, rot(0.8)))  # replace_after = 3
+    verdicts = [pa.offer(p.est(t, rot(1.2) if t == 2 else None)).verdict for t in (1, 2, 3, 4)]
+    assert verdicts == ["rejected", "rejected", "rejected", "replaced"] and pa.anchor.step == 4
+
+
+def test_verify_support_asks_for_that_many_agreeing_candidates():
+    import dataclasses
+
+    p = Pair(12)
+    pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
+    assert [pa.offer(p.est(t)).verdict for t in (5, 6)] == ["unverified", "unverified"]
+    check = pa.offer(p.est(8))
+    assert check.verdict == "verified" and check.against == 6 and pa.anchor.step == 8
+    # two registrations of one step that agree still verify at once
+    pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
+    e = p.est(9)
+    assert pa.offer(e, [Anchor(9, e.T_cj_ci @ rot(0.01), e.X_i, e.X_j)]).verdict == "verified"

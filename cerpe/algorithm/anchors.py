@@ -7,12 +7,13 @@ starts from) only when something independent agrees with it:
   within a tolerance that grows with the steps since that anchor and with the
   distance both robots travelled since (odometry drifts);
 * with no anchor yet: a second estimate of the same step through another own
-  view (two registrations that agree), or a recent unverified candidate
-  propagated to this step.
+  view (two registrations that agree), or ``verify_support`` recent unverified
+  candidates propagated to this step.
 
 An estimate that disagrees with the anchor is *rejected* (the pair keeps the
-anchor); ``replace_after`` rejected estimates that agree with each other replace
-it (persistent disagreement: the anchor was the wrong one). Before any anchor is
+anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
+steps agree with the newest of them, the newest replaces it (persistent
+disagreement: the anchor was the wrong one). Before any anchor is
 verified, the newest unverified estimate may be propagated for at most
 ``max_unverified_steps`` steps.
 
@@ -21,8 +22,9 @@ back end can sit beside it (it would consume the same :class:`Anchor` stream).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -42,10 +44,12 @@ class AnchorConfig:
     trans_rel * |t|`` (``|t|`` the newer estimate's distance between the cameras:
     an error in rotation or scale moves a far camera further). Two estimates of one
     step through different own views (two registrations) agree within
-    ``agree_rot_rad`` and ``agree_trans_m``.
+    ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
+    without such a second registration, ``verify_support`` earlier candidates must
+    agree with an estimate to verify it.
     """
 
-    rot_tol_rad: float = 0.1
+    rot_tol_rad: float = 0.15
     trans_tol_m: float = 0.3
     rot_drift_per_step: float = 0.005
     trans_drift_frac: float = 0.1
@@ -53,8 +57,9 @@ class AnchorConfig:
     replace_after: int = 3
     max_unverified_steps: int = 3
     candidate_steps: int = 10
-    agree_rot_rad: float = 0.1
+    agree_rot_rad: float = 0.15
     agree_trans_m: float = 0.3
+    verify_support: int = 2
 
 
 @dataclass
@@ -145,23 +150,22 @@ class PairAnchors:
             return self._against_anchor(est)
         for other in others:
             rot, trans = disagreement(other, est)
-            if rot <= self.conf.agree_rot_rad and (trans <= self.conf.agree_trans_m
-                                                   or not (est.metric and other.metric)):
+            trans_tol = self.conf.agree_trans_m + self.conf.trans_rel * float(np.linalg.norm(est.T_cj_ci[:3, 3]))
+            if rot <= self.conf.agree_rot_rad and (trans <= trans_tol or not (est.metric and other.metric)):
                 self._set(est)
                 return Check("verified", est.step, rot, trans)
-        best: Check | None = None
-        for cand in reversed(self.candidates):  # newest first
-            if est.step - cand.step > self.conf.candidate_steps:
-                continue
-            ok, rot, trans = consistent(self.conf, cand, est)
-            if ok:
-                self._set(est)
-                return Check("verified", cand.step, rot, trans)
-            if best is None:
-                best = Check("unverified", cand.step, rot, trans)
         self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]
+        checks = [(c, *consistent(self.conf, c, est)) for c in reversed(self.candidates)]  # newest first
+        support = [x for x in checks if x[1]]
+        if support and len(support) >= self.conf.verify_support:
+            c, _, rot, trans = support[0]
+            self._set(est)
+            return Check("verified", c.step, rot, trans)
         self.candidates.append(est)
-        return best or Check("unverified")
+        if not checks:
+            return Check("unverified")
+        c, _, rot, trans = (support or checks)[0]
+        return Check("unverified", c.step, rot, trans)
 
     def _against_anchor(self, est: Anchor) -> Check:
         ok, rot, trans = consistent(self.conf, self.anchor, est)
@@ -169,10 +173,8 @@ class PairAnchors:
             self._set(est)
             return Check("accepted", self.anchor.step, rot, trans)
         against = self.anchor.step
-        keep = [c for c in self.challengers if est.step - c.step <= self.conf.candidate_steps]
-        self.challengers = (keep + [est])[-self.conf.replace_after:]
-        if len(self.challengers) >= self.conf.replace_after and all(
-                consistent(self.conf, c, est)[0] for c in self.challengers[:-1]):
+        self.challengers = [c for c in self.challengers if est.step - c.step <= self.conf.candidate_steps] + [est]
+        if 1 + sum(consistent(self.conf, c, est)[0] for c in self.challengers[:-1]) >= self.conf.replace_after:
             self._set(est)
             return Check("replaced", against, rot, trans)
         return Check("rejected", against, rot, trans)

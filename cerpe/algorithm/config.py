@@ -66,14 +66,20 @@ class CerpeConfig:
         anchor_trans_drift_frac: added to the translation tolerance per metre the two
             robots travelled since the anchor (odometers summed).
         anchor_trans_rel: added to the translation tolerance per metre between the cameras.
-        anchor_replace_after: this many rejected estimates that agree with each other
-            (within ``anchor_candidate_steps``) replace the anchor.
+        anchor_replace_after: when this many rejected estimates of the last
+            ``anchor_candidate_steps`` steps agree with the newest of them (it included),
+            the newest replaces the anchor.
         max_unverified_steps: before any anchor is verified, an unverified estimate is
             reported at its step and propagated for at most this many steps.
         anchor_candidate_steps: how many steps an unverified estimate (or a rejected
             one) stays available to verify a later one.
+        anchor_verify_support: without an anchor and without a second registration, how
+            many earlier unverified estimates (of the last ``anchor_candidate_steps``
+            steps) must agree with a direct estimate to verify it.
         registration_agree_rot_rad, registration_agree_trans_m: two registrations of
-            one step through different own views agree (and verify each other) within these.
+            one step through different own views agree (and verify each other) within
+            these (the translation tolerance grows by ``anchor_trans_rel`` per metre
+            between the cameras, as the anchor check's).
     """
 
     tau: float | None = None
@@ -91,7 +97,7 @@ class CerpeConfig:
     min_image_std: float = 2.0
     gate_memory: bool = True
     verify_anchors: bool = True
-    anchor_rot_tol_rad: float = 0.1
+    anchor_rot_tol_rad: float = 0.15
     anchor_trans_tol_m: float = 0.3
     anchor_rot_drift_per_step: float = 0.005
     anchor_trans_drift_frac: float = 0.1
@@ -99,8 +105,9 @@ class CerpeConfig:
     anchor_replace_after: int = 3
     max_unverified_steps: int = 3
     anchor_candidate_steps: int = 10
-    registration_agree_rot_rad: float = 0.1
+    registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
+    anchor_verify_support: int = 2
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
@@ -122,11 +129,11 @@ class CerpeConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise AlgorithmError(f"config: {name} must be finite and >= 0, got {v}")
-        for name in ("anchor_replace_after", "max_unverified_steps", "anchor_candidate_steps"):
-            v = getattr(self, name)
-            if int(v) != v or v < (1 if name == "anchor_replace_after" else 0):
-                raise AlgorithmError(f"config: {name} must be an integer >= "
-                                     f"{1 if name == 'anchor_replace_after' else 0}, got {v}")
+        for name in ("anchor_replace_after", "anchor_verify_support", "max_unverified_steps",
+                     "anchor_candidate_steps"):
+            v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
+            if int(v) != v or v < low:
+                raise AlgorithmError(f"config: {name} must be an integer >= {low}, got {v}")
 
     def resolved(self, descriptor_thresholds: dict[str, float] | None = None) -> "CerpeConfig":
         """Concrete thresholds: explicit value > descriptor calibration > paper."""
@@ -152,7 +159,8 @@ class CerpeConfig:
                             max_unverified_steps=int(self.max_unverified_steps),
                             candidate_steps=int(self.anchor_candidate_steps),
                             agree_rot_rad=self.registration_agree_rot_rad,
-                            agree_trans_m=self.registration_agree_trans_m)
+                            agree_trans_m=self.registration_agree_trans_m,
+                            verify_support=int(self.anchor_verify_support))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

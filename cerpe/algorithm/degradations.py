@@ -27,7 +27,8 @@ DEGRADATIONS: dict[str, str] = {
     "anchor:not-stored-pose-missing": "a direct estimate without the other's pose of this step: not an anchor",
     "anchor:inconsistent": "a direct estimate that disagrees with the pair's verified anchor propagated to it: "
                            "not an anchor; the anchor's propagation is reported instead",
-    "anchor:replaced": "anchor_replace_after rejected estimates that agree with each other replaced the anchor",
+    "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "
+                       "the anchor",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
     "msg:garbled": "a frame that does not decode",
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
