@@ -36,16 +36,33 @@ class PairRecord:
         step: step index within the encounter.
         stamp_s: capture time of the ego image.
         ego, other: robot ids.
-        gate_score: cosine similarity of the two received descriptors; NaN if the
-            other's descriptor message was lost or garbled.
-        gate_open: ``gate_score >= tau``.
-        source: ``direct`` (anchor from a joint pass), ``propagated`` (last anchor
-            moved by both robots' ego-motion) or ``none``.
+        gate_score: cosine similarity of the two robots' current descriptors (the
+            paper's gate score, what gate-quality metrics read); NaN if the other's
+            descriptor message was lost or garbled.
+        gate_open: whether the ego requested the other's image: ``gate_score >= tau``,
+            or with ``gate_memory`` ``gate_score_memory >= tau``.
+        source: ``direct`` (from this step's pass), ``propagated`` (an anchor moved
+            by both robots' ego-motion) or ``none``.
         T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
         reason: why there is no direct estimate although the gate was open, or
-            why there is no estimate at all; ``""`` otherwise.
+            why there is no estimate at all, or ``unverified`` (a direct estimate
+            nothing confirmed yet, or its propagation), or ``direct-rejected: ...``
+            (the direct estimate disagreed with the anchor, which is propagated
+            instead); ``""`` otherwise.
         bytes_pair: bytes of the image request and image reply for this pair.
         anchor_step: step of the anchor a propagated estimate comes from (-1 if none).
+        gate_score_memory: best cosine of the other's descriptor against the ego's
+            current descriptor and its keyframes' (NaN when not scored).
+        gate_via: step of the keyframe that gave ``gate_score_memory``; -1 for the
+            current frame.
+        direct_via: step of the own view the direct estimate was registered
+            through; -1 for the current frame or the joint pass (or no estimate).
+        anchor_verdict: what anchor verification said about this step's direct
+            estimate: ``verified``, ``accepted``, ``unverified``, ``rejected``,
+            ``replaced``, ``unchecked`` (``verify_anchors=False``), ``""`` (none).
+        check_rot_rad, check_trans_m: disagreement of the direct estimate with what
+            it was checked against (the propagated anchor, a second registration,
+            an earlier candidate); NaN when nothing was compared.
     """
 
     step: int
@@ -59,12 +76,21 @@ class PairRecord:
     reason: str = ""
     bytes_pair: int = 0
     anchor_step: int = -1
+    gate_score_memory: float = float("nan")
+    gate_via: int = -1
+    direct_via: int = -1
+    anchor_verdict: str = ""
+    check_rot_rad: float = float("nan")
+    check_trans_m: float = float("nan")
 
     def as_row(self) -> dict:
         row = {
             "step": self.step, "stamp_s": self.stamp_s, "ego": self.ego, "other": self.other,
             "gate_score": self.gate_score, "gate_open": bool(self.gate_open), "source": self.source,
             "reason": self.reason, "bytes_pair": int(self.bytes_pair), "anchor_step": self.anchor_step,
+            "gate_score_memory": self.gate_score_memory, "gate_via": int(self.gate_via),
+            "direct_via": int(self.direct_via), "anchor_verdict": self.anchor_verdict,
+            "check_rot_rad": self.check_rot_rad, "check_trans_m": self.check_trans_m,
         }
         row.update(_pose_cols("est", self.T_cj_ci))
         return row

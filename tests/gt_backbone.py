@@ -19,7 +19,7 @@ from typing import Callable, Hashable, Sequence
 import numpy as np
 
 from cerpe.geometry import make_se3, random_se3, se3_inverse, so3_exp
-from cerpe.protocols import BackboneOutput, FrameContext, View
+from cerpe.protocols import BackboneOutput, FrameContext, Registration, View
 from cerpe.scene import CameraIntrinsics, Encounter, RobotStream
 
 WIDTH, HEIGHT = 32, 24
@@ -127,6 +127,14 @@ def make_world(n_robots: int = 2, n_steps: int = 40, seed: int = 0,
             T[a, k] = make_se3(R, pos)
     pts = np.column_stack([rng.uniform(-40, 40, n_points), rng.uniform(-4, 1.6, n_points),
                            rng.uniform(-40, 40, n_points)])
+    return world_from_poses(T, pts, seed, windows, open_sim, closed_sim)
+
+
+def world_from_poses(T: np.ndarray, pts: np.ndarray, seed: int = 0,
+                     windows: dict[tuple[int, int], Sequence[tuple[int, int]]] | None = None,
+                     open_sim: float = 0.6, closed_sim: float = 0.05) -> World:
+    """A :class:`World` of the given ``[N,T,4,4]`` camera poses and points (images, depth, schedule)."""
+    n_robots, n_steps = T.shape[:2]
     K = CameraIntrinsics(fx=20.0, fy=20.0, cx=(WIDTH - 1) / 2, cy=(HEIGHT - 1) / 2, width=WIDTH, height=HEIGHT)
     if windows is None:
         windows = {(a, b): [(5, 10), (25, 30)] for a in range(n_robots) for b in range(a + 1, n_robots)}
@@ -141,6 +149,16 @@ def make_world(n_robots: int = 2, n_steps: int = 40, seed: int = 0,
                for t in range(n_steps)] for r in ids]
     depth = [[_render_depth(T[a, t], pts, K) for t in range(n_steps)] for a in range(n_robots)]
     return World(ids, T, pts, K, sim, images, depth)
+
+
+def make_follow_world(n_steps: int = 30, delay: int = 15, seed: int = 0) -> World:
+    """Two robots on one path: r1 drives where r0 drove ``delay`` steps earlier (0.3 m to the side,
+    turned 0.1 rad), so r1 at step ``t`` sees what r0 saw at ``t - delay``. No overlap windows: their
+    descriptors never match at one step (give :class:`OverlapDescriptor` ``places`` for the revisits)."""
+    lead = make_world(1, n_steps + delay, seed=seed, windows={})
+    side = make_se3(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.3, 0.0, 0.0]))
+    T = np.stack([lead.T_world_cam[0, delay:], lead.T_world_cam[0, :n_steps] @ side])
+    return world_from_poses(T, lead.points_w, seed, windows={})
 
 
 class GTBackbone:
@@ -158,13 +176,23 @@ class GTBackbone:
             as not placed in a pass whose first (current) view is ``current_key``.
         claim_metric: set ``BackboneOutput.metric_unit`` (true only when ``unit_range``
             is ``(1, 1)``; other units make a backbone that claims metres wrongly).
+        register: optional ``(own_key, collaborator_key) -> inliers``; > 0 registers
+            the collaborator view (key ``(robot, step, "jpeg")``) against that own
+            view of the pass (``BackboneOutput.registrations``, its true pose in the
+            own camera times the unit), most inliers first. None: no registrations
+            (the algorithm then uses ``T_frame_cam``, as with VGGT).
+        perturb: optional ``(current_key, via_key, view_key) -> [4,4] or None``: a
+            wrong placement injected on the right of the view's true pose (metres);
+            ``via_key`` is None for ``T_frame_cam`` and the own view for a registration.
     """
 
     def __init__(self, world: World, unit_range: tuple[float, float] = (0.2, 5.0), rot_noise_rad: float = 0.0,
                  trans_noise: float = 0.0, invalid_keys: Sequence[Hashable] = (),
                  invalid: Callable[[Hashable, Hashable], bool] | None = None, seed: int = 0,
-                 claim_metric: bool = False) -> None:
+                 claim_metric: bool = False, register: Callable[[Hashable, Hashable], int] | None = None,
+                 perturb: Callable[[Hashable, Hashable | None, Hashable], np.ndarray | None] | None = None) -> None:
         self.world = world
+        self.register, self.perturb = register, perturb
         self.claim_metric = claim_metric
         self.unit_range = unit_range
         self.rot_noise_rad = rot_noise_rad
@@ -189,7 +217,7 @@ class GTBackbone:
             if v.key in self.invalid_keys or (self.invalid is not None and self.invalid(views[0].key, v.key)):
                 reasons.append("test double: marked invalid")
                 continue
-            Ts = T_frame_world @ self.world.pose(v.key)
+            Ts = T_frame_world @ self._pose(views[0].key, None, v.key)
             if self.rot_noise_rad or self.trans_noise:
                 Ts = Ts @ make_se3(so3_exp(self.rng.normal(0, self.rot_noise_rad, 3)),
                                    self.rng.normal(0, self.trans_noise, 3))
@@ -197,38 +225,87 @@ class GTBackbone:
             T[s], valid[s] = Ts, True
             reasons.append("")
         return BackboneOutput(T, valid, depth, conf, [v.intrinsics for v in views], reasons,
-                              metric_unit=self.claim_metric)
+                              metric_unit=self.claim_metric, registrations=self._registrations(views, unit))
+
+    def _pose(self, current: Hashable, via: Hashable | None, key: Hashable) -> np.ndarray:
+        P = None if self.perturb is None else self.perturb(current, via, key)
+        T = self.world.pose(key)
+        return T if P is None else T @ P
+
+    def _registrations(self, views: Sequence[View], unit: float) -> dict[int, list[Registration]]:
+        if self.register is None:
+            return {}
+        me, out = views[0].key[0], {}
+        own = [s for s, v in enumerate(views) if len(v.key) == 2 and v.key[0] == me]
+        for k, v in enumerate(views):
+            if len(v.key) != 3:
+                continue
+            regs = []
+            for s in own:
+                n = int(self.register(views[s].key, v.key))
+                if n > 0:
+                    T = se3_inverse(self.world.pose(views[s].key)) @ self._pose(views[0].key, views[s].key, v.key)
+                    T[:3, 3] *= unit
+                    regs.append(Registration(s, T, n, 2 * n))
+            if regs:
+                out[k] = sorted(regs, key=lambda r: -r.inliers)
+        return out
 
 
 class OverlapDescriptor:
-    """Descriptors whose cross-robot cosine equals ``world.similarity[t]``.
+    """Descriptors whose cross-robot cosine equals ``world.similarity[t]`` at one step.
 
-    ``d(a,t) = [sqrt(beta) e_a(t), sqrt(1-beta) L_t[a]]`` where ``e_a(t)`` rotates
-    slowly in two dimensions private to robot a (own-view change over time, which
-    drives the keyframe rule: own cosine over a gap ``g`` is about
-    ``beta cos(omega g) + 1 - beta``) and ``L_t`` factorises the Gram matrix
-    ``similarity[t] / (1 - beta)`` (eigenvalues clipped when it is not PSD). Keys in
+    ``d(a,t) = [sqrt(beta) e_a(t), sqrt(gamma) u_a, sqrt(1-beta-gamma) B_g(t) L_t[a]]``:
+    ``e_a(t)`` rotates slowly in two dimensions private to robot a (own-view change
+    over time, which drives the keyframe rule), ``u_a`` is a constant direction
+    private to robot a, and ``L_t`` factorises the Gram matrix ``similarity[t] /
+    (1 - beta - gamma)`` (eigenvalues clipped when it is not PSD), placed in a block
+    of dimensions of its own for each segment ``g(t)`` of steps with one similarity
+    matrix. So within a segment the own cosine over a gap ``g`` is
+    ``beta cos(omega g) + 1 - beta`` and robots a, b at steps s, t of the same segment
+    have cosine ``similarity[t, a, b]`` (a keyframe of an overlap window scores as
+    the window did), while across segments they have cosine 0 (what robot a saw
+    during an overlap window is not what robot b sees later).
+
+    ``places`` maps own-frame keys ``(robot, step)`` to a place name: those views'
+    last part is one direction per place instead, so views of one place (of any
+    robots, at any steps) have cosine ``1 - beta - gamma`` and nothing else in
+    common (a robot that sees later what another saw earlier). Keys in
     ``zero_keys`` get an all-zero descriptor (a blank image).
     """
 
     def __init__(self, world: World, beta: float = 0.3, omega: float = 0.3,
-                 thresholds: dict[str, float] | None = None, zero_keys: Sequence[Hashable] = ()) -> None:
+                 thresholds: dict[str, float] | None = None, zero_keys: Sequence[Hashable] = (),
+                 gamma: float = 0.05, places: dict[tuple[str, int], str] | None = None) -> None:
         n, T = len(world.robot_ids), world.n_steps
         self.world = world
-        self.dim = 3 * n + 2
         self.thresholds = dict(thresholds or {})
         self.zero_keys = set(zero_keys)
+        self.places = dict(places or {})
+        segment = np.zeros(T, int)
+        for t in range(1, T):
+            segment[t] = segment[t - 1] + int(not np.array_equal(world.similarity[t], world.similarity[t - 1]))
+        names = sorted(set(self.places.values()))
+        base = 3 * n + n * (segment[-1] + 1)
+        self.dim = base + len(names)
+        shared = 1.0 - beta - gamma
         self.table = np.zeros((n, T, self.dim), np.float32)
         for t in range(T):
-            G = np.clip(world.similarity[t] / (1 - beta), -0.999, 0.999)
+            G = np.clip(world.similarity[t] / shared, -0.999, 0.999)
             np.fill_diagonal(G, 1.0)
             w, V = np.linalg.eigh(G)
             L = V * np.sqrt(np.clip(w, 1e-9, None))
             L /= np.linalg.norm(L, axis=1, keepdims=True)
-            for a in range(n):
+            block = 3 * n + n * segment[t]
+            for a, rid in enumerate(world.robot_ids):
                 d = np.zeros(self.dim)
                 d[2 * a:2 * a + 2] = np.sqrt(beta) * np.array([np.cos(omega * t), np.sin(omega * t)])
-                d[2 * n:3 * n] = np.sqrt(1 - beta) * L[a]
+                d[2 * n + a] = np.sqrt(gamma)
+                place = self.places.get((rid, t))
+                if place is None:
+                    d[block:block + n] = np.sqrt(shared) * L[a]
+                else:
+                    d[base + names.index(place)] = np.sqrt(shared)
                 self.table[a, t] = d / np.linalg.norm(d)
 
     def describe(self, view: View) -> np.ndarray:

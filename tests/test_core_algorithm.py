@@ -186,17 +186,20 @@ def test_error_grows_smoothly_with_depth_bias():
     assert slopes.max() / slopes.min() < 3, slopes
 
 
-def test_lossy_channel_run_completes_with_counted_degradations():
+@pytest.mark.parametrize("verify", [False, True])
+def test_lossy_channel_run_completes_with_counted_degradations(verify):
     world = make_world(3, 40, seed=5, windows={(0, 1): [(3, 8), (20, 26)], (0, 2): [(10, 15)],
                                                (1, 2): [(10, 15), (30, 35)]})
     ch = Channel(p_drop=0.1, p_garble=0.1, seed=3)
-    team, _, results = run(world, channel=ch)
+    team, _, results = run(world, CerpeConfig(min_scale_pixels=20, verify_anchors=verify), channel=ch)
     degr = Counter(d for res in results for r in res.robots for d in r.degradations)
     assert degr["msg:lost"] == ch.counts["msg:lost"] > 0
     assert degr["msg:garbled"] == ch.counts["msg:garbled"] > 0
     errs = pair_errors(world, results)
     est = [e for e in errs if e[3] != "none"]
-    assert len(est) > 0.5 * len(errs)
+    # a direct estimate needs four frames through (descriptor, request, reply, pose): with 20 % of
+    # frames lost, verification (three agreeing estimates) comes late in the short windows
+    assert len(est) > (0.3 if verify else 0.5) * len(errs)
     assert all(np.isfinite(e[4]) and np.isfinite(e[5]) for e in est)
     missing_desc = [p for res in results for p in res.pairs if np.isnan(p.gate_score)]
     assert missing_desc and all(not p.gate_open for p in missing_desc)
@@ -274,7 +277,8 @@ def test_blank_frame_closes_gate_and_is_counted():
     for p in results[7].pairs:
         assert not p.gate_open and np.isnan(p.gate_score)
         assert p.source == "propagated" and p.anchor_step == 6
-    assert [p.reason for p in results[7].pairs] == ["own-descriptor-degenerate", "other-descriptor-degenerate"]
+    assert [p.reason for p in results[7].pairs] == ["own-descriptor-degenerate; unverified",
+                                                    "other-descriptor-degenerate; unverified"]
     for res in results[8:]:
         assert all(p.source != "none" for p in res.pairs)
 

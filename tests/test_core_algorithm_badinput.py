@@ -223,3 +223,64 @@ def test_inconsistent_thresholds_rejected():
 
     with pytest.raises(KeyframeMemoryError, match="tau_k"):
         CerpeConfig(tau_m=0.3, tau_k=0.5).resolved()
+
+
+def _corrupt_replies(agent, how: str, at_step: int) -> None:
+    """Make ``agent`` answer image requests of ``at_step`` with a broken reply."""
+    import dataclasses
+
+    from cerpe.messages import ImageReply
+
+    honest = agent.image_reply
+
+    def reply(request):
+        r = honest(request)
+        if r is None or request.step != at_step:
+            return r
+        if how == "truncated":
+            return dataclasses.replace(r, jpeg=r.jpeg[: len(r.jpeg) * 2 // 3])
+        if how == "garbage":
+            return dataclasses.replace(r, jpeg=bytes(range(256)) * 4)
+        img = r.image_rgb()
+        img = img[::2, ::2] if how == "half-size" else np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)
+        return ImageReply.from_image(r.sender, r.step, img, r.intrinsics)  # the full-size intrinsics
+
+    agent.image_reply = reply
+
+
+@pytest.mark.parametrize("how, fault", [("truncated", "truncated-jpeg"), ("half-size", "image-size-mismatch"),
+                                        ("double-size", "image-size-mismatch"), ("garbage", "undecodable-jpeg")])
+def test_broken_image_reply_is_counted_and_closes_that_pair_for_the_step(world, how, fault):
+    team = _team(world)
+    _corrupt_replies(team.agents[1], how, at_step=6)  # r1 answers r0's request of step 6 badly
+    results = [team.step(*_inputs(world, t)) for t in range(8)]  # overlap window from step 5
+    r0 = results[6].robots[0]
+    assert r0.degradations == [f"msg:{fault}"]
+    p = next(p for p in results[6].pairs if p.ego == "r0")
+    assert p.gate_open and p.bytes_pair > 0  # the request was made and the reply paid for
+    assert p.source == "propagated" and p.anchor_step == 5 and p.anchor_verdict == ""
+    assert p.reason == f"reply-{fault}; unverified"
+    q = next(p for p in results[6].pairs if p.ego == "r1")
+    assert q.source == "direct"  # the other direction is untouched
+    assert next(p for p in results[7].pairs if p.ego == "r0").source == "direct"
+    assert all(r.degradations == [] for res in results if res.step != 6 for r in res.robots)
+
+
+def test_received_view_checks_on_real_jpegs(world):
+    from cerpe.algorithm.frames import jpeg_truncated, received_view
+    from cerpe.messages import ImageReply
+
+    K = world.intrinsics
+    img = np.ascontiguousarray(np.tile(world.images[0][3], (4, 4, 1)))  # 128x96, real JPEG content
+    big = (K.fx * 4, K.fy * 4, (K.cx + 0.5) * 4 - 0.5, (K.cy + 0.5) * 4 - 0.5)
+    reply = ImageReply.from_image(1, 3, img, big)
+    view, fault = received_view("r1", reply)
+    assert fault == "" and view.image.shape == img.shape and view.key == ("r1", 3, "jpeg")
+    assert (view.intrinsics.width, view.intrinsics.height, view.intrinsics.cx) == (128, 96, big[2])
+    assert not jpeg_truncated(reply.jpeg)
+    for cut in (10, len(reply.jpeg) // 3, len(reply.jpeg) - 2):
+        assert jpeg_truncated(reply.jpeg[:cut])
+    unknown = ImageReply.from_image(1, 3, img, (0.0, 0.0, 0.0, 0.0))  # no intrinsics: only the size is checked
+    assert received_view("r1", unknown)[1] == ""
+    tiny = ImageReply.from_image(1, 3, img[:4, :4], (0.0, 0.0, 0.0, 0.0))
+    assert received_view("r1", tiny) == (None, "image-size-mismatch")

@@ -12,8 +12,10 @@ One step of one robot (:class:`StepEngine`, over a :class:`Link`):
 5. metric scale from the keyframes' depth references (``scale``);
 6. odometry through the view the current one was measured against;
 7. broadcast a :class:`~cerpe.messages.PoseMessage`;
-8. per peer: direct estimate (gate open, both views placed) stored as anchor, else
-   the last anchor propagated with both odometries (``propagation``);
+8. per peer: direct estimate (gate open, the collaborator placed: through the joint
+   pass or its registrations against single own views), made the anchor when it is
+   verified (:mod:`~cerpe.algorithm.anchors`), else the anchor propagated with both
+   odometries (``propagation``);
 9. keyframe rule (:mod:`cerpe.memory`).
 
 :class:`Team` runs N engines in one process over the lossy
@@ -22,18 +24,19 @@ Run-time faults are counted under the names in :data:`DEGRADATIONS`; malformed
 input raises :class:`AlgorithmError` naming robot, step and field.
 
 Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
-``poses`` (pose arithmetic), ``agent`` (one robot's state and phases), ``link``
+``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``agent`` (one robot's state and phases), ``link``
 (the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
 process), ``degradations`` (the counted names).
 """
 from .agent import RobotAgent
+from .anchors import Anchor, AnchorConfig, PairAnchors
 from .config import PAPER_THRESHOLDS, AlgorithmError, CerpeConfig
 from .degradations import DEGRADATIONS
 from .engine import StepEngine, drive
 from .link import Inbox, Link, Mailbox, Received
-from .poses import Anchor, direct_relative, ego_motion
+from .poses import direct_relative, ego_motion, registered_relative
 from .team import Team, run_encounter
 
-__all__ = ["DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "CerpeConfig", "Inbox", "Link",
-           "Mailbox", "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
-           "run_encounter"]
+__all__ = ["DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "AnchorConfig", "CerpeConfig", "Inbox",
+           "Link", "Mailbox", "PairAnchors", "Received", "RobotAgent", "StepEngine", "Team", "direct_relative",
+           "drive", "ego_motion", "registered_relative", "run_encounter"]

@@ -11,22 +11,23 @@ import time
 
 import numpy as np
 
-from ..geometry import propagate_relative_pose
+from ..geometry import scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory, cosine
-from ..messages import DescriptorMessage, ImageReply, ImageRequest, MessageError, PoseMessage, decode
+from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage, decode
 from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
-from ..records import RobotRecord
+from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
+from .anchors import Anchor, PairAnchors
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
-from .poses import Anchor, check_pose, direct_relative, ego_motion
-from .state import Previous, StepState
+from .poses import check_pose, direct_relative, ego_motion, registered_relative
+from .state import PairInfo, Previous, StepState
 
 log = logging.getLogger(__name__)
 
 
 class RobotAgent:
-    """One robot: its memory, odometry ``X`` (identity at its first step), anchors.
+    """One robot: its memory, odometry ``X`` (identity at its first step), anchors per peer.
 
     Phases, in order: :meth:`begin_step`, :meth:`descriptor_frame`,
     :meth:`score_descriptor`, :meth:`image_reply` / :meth:`accept_reply`,
@@ -48,8 +49,9 @@ class RobotAgent:
         self.memory = KeyframeMemory(self.config.memory_config())
         self.X = np.eye(4)
         self.last_scale = float("nan")
-        self.anchors: dict[str, Anchor] = {}
+        self.pairs: dict[str, PairAnchors] = {}
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
+        self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
         self.last_step: int | None = None
         self.cur: StepState | None = None
         self.previous: Previous | None = None
@@ -112,7 +114,10 @@ class RobotAgent:
     def score_descriptor(self, other: str, descriptor: np.ndarray | None) -> float:
         """Cosine score against a received descriptor (None: it did not arrive); records the gate decision.
 
-        Returns NaN when no score can be computed (the gate stays closed and the reason is kept).
+        Returns the score of the current frame (the paper's gate score), NaN when
+        none can be computed (the gate stays closed and the reason is kept). The
+        received descriptor is also scored against every keyframe; the best of all
+        (and the keyframe that gave it) opens the gate with ``gate_memory``.
         """
         st = self._state()
         t0 = time.perf_counter()
@@ -132,6 +137,12 @@ class RobotAgent:
                 reason = "other-descriptor-degenerate"
             else:
                 score = cosine(own, d)
+                best = (score, -1)
+                for kf in self.memory.newest_first():
+                    c = cosine(kf.descriptor, d)
+                    if c > best[0]:
+                        best = (c, kf.step)
+                st.memory_scores[other] = best
         st.scores[other] = score
         if reason:
             st.gate_reason[other] = reason
@@ -139,7 +150,11 @@ class RobotAgent:
         return score
 
     def gate_open(self, other: str) -> bool:
-        s = self._state().scores.get(other, float("nan"))
+        """``score >= tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes too."""
+        st = self._state()
+        s = st.scores.get(other, float("nan"))
+        if self.config.gate_memory and np.isfinite(s):
+            s = st.memory_scores[other][0]
         return bool(np.isfinite(s) and s >= self.config.tau)
 
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
@@ -163,14 +178,12 @@ class RobotAgent:
             self.degrade("msg:stale-reply")
             return None
         t0 = time.perf_counter()
-        try:
-            view = received_view(other, reply)
-        except MessageError:
-            self.degrade("msg:undecodable-jpeg")
-            st.gate_reason[other] = "reply-undecodable"
+        view, fault = received_view(other, reply)
+        st.timings["gate"] += time.perf_counter() - t0
+        if view is None:  # the pair gets no direct estimate this step
+            self.degrade(f"msg:{fault}")
+            st.gate_reason[other] = f"reply-{fault}"
             return None
-        finally:
-            st.timings["gate"] += time.perf_counter() - t0
         st.collab_views[other] = view
         return view
 
@@ -191,10 +204,13 @@ class RobotAgent:
         if not kfs or self.config.track_previous:
             st.view = dataclasses.replace(st.view, depth_m=self._current_depth())
         views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo) for kf in kfs]
+        st.own_views = {0: (st.step, None)}
+        st.own_views.update({1 + k: (kf.step, kf.T_odom_cam) for k, kf in enumerate(kfs)})
         prev = self.previous
         st.prev_index = None
         if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
             st.prev_index = len(views)
+            st.own_views[st.prev_index] = (prev.step, prev.T_odom_cam)
             views.append(prev.view)
         for other, v in st.collab_views.items():
             st.collab_index[other] = len(views)
@@ -265,7 +281,7 @@ class RobotAgent:
             st.scale = self.last_scale
             self.degrade("scale:fallback-last")
         elif self.config.unit_scale_without_depth:
-            st.scale = 1.0
+            st.scale, st.metric_scale = 1.0, False
             self.degrade("scale:unit-no-depth")
         else:
             self.degrade("scale:unavailable")
@@ -322,8 +338,19 @@ class RobotAgent:
 
     # ---------------------------------------------------------------- 8. relative poses
     def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
-        """Remember robot ``other``'s broadcast odometry pose."""
-        self.poses[other] = (int(step), check_pose(X_j, f"{self._where()}: pose of robot {other}"))
+        """Remember robot ``other``'s broadcast odometry pose (and advance its odometer)."""
+        X = check_pose(X_j, f"{self._where()}: pose of robot {other}")
+        self.poses[other] = (int(step), X)
+        self._odometer(other, int(step), X)
+
+    def _odometer(self, robot: str, step: int, X: np.ndarray) -> float:
+        """Metres ``robot`` travelled: the distances between the successive poses seen of it, summed."""
+        last = self.odometers.get(robot)
+        if last is not None and step <= last[0]:
+            return last[2]
+        total = 0.0 if last is None else last[2] + float(np.linalg.norm(X[:3, 3] - last[1]))
+        self.odometers[robot] = (step, X[:3, 3].copy(), total)
+        return total
 
     def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
         """This step's estimate of ``T_cj_ci`` for robot ``other``: ``(source, T or None, reason, anchor_step)``."""
@@ -334,43 +361,109 @@ class RobotAgent:
         finally:
             st.timings["propagation"] += time.perf_counter() - t0
 
+    def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
+        """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
+        st = self._state()
+        source, T, reason, anchor_step = self.relative(other)
+        info = st.pair_info.get(other, PairInfo())
+        best, via = st.memory_scores.get(other, (float("nan"), -1))
+        return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
+                          gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate_open(other),
+                          source=source, T_cj_ci=T, reason=reason, bytes_pair=int(bytes_pair),
+                          anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
+                          direct_via=info.direct_via, anchor_verdict=info.verdict,
+                          check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m)
+
     def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
-        out = st.out
         pose = self.poses.get(other)
         fresh = pose is not None and pose[0] == st.step
+        pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
+        info = st.pair_info.setdefault(other, PairInfo())
         if self.gate_open(other):
-            k = st.collab_index.get(other)
-            if k is None:
-                reason = st.gate_reason.get(other, "reply-missing")
-            elif not out.valid[k]:
-                reason = "collaborator-view-not-placed"
-            elif not out.valid[0]:
-                reason = "own-view-not-placed"
-            elif not np.isfinite(st.scale):
-                reason = "no-scale"
-            else:
-                T = direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale)
-                if fresh:
-                    self.anchors[other] = Anchor(st.step, T, self.X.copy(), pose[1].copy())
+            ests, reason = self._direct_estimates(st, other)
+            if ests:
+                via, T = ests[0][1], ests[0][2]
+                info.direct_via = via
+                if not fresh:
+                    self.degrade("anchor:not-stored-pose-missing")
+                    return "direct", T, "anchor-not-stored: pose message missing", st.step
+                est = Anchor(st.step, T, self.X.copy(), pose[1].copy(), self._odometer(self.robot_id, st.step, self.X),
+                             self.odometers[other][2], st.metric_scale)
+                if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
+                    pair.anchor, info.verdict = est, "unchecked"
                     return "direct", T, "", st.step
-                self.degrade("anchor:not-stored-pose-missing")
-                return "direct", T, "anchor-not-stored: pose message missing", st.step
+                others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
+                          for k2, _, T2 in ests[1:] if k2 != ests[0][0]]
+                check = pair.offer(est, others)
+                info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
+                if check.verdict == "replaced":
+                    self.degrade("anchor:replaced")
+                if check.verdict != "rejected":
+                    return "direct", T, "unverified" if check.verdict == "unverified" else "", st.step
+                self.degrade("anchor:inconsistent")
+                reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
+                          f"of step {check.against}")
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
             reason = st.gate_reason.get(other, "")
             if not self.config.propagate:
                 return "none", None, reason or "gate-closed", -1
         if not self.config.propagate:
             return "none", None, reason, -1
-        anchor = self.anchors.get(other)
+        anchor, verified = pair.carried(st.step)
         if anchor is None:
-            return "none", None, "; ".join(r for r in (reason, "no-anchor") if r), -1
+            why = "unverified-expired" if pair.candidates else "no-anchor"
+            return "none", None, "; ".join(r for r in (reason, why) if r), -1
         if pose is None:
             return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1
         if not fresh:
             self.degrade("pose:stale")
             reason = "; ".join(r for r in (reason, "stale-pose") if r)
-        T = propagate_relative_pose(anchor.T_cj_ci, anchor.X_i, self.X, anchor.X_j, pose[1])
-        return "propagated", T, reason, anchor.step
+        if not verified:
+            reason = "; ".join(r for r in (reason, "unverified") if r)
+        return "propagated", anchor.propagated(self.X, pose[1]), reason, anchor.step
+
+    def _direct_estimates(self, st: StepState, other: str) -> tuple[list[tuple[int, int, np.ndarray]], str]:
+        """This step's direct estimates for ``other``: ``([(pass index of via, its step or -1, T_cj_ci)], reason)``.
+
+        Through the collaborator's registrations against single own views, most
+        inliers first, when the backbone gives them; else through the joint pass
+        (``T_frame_cam``; via -1). ``reason`` says why there is none.
+        """
+        out, k = st.out, st.collab_index.get(other)
+        if k is None:
+            return [], st.gate_reason.get(other, "reply-missing")
+        regs = [r for r in out.registrations.get(k, ()) if r.via in st.own_views]
+        if not regs:
+            if not out.valid[k]:
+                return [], "collaborator-view-not-placed"
+            if not out.valid[0]:
+                return [], "own-view-not-placed"
+            if not np.isfinite(st.scale):
+                return [], "no-scale"
+            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale))], ""
+        if not np.isfinite(st.scale):
+            return [], "no-scale"
+        ests = []
+        for r in sorted(regs, key=lambda r: -r.inliers):
+            T_via_ci = self._via_to_current(st, r.via)
+            if not np.all(np.isfinite(r.T_via_cam)):
+                self.degrade("backbone:non-finite-pose")
+            elif T_via_ci is not None:
+                ests.append((r.via, -1 if r.via == 0 else st.own_views[r.via][0],
+                             registered_relative(r.T_via_cam, T_via_ci, st.scale)))
+        return ests, "" if ests else "registrations-not-usable"
+
+    def _via_to_current(self, st: StepState, via: int) -> np.ndarray | None:
+        """``T_via_ci``, metric: identity for the current view, through the pass when it placed both,
+        else through this robot's odometry (the view's stored pose); None without either."""
+        out = st.out
+        if via == 0:
+            return np.eye(4)
+        if out.valid[via] and out.valid[0]:
+            return scale_translation(se3_inverse(out.T_frame_cam[via]) @ out.T_frame_cam[0], st.scale)
+        if st.ego_status == "ok":
+            return se3_inverse(st.own_views[via][1]) @ self.X
+        return None
 
     # ---------------------------------------------------------------- 9. memory
     def manage_memory(self) -> bool:

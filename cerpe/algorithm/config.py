@@ -9,6 +9,7 @@ import numpy as np
 from ..errors import CerpeError
 from ..memory import MemoryConfig
 from ..messages import DESCRIPTOR_DTYPES
+from .anchors import AnchorConfig
 
 PAPER_THRESHOLDS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2}
 
@@ -50,6 +51,35 @@ class CerpeConfig:
             METHOD.md step 4.
         min_image_std: grey-level standard deviation below which a frame is blank
             (black, white, constant grey), whatever the descriptor says.
+        gate_memory: score a received descriptor against the current frame AND the
+            keyframes; the gate opens when the best score passes ``tau`` (a
+            collaborator seeing what this robot saw earlier is then registered
+            against that keyframe). False is the paper's gate (current frame only).
+        verify_anchors: a direct estimate becomes the pair's anchor only when
+            something independent agrees (:mod:`cerpe.algorithm.anchors`): the
+            propagated anchor, a second registration of the same step, or a recent
+            unverified estimate. False is the paper's switching: every direct
+            estimate is the new anchor.
+        anchor_rot_tol_rad, anchor_trans_tol_m: how far an estimate may be from the
+            anchor propagated to it right after that anchor (radians, metres).
+        anchor_rot_drift_per_step: added to the rotation tolerance per step since the anchor.
+        anchor_trans_drift_frac: added to the translation tolerance per metre the two
+            robots travelled since the anchor (odometers summed).
+        anchor_trans_rel: added to the translation tolerance per metre between the cameras.
+        anchor_replace_after: when this many rejected estimates of the last
+            ``anchor_candidate_steps`` steps agree with the newest of them (it included),
+            the newest replaces the anchor.
+        max_unverified_steps: before any anchor is verified, an unverified estimate is
+            reported at its step and propagated for at most this many steps.
+        anchor_candidate_steps: how many steps an unverified estimate (or a rejected
+            one) stays available to verify a later one.
+        anchor_verify_support: without an anchor and without a second registration, how
+            many earlier unverified estimates (of the last ``anchor_candidate_steps``
+            steps) must agree with a direct estimate to verify it.
+        registration_agree_rot_rad, registration_agree_trans_m: two registrations of
+            one step through different own views agree (and verify each other) within
+            these (the translation tolerance grows by ``anchor_trans_rel`` per metre
+            between the cameras, as the anchor check's).
     """
 
     tau: float | None = None
@@ -65,6 +95,19 @@ class CerpeConfig:
     track_previous: bool = True
     backbone_metric_unit: bool = True
     min_image_std: float = 2.0
+    gate_memory: bool = True
+    verify_anchors: bool = True
+    anchor_rot_tol_rad: float = 0.15
+    anchor_trans_tol_m: float = 0.3
+    anchor_rot_drift_per_step: float = 0.005
+    anchor_trans_drift_frac: float = 0.1
+    anchor_trans_rel: float = 0.2
+    anchor_replace_after: int = 3
+    max_unverified_steps: int = 3
+    anchor_candidate_steps: int = 10
+    registration_agree_rot_rad: float = 0.15
+    registration_agree_trans_m: float = 0.3
+    anchor_verify_support: int = 2
 
     def __post_init__(self) -> None:
         for name in ("tau", "tau_m", "tau_k"):
@@ -80,6 +123,17 @@ class CerpeConfig:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):
             raise AlgorithmError(f"config: min_image_std must be finite and >= 0, got {self.min_image_std}")
+        for name in ("anchor_rot_tol_rad", "anchor_trans_tol_m", "anchor_rot_drift_per_step",
+                     "anchor_trans_drift_frac", "anchor_trans_rel", "registration_agree_rot_rad",
+                     "registration_agree_trans_m"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise AlgorithmError(f"config: {name} must be finite and >= 0, got {v}")
+        for name in ("anchor_replace_after", "anchor_verify_support", "max_unverified_steps",
+                     "anchor_candidate_steps"):
+            v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
+            if int(v) != v or v < low:
+                raise AlgorithmError(f"config: {name} must be an integer >= {low}, got {v}")
 
     def resolved(self, descriptor_thresholds: dict[str, float] | None = None) -> "CerpeConfig":
         """Concrete thresholds: explicit value > descriptor calibration > paper."""
@@ -95,6 +149,18 @@ class CerpeConfig:
     def memory_config(self) -> MemoryConfig:
         r = self if self.tau_m is not None and self.tau_k is not None else self.resolved()
         return MemoryConfig(tau_m=r.tau_m, tau_k=r.tau_k, delta_k=self.delta_k, capacity=self.memory_capacity)
+
+    def anchor_config(self) -> AnchorConfig:
+        """The tolerances of anchor verification (:mod:`cerpe.algorithm.anchors`)."""
+        return AnchorConfig(rot_tol_rad=self.anchor_rot_tol_rad, trans_tol_m=self.anchor_trans_tol_m,
+                            rot_drift_per_step=self.anchor_rot_drift_per_step,
+                            trans_drift_frac=self.anchor_trans_drift_frac, trans_rel=self.anchor_trans_rel,
+                            replace_after=int(self.anchor_replace_after),
+                            max_unverified_steps=int(self.max_unverified_steps),
+                            candidate_steps=int(self.anchor_candidate_steps),
+                            agree_rot_rad=self.registration_agree_rot_rad,
+                            agree_trans_m=self.registration_agree_trans_m,
+                            verify_support=int(self.anchor_verify_support))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

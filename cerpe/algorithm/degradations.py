@@ -25,12 +25,19 @@ DEGRADATIONS: dict[str, str] = {
     "depth:none": "the depth source had nothing for the current frame",
     "pose:stale": "the other robot's pose of this step is missing: its last pose is used for propagation",
     "anchor:not-stored-pose-missing": "a direct estimate without the other's pose of this step: not an anchor",
+    "anchor:inconsistent": "a direct estimate that disagrees with the pair's verified anchor propagated to it: "
+                           "not an anchor; the anchor's propagation is reported instead",
+    "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "
+                       "the anchor",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
     "msg:garbled": "a frame that does not decode",
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
     "msg:stale-request": "an image request for a step this robot is not at",
     "msg:stale-reply": "an image reply for another step",
     "msg:undecodable-jpeg": "an image reply whose JPEG does not decode",
+    "msg:truncated-jpeg": "an image reply whose JPEG has no end marker (truncated): not used, no direct estimate",
+    "msg:image-size-mismatch": "an image reply that decodes to another size than its intrinsics (principal point "
+                               "off the centre) or below 8x8 pixels: not used, no direct estimate",
     "msg:image-not-held": "online: the owner answered an image request with 'not held' (it has moved on)",
     "net:peer-lost": "online: a peer's session ended without a bye",
     "link:protocol-mismatch": "online: a robot speaks another link protocol or message version (once per robot "

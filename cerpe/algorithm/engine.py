@@ -16,7 +16,7 @@ import numpy as np
 
 from ..messages import ImageRequest
 from ..protocols import FrameContext
-from ..records import PairRecord, StepResult
+from ..records import StepResult
 from .agent import RobotAgent
 from .config import AlgorithmError
 from .link import Inbox, Link
@@ -76,7 +76,8 @@ class StepEngine:
         yield "descriptor"
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
-        scores = {p: a.score_descriptor(p, _field(got, p, "descriptor")) for p in peers}
+        for p in peers:
+            a.score_descriptor(p, _field(got, p, "descriptor"))
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
         for n in replies.sent.values():
@@ -93,14 +94,12 @@ class StepEngine:
         a.note_pose(a.robot_id, t, a.X)
         for p, got_pose in self._book(link.gather(t, "pose", peers, self.wait_s)).messages.items():
             a.note_pose(p, got_pose.message.step, got_pose.message.T_odom_cam)
-        # 8. relative pose per peer: direct when the gate opened and the pass placed both, else propagated
+        # 8. relative pose per peer: direct when the gate opened and the pass placed the other's view
+        # (verified against the anchor), else the anchor propagated
         pairs = []
         for p in peers:
-            source, T, reason, anchor_step = a.relative(p)
             nbytes = replies.sent.get(p, 0) + (replies.messages[p].nbytes if p in replies.messages else 0)
-            pairs.append(PairRecord(step=t, stamp_s=a.cur.stamp_s, ego=a.robot_id, other=p,
-                                    gate_score=float(scores[p]), gate_open=a.gate_open(p), source=source,
-                                    T_cj_ci=T, reason=reason, bytes_pair=int(nbytes), anchor_step=anchor_step))
+            pairs.append(a.pair_record(p, nbytes))
         # 9. memory management
         a.manage_memory()
         return StepResult(step=t, pairs=pairs, robots=[a.record()])

@@ -6,7 +6,7 @@ from collections import Counter
 
 import numpy as np
 
-from ..messages import ImageReply
+from ..messages import ImageReply, MessageError
 from ..protocols import DescriptorEncoder, FrameContext, View
 from ..scene import CameraIntrinsics
 from .config import AlgorithmError
@@ -70,17 +70,51 @@ def intrinsics_tuple(K: CameraIntrinsics | None) -> tuple[float, float, float, f
     return (0.0, 0.0, 0.0, 0.0) if K is None else (K.fx, K.fy, K.cx, K.cy)
 
 
-def received_view(other: str, reply: ImageReply) -> View:
-    """A collaborator's JPEG as a :class:`View` keyed ``(other, step, "jpeg")``.
+#: Largest distance of a reply's principal point from the image centre, as a fraction of the
+#: image size, before the image counts as being of another size than its intrinsics (the reply
+#: carries ``fx, fy, cx, cy`` but no size; a 2x resize moves ``cx`` by a quarter of the width).
+MAX_PRINCIPAL_OFFSET = 0.2
+
+
+def jpeg_truncated(jpeg: bytes) -> bool:
+    """True when the JPEG has no end-of-image marker after its last scan.
+
+    A truncated JPEG often still "decodes" (the decoder fills the missing rows
+    with grey), so the end marker is checked before decoding. Inside a scan 0xFF
+    is always followed by 0x00 or a restart marker, so ``FF D9`` after the last
+    start-of-scan ``FF DA`` can only be the end marker.
+    """
+    end = jpeg.rfind(b"\xff\xd9")
+    return end < 0 or end < jpeg.rfind(b"\xff\xda")
+
+
+def received_view(other: str, reply: ImageReply) -> tuple[View | None, str]:
+    """A collaborator's JPEG as a :class:`View` keyed ``(other, step, "jpeg")``, or ``(None, fault)``.
 
     The key differs from the owner's ``(other, step)`` because the pixels do:
     plug-ins shared by a simulated team may cache per key and must not mix the
-    raw and the decoded image. Raises :class:`~cerpe.messages.MessageError` when
-    the JPEG does not decode.
+    raw and the decoded image. Faults (counted as ``msg:<fault>`` by the robot):
+    ``truncated-jpeg`` (no end marker), ``undecodable-jpeg``,
+    ``image-size-mismatch`` (the principal point of the reply's intrinsics lies
+    more than :data:`MAX_PRINCIPAL_OFFSET` of the size off the decoded image's
+    centre, or the image is smaller than 8x8 pixels).
     """
-    img = reply.image_rgb()
+    if not reply.jpeg.startswith(b"\xff\xd8"):  # no start-of-image marker: not a JPEG at all
+        return None, "undecodable-jpeg"
+    if jpeg_truncated(reply.jpeg):
+        return None, "truncated-jpeg"
+    try:
+        img = reply.image_rgb()
+    except MessageError:
+        return None, "undecodable-jpeg"
+    H, W = img.shape[:2]
     fx, fy, cx, cy = reply.intrinsics
     K = None
     if fx > 0 and fy > 0 and np.all(np.isfinite(reply.intrinsics)):
-        K = CameraIntrinsics(fx, fy, cx, cy, img.shape[1], img.shape[0])
-    return View(key=(other, reply.step, "jpeg"), image=img, intrinsics=K)
+        if (min(H, W) < 8 or abs(cx - (W - 1) / 2) > MAX_PRINCIPAL_OFFSET * W
+                or abs(cy - (H - 1) / 2) > MAX_PRINCIPAL_OFFSET * H):
+            return None, "image-size-mismatch"
+        K = CameraIntrinsics(fx, fy, cx, cy, W, H)
+    elif min(H, W) < 8:
+        return None, "image-size-mismatch"
+    return View(key=(other, reply.step, "jpeg"), image=img, intrinsics=K), ""

@@ -1,7 +1,5 @@
-"""The pose arithmetic of Algorithm 1: ego-motion through a view of the pass, direct estimates, anchors."""
+"""The pose arithmetic of Algorithm 1: ego-motion through a view of the pass, direct estimates."""
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -43,11 +41,11 @@ def direct_relative(T_frame_ci: np.ndarray, T_frame_cj: np.ndarray, s: float) ->
     return scale_translation(T, _scale(s))
 
 
-@dataclass
-class Anchor:
-    """Last direct estimate of one pair: ``T_cj_ci`` with both odometry poses then."""
+def registered_relative(T_via_cj: np.ndarray, T_via_ci: np.ndarray, s: float) -> np.ndarray:
+    """Direct estimate through one own view ``via``: ``T_cj_ci = inv(scaled(T_via_cj, s)) @ T_via_ci``.
 
-    step: int
-    T_cj_ci: np.ndarray
-    X_i: np.ndarray
-    X_j: np.ndarray
+    ``T_via_cj`` is the collaborator's registration against ``via`` in the pass's
+    unit (made metric by ``s``); ``T_via_ci`` the current camera in ``via``'s, metric.
+    """
+    T_via_cj = scale_translation(check_pose(T_via_cj, "T_via_cj"), _scale(s))
+    return se3_inverse(T_via_cj) @ check_pose(T_via_ci, "T_via_ci")

@@ -23,13 +23,17 @@ class StepState:
     blank: bool
     wire_descriptor: np.ndarray | None = None
     scores: dict[str, float] = field(default_factory=dict)
+    memory_scores: dict[str, tuple[float, int]] = field(default_factory=dict)
     gate_reason: dict[str, str] = field(default_factory=dict)
     collab_views: dict[str, View] = field(default_factory=dict)
     passed: bool = False
     out: BackboneOutput | None = None
     collab_index: dict[str, int] = field(default_factory=dict)
     prev_index: int | None = None
+    own_views: dict[int, tuple[int, np.ndarray | None]] = field(default_factory=dict)
+    pair_info: dict[str, "PairInfo"] = field(default_factory=dict)
     scale: float = float("nan")
+    metric_scale: bool = True  # False: s = 1 for want of metric depth (unit_scale_without_depth)
     ego_status: str = ""
     keyframe: bool = False
     timings: Counter = field(default_factory=Counter)
@@ -37,6 +41,23 @@ class StepState:
     bytes_sent: Counter = field(default_factory=Counter)
     reply_cache: ImageReply | None = None
     depth_cache: tuple[bool, np.ndarray | None] = (False, None)
+
+
+@dataclass
+class PairInfo:
+    """How this step's direct estimate for one peer came about (pair record columns).
+
+    ``direct_via``: step of the own view it was registered through (-1: the current
+    frame or the joint pass); ``verdict``: what anchor verification said (``""``
+    without a direct estimate, ``"unchecked"`` with ``verify_anchors=False``);
+    ``check_rot_rad``, ``check_trans_m``: its disagreement with what it was checked
+    against (NaN when nothing was compared).
+    """
+
+    direct_via: int = -1
+    verdict: str = ""
+    check_rot_rad: float = float("nan")
+    check_trans_m: float = float("nan")
 
 
 @dataclass

@@ -1,0 +1,197 @@
+"""Anchor verification for one ordered pair of robots (issue 18, item 2).
+
+A direct estimate ``T_cj_ci`` becomes the pair's **anchor** (what propagation
+starts from) only when something independent agrees with it:
+
+* an existing anchor, propagated to the estimate's step with both odometries,
+  within a tolerance that grows with the steps since that anchor and with the
+  distance both robots travelled since (odometry drifts);
+* with no anchor yet: a second estimate of the same step through another own
+  view (two registrations that agree), or ``verify_support`` recent unverified
+  candidates propagated to this step.
+
+An estimate that disagrees with the anchor is *rejected* (the pair keeps the
+anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
+steps agree with the newest of them, the newest replaces it (persistent
+disagreement: the anchor was the wrong one). Before any anchor is
+verified, the newest unverified estimate may be propagated for at most
+``max_unverified_steps`` steps.
+
+Pure numpy + :mod:`cerpe.geometry`; no robot, link or record here. A pose-graph
+back end can sit beside it (it would consume the same :class:`Anchor` stream).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ..geometry import propagate_relative_pose, rotation_angle, se3_inverse
+
+Verdict = Literal["verified", "accepted", "unverified", "rejected", "replaced"]
+
+
+@dataclass(frozen=True)
+class AnchorConfig:
+    """Tolerances of the checks (radians, metres); see :class:`~cerpe.algorithm.CerpeConfig`.
+
+    Two estimates ``k`` steps apart, between which the robots travelled ``d``
+    metres together (odometer of i plus odometer of j), agree when the rotation
+    between them is at most ``rot_tol_rad + rot_drift_per_step * k`` and their
+    translations differ by at most ``trans_tol_m + trans_drift_frac * d +
+    trans_rel * |t|`` (``|t|`` the newer estimate's distance between the cameras:
+    an error in rotation or scale moves a far camera further). Two estimates of one
+    step through different own views (two registrations) agree within
+    ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
+    without such a second registration, ``verify_support`` earlier candidates must
+    agree with an estimate to verify it.
+    """
+
+    rot_tol_rad: float = 0.15
+    trans_tol_m: float = 0.3
+    rot_drift_per_step: float = 0.005
+    trans_drift_frac: float = 0.1
+    trans_rel: float = 0.2
+    replace_after: int = 3
+    max_unverified_steps: int = 3
+    candidate_steps: int = 10
+    agree_rot_rad: float = 0.15
+    agree_trans_m: float = 0.3
+    verify_support: int = 2
+
+
+@dataclass
+class Anchor:
+    """A direct estimate with what propagating it needs.
+
+    Attributes:
+        step: the step it was measured at.
+        T_cj_ci: ``[4,4]`` metric pose of camera i in camera j at that step.
+        X_i, X_j: ``[4,4]`` both robots' odometry poses ``T_odom_cam`` at that step.
+        odo_i, odo_j: both robots' odometers (metres travelled since their first
+            step, summed over the poses seen) at that step; 0 when unknown.
+        metric: False when the translations are not in metres (no metric depth:
+            the scale was set to 1); translations are then not compared.
+    """
+
+    step: int
+    T_cj_ci: np.ndarray
+    X_i: np.ndarray
+    X_j: np.ndarray
+    odo_i: float = 0.0
+    odo_j: float = 0.0
+    metric: bool = True
+
+    def propagated(self, X_i: np.ndarray, X_j: np.ndarray) -> np.ndarray:
+        """``T_cj_ci`` moved to odometry poses ``X_i``, ``X_j`` (paper Eq. propagation)."""
+        return propagate_relative_pose(self.T_cj_ci, self.X_i, X_i, self.X_j, X_j)
+
+
+def disagreement(old: Anchor, new: Anchor) -> tuple[float, float]:
+    """``(rotation rad, translation m)`` between ``new`` and ``old`` propagated to ``new``'s poses."""
+    T = old.propagated(new.X_i, new.X_j)
+    D = se3_inverse(T) @ new.T_cj_ci
+    return float(rotation_angle(D[:3, :3])), float(np.linalg.norm(new.T_cj_ci[:3, 3] - T[:3, 3]))
+
+
+def tolerance(conf: AnchorConfig, old: Anchor, new: Anchor) -> tuple[float, float]:
+    """``(rotation rad, translation m)`` two estimates may differ by (see :class:`AnchorConfig`)."""
+    k = abs(new.step - old.step)
+    rot = conf.rot_tol_rad + conf.rot_drift_per_step * k
+    if not (old.metric and new.metric):
+        return rot, float("inf")
+    travelled = abs(new.odo_i - old.odo_i) + abs(new.odo_j - old.odo_j)
+    return rot, (conf.trans_tol_m + conf.trans_drift_frac * travelled
+                 + conf.trans_rel * float(np.linalg.norm(new.T_cj_ci[:3, 3])))
+
+
+def consistent(conf: AnchorConfig, old: Anchor, new: Anchor) -> tuple[bool, float, float]:
+    """``(agree, rotation rad, translation m)`` of ``new`` against ``old`` propagated to it."""
+    rot, trans = disagreement(old, new)
+    rot_tol, trans_tol = tolerance(conf, old, new)
+    return bool(rot <= rot_tol and trans <= trans_tol), rot, trans
+
+
+@dataclass
+class Check:
+    """What :meth:`PairAnchors.offer` decided about one estimate.
+
+    ``against``: step of what it was compared with (the anchor, a candidate, the
+    same step for a second registration), -1 when nothing; ``rot_rad``,
+    ``trans_m``: the disagreement with it (NaN when nothing was compared).
+    """
+
+    verdict: Verdict
+    against: int = -1
+    rot_rad: float = float("nan")
+    trans_m: float = float("nan")
+
+
+@dataclass
+class PairAnchors:
+    """The verified anchor of one ordered pair, its unverified candidates and its challengers."""
+
+    conf: AnchorConfig = field(default_factory=AnchorConfig)
+    anchor: Anchor | None = None
+    candidates: list[Anchor] = field(default_factory=list)
+    challengers: list[Anchor] = field(default_factory=list)
+
+    def offer(self, est: Anchor, others: Sequence[Anchor] = ()) -> Check:
+        """Judge a direct estimate; ``others``: estimates of the same step through other own views.
+
+        With an anchor: accepted when consistent with it, else rejected (or, the
+        ``replace_after``-th agreeing rejection, it replaces the anchor). Without:
+        verified when one of ``others`` agrees with it or a recent candidate
+        propagated to it does, else kept as a candidate (unverified).
+        """
+        if self.anchor is not None:
+            return self._against_anchor(est)
+        for other in others:
+            rot, trans = disagreement(other, est)
+            trans_tol = self.conf.agree_trans_m + self.conf.trans_rel * float(np.linalg.norm(est.T_cj_ci[:3, 3]))
+            if rot <= self.conf.agree_rot_rad and (trans <= trans_tol or not (est.metric and other.metric)):
+                self._set(est)
+                return Check("verified", est.step, rot, trans)
+        self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]
+        checks = [(c, *consistent(self.conf, c, est)) for c in reversed(self.candidates)]  # newest first
+        support = [x for x in checks if x[1]]
+        if support and len(support) >= self.conf.verify_support:
+            c, _, rot, trans = support[0]
+            self._set(est)
+            return Check("verified", c.step, rot, trans)
+        self.candidates.append(est)
+        if not checks:
+            return Check("unverified")
+        c, _, rot, trans = (support or checks)[0]
+        return Check("unverified", c.step, rot, trans)
+
+    def _against_anchor(self, est: Anchor) -> Check:
+        ok, rot, trans = consistent(self.conf, self.anchor, est)
+        if ok:
+            self._set(est)
+            return Check("accepted", self.anchor.step, rot, trans)
+        against = self.anchor.step
+        self.challengers = [c for c in self.challengers if est.step - c.step <= self.conf.candidate_steps] + [est]
+        if 1 + sum(consistent(self.conf, c, est)[0] for c in self.challengers[:-1]) >= self.conf.replace_after:
+            self._set(est)
+            return Check("replaced", against, rot, trans)
+        return Check("rejected", against, rot, trans)
+
+    def _set(self, est: Anchor) -> None:
+        self.anchor = est
+        self.candidates.clear()
+        self.challengers.clear()
+
+    def carried(self, step: int) -> tuple[Anchor | None, bool]:
+        """What a step without an accepted direct estimate propagates: ``(anchor, verified)``.
+
+        The verified anchor when there is one; else the newest unverified candidate
+        while it is at most ``max_unverified_steps`` old; else None.
+        """
+        if self.anchor is not None:
+            return self.anchor, True
+        if self.candidates and step - self.candidates[-1].step <= self.conf.max_unverified_steps:
+            return self.candidates[-1], False
+        return None, False

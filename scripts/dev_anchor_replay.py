@@ -1,0 +1,207 @@
+"""DEVELOPMENT tool: how far apart are right and wrong direct estimates, and what would verification do?
+
+Reads CERPE run folders made WITHOUT anchor verification (``verify_anchors=False``,
+or code before it existed), where every direct estimate was recorded, and prints:
+
+1. ``pairs``: for every direct estimate and every earlier one of the same ordered
+   pair at most ``--max-gap`` steps before, the disagreement of the new one with the
+   old one propagated to it (rotation rad, translation m), split by ground truth:
+   both right (e_rot < 0.1 rad) or at least one wrong (e_rot > 0.3 rad); with the
+   rotation per step since and translation per metre travelled.
+2. ``replay``: :class:`cerpe.algorithm.anchors.PairAnchors` fed with those direct
+   estimates in order (the anchor state needs nothing else: odometry and the gate
+   do not depend on it), what each step would report, and: estimates reported,
+   their mean / median e_rot, success, rejections, and the longest a > 0.3 rad
+   wrong estimate is carried by propagation.
+
+Usage (tolerances as ``CerpeConfig`` names)::
+
+    python scripts/dev_anchor_replay.py --record MANIFEST RUN   # cerpe run with verify_anchors=False
+    python scripts/dev_anchor_replay.py RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
+
+Development data only (synthetic seeds other than 0, ``../shared/data``).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cerpe.algorithm import CerpeConfig
+from cerpe.algorithm.anchors import Anchor, PairAnchors, disagreement
+from cerpe.geometry import e_rot, se3_from_tq_xyzw
+
+POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+RIGHT, WRONG = 0.1, 0.3
+
+
+def _poses(df: pd.DataFrame, prefix: str) -> np.ndarray:
+    v = df[[f"{prefix}_{n}" for n in POSE]].to_numpy(float)
+    out = np.full((len(v), 4, 4), np.nan)
+    for k, row in enumerate(v):
+        if np.all(np.isfinite(row)):
+            out[k] = se3_from_tq_xyzw(row[:3], row[3:])
+    return out
+
+
+def load(run: Path):
+    """Yield ``(encounter, ego, other, table)`` with per-step direct T, gt T, both odometries and odometers."""
+    conf = json.loads((run / "run.json").read_text())
+    metric = not conf.get("config", conf).get("cerpe", {}).get("unit_scale_without_depth", False)
+    for enc in sorted(p for p in run.iterdir() if (p / "DONE.json").exists()):
+        steps = pd.read_csv(enc / "steps.csv")
+        robots = pd.read_csv(enc / "robots.csv").sort_values("step")
+        odo, X = {}, {}
+        for rid, g in robots.groupby("robot"):
+            P = _poses(g, "odom")
+            X[rid] = dict(zip(g["step"], P))
+            d = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))]
+            odo[rid] = dict(zip(g["step"], d))
+        for (ego, other), g in steps.groupby(["ego", "other"]):
+            g = g.sort_values("step")
+            rows = []
+            for (_, r), T, G in zip(g.iterrows(), _poses(g, "est"), _poses(g, "gt")):
+                t = int(r["step"])
+                direct = r["source"] == "direct" and not str(r.get("reason", "")).startswith("anchor-not-stored")
+                rows.append(dict(step=t, direct=direct, T=T if direct else None, gt=G, X_i=X[ego][t],
+                                 X_j=X[other][t], odo_i=odo[ego][t], odo_j=odo[other][t]))
+            yield enc.name, ego, other, rows, metric
+
+
+def err(T, G) -> float:
+    return float(e_rot(T, G)) if T is not None and np.all(np.isfinite(G)) else float("nan")
+
+
+def anchor(r, metric) -> Anchor:
+    return Anchor(r["step"], r["T"], r["X_i"], r["X_j"], r["odo_i"], r["odo_j"], metric)
+
+
+def pair_table(runs, max_gap: int) -> pd.DataFrame:
+    out = []
+    for run in runs:
+        for enc, ego, other, rows, metric in load(run):
+            direct = [r for r in rows if r["direct"]]
+            for b, rb in enumerate(direct):
+                for ra in direct[:b]:
+                    k = rb["step"] - ra["step"]
+                    if k > max_gap:
+                        continue
+                    rot, trans = disagreement(anchor(ra, metric), anchor(rb, metric))
+                    ea, eb = err(ra["T"], ra["gt"]), err(rb["T"], rb["gt"])
+                    out.append(dict(run=run.name, enc=enc, ego=ego, other=other, a=ra["step"], b=rb["step"], k=k,
+                                    rot=rot, trans=trans if metric else np.nan,
+                                    travelled=(rb["odo_i"] - ra["odo_i"]) + (rb["odo_j"] - ra["odo_j"]),
+                                    dist=float(np.linalg.norm(rb["T"][:3, 3])), err_a=ea, err_b=eb))
+    return pd.DataFrame(out)
+
+
+def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
+    out = []
+    for run in runs:
+        for enc, ego, other, rows, metric in load(run):
+            pa = PairAnchors(cfg.anchor_config())
+            carried_from: dict[int, int] = {}
+            for r in rows:
+                t, rep, verdict, src_step = r["step"], None, "", -1
+                if r["direct"]:
+                    est = anchor(r, metric)
+                    if cfg.verify_anchors:
+                        verdict = pa.offer(est).verdict
+                    else:
+                        pa.anchor, verdict = est, "unchecked"
+                    if verdict != "rejected":
+                        rep, src_step = r["T"], t
+                if rep is None:
+                    a, _ = pa.carried(t)
+                    if a is not None:
+                        rep, src_step = a.propagated(r["X_i"], r["X_j"]), a.step
+                e = err(rep, r["gt"])
+                ep = float(np.linalg.norm(rep[:3, 3] - r["gt"][:3, 3])) if rep is not None else np.nan
+                if src_step >= 0 and src_step != t and e > WRONG:
+                    carried_from[src_step] = carried_from.get(src_step, 0) + 1
+                out.append(dict(run=run.name, enc=enc, ego=ego, other=other, step=t, direct=r["direct"],
+                                verdict=verdict, reported=rep is not None, e_rot=e, e_pos=ep if metric else np.nan,
+                                direct_err=err(r["T"], r["gt"]) if r["direct"] else np.nan,
+                                wrong_carried=max(carried_from.values(), default=0)))
+    return pd.DataFrame(out)
+
+
+def record(manifest: Path, out: Path) -> None:
+    """``cerpe run MANIFEST --method cerpe`` with every direct estimate kept (``verify_anchors=False``)."""
+    from cerpe import algorithm
+    from cerpe.pipeline.run import run_method
+
+    @dataclasses.dataclass(frozen=True)
+    class Unchecked(CerpeConfig):
+        verify_anchors: bool = False
+
+    algorithm.CerpeConfig = Unchecked  # what cerpe.pipeline.run builds its config from
+    print("run folder:", run_method(manifest, "cerpe", out, progress=False))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--record", action="store_true", help="RUNS = MANIFEST OUT: write a run to replay")
+    ap.add_argument("--max-gap", type=int, default=10)
+    ap.add_argument("--set", nargs="*", default=[], help="CerpeConfig field=value")
+    ap.add_argument("--what", choices=["pairs", "replay", "both"], default="both")
+    a = ap.parse_args()
+    if a.record:
+        return record(*a.runs)
+    def value(k: str, v: str):
+        old = getattr(CerpeConfig(), k)
+        return v.lower() in ("1", "true", "yes") if isinstance(old, bool) else type(old)(v)
+
+    cfg = dataclasses.replace(CerpeConfig(), **{k: value(k, v) for k, v in (s.split("=") for s in a.set)})
+    pd.set_option("display.width", 200)
+    if a.what in ("pairs", "both"):
+        P = pair_table(a.runs, a.max_gap)
+        P["cls"] = np.where((P.err_a < RIGHT) & (P.err_b < RIGHT), "right",
+                            np.where((P.err_a > WRONG) | (P.err_b > WRONG), "wrong", "between"))
+        P["rot_per_step"] = P.rot / P.k
+        P["trans_per_m"] = P.trans / np.maximum(P.travelled, 1e-3)
+        q = [0.5, 0.9, 0.95, 0.99, 1.0]
+        for col in ("rot", "rot_per_step", "trans", "trans_per_m"):
+            print(f"--- {col} quantiles {q} (count) by run and class")
+            print(P.groupby(["run", "cls"])[col].quantile(q).unstack().round(3)
+                  .join(P.groupby(["run", "cls"])[col].count().rename("n")))
+        R = P[P.cls == "right"]
+        print("--- right pairs: rot quantiles by gap k (all runs)")
+        print(R.groupby(np.minimum(R.k, 6)).rot.quantile([0.9, 0.99, 1.0]).unstack().round(3)
+              .join(R.groupby(np.minimum(R.k, 6)).rot.count().rename("n")))
+        print("--- wrong pairs: fraction with rot below x")
+        wrong = P[P.cls == "wrong"]
+        for x in (0.1, 0.15, 0.2, 0.3):
+            print(x, (wrong.rot < x).groupby(wrong.run).mean().round(3).to_dict())
+    if a.what in ("replay", "both"):
+        R = replay(a.runs, cfg)
+        g = R.groupby("run")
+        summary = pd.DataFrame({
+            "steps": g.size(),
+            "direct": g.direct.sum(),
+            "direct_wrong": g.direct_err.apply(lambda s: int((s > WRONG).sum())),
+            "rejected": g.verdict.apply(lambda s: int((s == "rejected").sum())),
+            "rejected_right": g.apply(lambda d: int(((d.verdict == "rejected") & (d.direct_err < RIGHT)).sum())),
+            "kept_wrong": g.apply(lambda d: int((d.verdict.isin(["verified", "accepted", "replaced", "unchecked"])
+                                                 & (d.direct_err > WRONG)).sum())),
+            "unverified": g.verdict.apply(lambda s: int((s == "unverified").sum())),
+            "replaced": g.verdict.apply(lambda s: int((s == "replaced").sum())),
+            "success_pct": 100 * g.reported.mean(),
+            "e_rot_mean": g.e_rot.mean(),
+            "e_rot_median": g.e_rot.median(),
+            "e_pos_mean": g.e_pos.mean(),
+            "e_pos_median": g.e_pos.median(),
+            "reported_wrong": g.e_rot.apply(lambda s: int((s > WRONG).sum())),
+            "max_wrong_carried": R.groupby(["run", "enc", "ego", "other"]).wrong_carried.max().groupby("run").max(),
+        })
+        print("--- replay with", {k: v for k, v in dataclasses.asdict(cfg.anchor_config()).items()})
+        print(summary.round(3).to_string())
+
+
+if __name__ == "__main__":
+    main()

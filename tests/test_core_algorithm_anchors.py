@@ -1,0 +1,186 @@
+"""cerpe.algorithm.anchors on its own: known answers and random round trips in SE(3)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cerpe.algorithm.anchors import (
+    Anchor,
+    AnchorConfig,
+    PairAnchors,
+    consistent,
+    disagreement,
+    tolerance,
+)
+from cerpe.geometry import make_se3, paper_T_ij, random_se3, so3_exp
+
+CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
+                    replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
+                    agree_trans_m=0.1, verify_support=1)
+
+
+class Pair:
+    """Two robots on random trajectories in one world; each odometry starts at identity."""
+
+    def __init__(self, seed: int, n: int = 30) -> None:
+        rng = np.random.default_rng(seed)
+        self.W = {r: [random_se3(rng, 20.0)] for r in "ij"}
+        for r in "ij":
+            for _ in range(n - 1):
+                step = make_se3(so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.5, 3))
+                self.W[r].append(self.W[r][-1] @ step)
+
+    def X(self, r: str, t: int) -> np.ndarray:
+        return np.linalg.inv(self.W[r][0]) @ self.W[r][t]
+
+    def odo(self, r: str, t: int) -> float:
+        return float(sum(np.linalg.norm(self.W[r][k + 1][:3, 3] - self.W[r][k][:3, 3]) for k in range(t)))
+
+    def est(self, t: int, error: np.ndarray | None = None) -> Anchor:
+        T = paper_T_ij(self.W["i"][t], self.W["j"][t])
+        if error is not None:  # on the right: camera i turned about its centre, translation unchanged
+            T = T @ error
+        return Anchor(t, T, self.X("i", t), self.X("j", t), self.odo("i", t), self.odo("j", t))
+
+
+def rot(angle: float, axis=(0.0, 1.0, 0.0)) -> np.ndarray:
+    return make_se3(so3_exp(angle * np.asarray(axis)), np.zeros(3))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_true_estimates_agree_after_propagation_over_any_gap(seed):
+    p = Pair(seed)
+    for a, b in [(0, 1), (3, 17), (5, 29)]:
+        r, t = disagreement(p.est(a), p.est(b))
+        assert r < 1e-7 and t < 1e-6
+    # an error of known size comes out as that size, whatever the gap
+    r, t = disagreement(p.est(2), p.est(9, rot(0.5)))
+    assert r == pytest.approx(0.5, abs=1e-9)
+
+
+def test_tolerance_grows_with_steps_travel_and_distance():
+    p = Pair(1)
+    a = p.est(0)
+    r1, t1 = tolerance(CONF, a, p.est(1))
+    r9, t9 = tolerance(CONF, a, p.est(9))
+    assert r1 == pytest.approx(0.11) and r9 == pytest.approx(0.19)
+    assert t1 == pytest.approx(0.3 + 0.1 * (p.odo("i", 1) + p.odo("j", 1)))
+    assert t9 > t1
+    rel = AnchorConfig(trans_rel=0.5)
+    b = p.est(1)
+    assert tolerance(rel, a, b)[1] == pytest.approx(tolerance(AnchorConfig(trans_rel=0.0), a, b)[1]
+                                                    + 0.5 * np.linalg.norm(b.T_cj_ci[:3, 3]))
+    b.metric = False  # no metric depth: translations are not compared
+    assert tolerance(CONF, a, b)[1] == np.inf
+
+
+def test_wrong_estimate_is_rejected_and_a_consistent_one_accepted():
+    p = Pair(2)
+    pa = PairAnchors(CONF, anchor=p.est(0))
+    check = pa.offer(p.est(2, rot(0.5)))
+    assert check.verdict == "rejected" and check.against == 0 and check.rot_rad == pytest.approx(0.5)
+    assert pa.anchor.step == 0
+    check = pa.offer(p.est(3, rot(0.05)))  # within 0.1 + 3 * 0.01
+    assert check.verdict == "accepted" and pa.anchor.step == 3 and not pa.challengers
+    assert pa.carried(7) == (pa.anchor, True)
+
+
+def test_persistent_disagreement_replaces_the_anchor():
+    p = Pair(3)
+    wrong = rot(0.6, (1.0, 0.0, 0.0))
+    pa = PairAnchors(CONF, anchor=p.est(0, wrong))  # a wrong anchor; then right estimates keep coming
+    assert [pa.offer(p.est(t)).verdict for t in (1, 2)] == ["rejected", "rejected"]
+    assert pa.anchor.step == 0
+    check = pa.offer(p.est(3))
+    assert check.verdict == "replaced" and pa.anchor.step == 3
+    assert pa.offer(p.est(4)).verdict == "accepted"
+
+
+def test_rejections_that_disagree_with_each_other_do_not_replace():
+    p = Pair(4)
+    pa = PairAnchors(CONF, anchor=p.est(0))
+    angles = [0.5, -0.5, 0.8, -0.8, 1.1, -1.1]
+    verdicts = [pa.offer(p.est(t, rot(a))).verdict for t, a in enumerate(angles, start=1)]
+    assert verdicts == ["rejected"] * 6 and pa.anchor.step == 0
+
+
+def test_challengers_too_far_apart_do_not_replace():
+    p = Pair(5, n=40)
+    pa = PairAnchors(CONF, anchor=p.est(0))
+    for t in (1, 15, 30):  # agree with each other, but more than candidate_steps apart
+        assert pa.offer(p.est(t, rot(1.0))).verdict == "rejected"
+
+
+def test_unverified_is_carried_for_max_unverified_steps_only():
+    p = Pair(6)
+    pa = PairAnchors(CONF)
+    assert pa.offer(p.est(5)).verdict == "unverified"
+    for t in (6, 7, 8):
+        a, verified = pa.carried(t)
+        assert a is not None and a.step == 5 and not verified
+    assert pa.carried(9) == (None, False)
+
+
+def test_a_later_agreeing_estimate_verifies_and_a_disagreeing_one_does_not():
+    p = Pair(7)
+    pa = PairAnchors(CONF)
+    assert pa.offer(p.est(5, rot(0.5))).verdict == "unverified"
+    check = pa.offer(p.est(6))
+    assert check.verdict == "unverified" and check.against == 5 and check.rot_rad == pytest.approx(0.5, abs=0.02)
+    check = pa.offer(p.est(8, rot(0.02)))  # agrees with step 6 (propagated), not with step 5
+    assert check.verdict == "verified" and check.against == 6 and pa.anchor.step == 8
+    assert not pa.candidates
+
+
+def test_candidates_older_than_candidate_steps_do_not_verify():
+    p = Pair(8, n=40)
+    pa = PairAnchors(CONF)
+    pa.offer(p.est(2))
+    assert pa.offer(p.est(2 + CONF.candidate_steps + 1)).verdict == "unverified"
+    assert [c.step for c in pa.candidates] == [13]
+
+
+def test_two_registrations_of_one_step_verify_at_once_when_they_agree():
+    p = Pair(9)
+    e = p.est(4)
+    close = Anchor(4, e.T_cj_ci @ rot(0.03), e.X_i, e.X_j)
+    far = Anchor(4, e.T_cj_ci @ rot(0.2), e.X_i, e.X_j)
+    pa = PairAnchors(CONF)
+    assert pa.offer(e, [far]).verdict == "unverified"
+    pa = PairAnchors(CONF)
+    check = pa.offer(e, [far, close])
+    assert check.verdict == "verified" and check.rot_rad == pytest.approx(0.03) and pa.anchor is e
+
+
+def test_consistent_is_symmetric_in_rotation_for_random_errors():
+    rng = np.random.default_rng(0)
+    p = Pair(10)
+    for _ in range(20):
+        a, b = sorted(rng.choice(30, 2, replace=False))
+        err = make_se3(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 0.5, 3))
+        ok, r, t = consistent(CONF, p.est(a), p.est(b, err))
+        r2, _ = disagreement(p.est(b, err), p.est(a))
+        assert r == pytest.approx(r2, abs=1e-9)
+        assert ok == (r <= CONF.rot_tol_rad + CONF.rot_drift_per_step * (b - a) and t <= tolerance(
+            CONF, p.est(a), p.est(b, err))[1])
+
+
+def test_an_interleaved_outlier_does_not_stop_a_replacement():
+    p = Pair(11)
+    pa = PairAnchors(CONF, anchor=p.est(0, rot(0.8)))  # replace_after = 3
+    verdicts = [pa.offer(p.est(t, rot(1.2) if t == 2 else None)).verdict for t in (1, 2, 3, 4)]
+    assert verdicts == ["rejected", "rejected", "rejected", "replaced"] and pa.anchor.step == 4
+
+
+def test_verify_support_asks_for_that_many_agreeing_candidates():
+    import dataclasses
+
+    p = Pair(12)
+    pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
+    assert [pa.offer(p.est(t)).verdict for t in (5, 6)] == ["unverified", "unverified"]
+    check = pa.offer(p.est(8))
+    assert check.verdict == "verified" and check.against == 6 and pa.anchor.step == 8
+    # two registrations of one step that agree still verify at once
+    pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
+    e = p.est(9)
+    assert pa.offer(e, [Anchor(9, e.T_cj_ci @ rot(0.01), e.X_i, e.X_j)]).verdict == "verified"
