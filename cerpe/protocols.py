@@ -49,6 +49,10 @@ class View:
             is none. Opaque to the algorithm. A backbone keeps no state between calls:
             what it needs to remember about a robot's past goes out in a memo and
             comes back in with the view, so a pass depends on its views alone.
+        role: what the view is to the robot running the pass: ``"current"``,
+            ``"keyframe"``, ``"previous"`` (own frames) or ``"collaborator"`` (an image
+            another robot sent); None when the caller does not say. A backbone may
+            treat collaborator views differently (a costlier cross-robot matcher).
     """
 
     key: Hashable
@@ -56,6 +60,7 @@ class View:
     intrinsics: CameraIntrinsics | None = None
     depth_m: np.ndarray | None = None
     memo: Mapping[str, Any] | None = None
+    role: str | None = None
 
 
 @dataclass(frozen=True)
