@@ -34,7 +34,7 @@ def test_derived_wo_em_equals_real_run(fixture_encounter):
     assert n_prop > 0, "fixture too easy: nothing was propagated, the check would be empty"
     for a, b in zip(derived, real):
         for pa, pb in zip(a.pairs, b.pairs):
-            assert (pa.ego, pa.other, pa.source, pa.gate_open) == (pb.ego, pb.other, pb.source, pb.gate_open)
+            assert (pa.ego, pa.other, pa.source, pa.gate_open, pa.reason) == (pb.ego, pb.other, pb.source, pb.gate_open, pb.reason)
             if pa.T_cj_ci is not None:
                 np.testing.assert_allclose(pa.T_cj_ci, pb.T_cj_ci, atol=1e-9)
         for ra, rb in zip(a.robots, b.robots):

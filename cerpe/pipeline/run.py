@@ -155,8 +155,10 @@ def without_propagation(res: StepResult) -> StepResult:
 
     pairs = []
     for p in res.pairs:
-        if p.source == "propagated" or (p.source == "none" and "no-anchor" in p.reason):
-            parts = [r for r in p.reason.split("; ") if r and r not in ("stale-pose", "no-anchor", "no-pose-of-other")]
+        # reasons that only a propagated (or no longer propagated) estimate has
+        carried = ("stale-pose", "no-anchor", "no-pose-of-other", "unverified", "unverified-expired")
+        if p.source == "propagated" or (p.source == "none" and any(r in carried for r in p.reason.split("; "))):
+            parts = [r for r in p.reason.split("; ") if r and r not in carried]
             reason = "; ".join(parts) or ("gate-closed" if not p.gate_open else "")
             p = dataclasses.replace(p, source="none", T_cj_ci=None, anchor_step=-1, reason=reason)
         pairs.append(p)
