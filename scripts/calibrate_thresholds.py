@@ -66,6 +66,8 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--memory-from", choices=("synth", "all"), default="synth",
                     help="the sets tau_m and tau_k are taken from (default: synth)")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--samples", type=Path, default=None,
+                    help="also write every labelled pair (set, sample, scores, overlaps, label) to this CSV")
     ap.add_argument("--dry-run", action="store_true", help="print, do not write")
     return ap.parse_args(argv)
 
@@ -97,6 +99,11 @@ def _sets(a: argparse.Namespace) -> list[tuple[str, str, object, Path]]:
 
 def _fmt(v: float, nd: int = 3) -> str:
     return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def _verdict(met: bool, f: dict) -> str:
+    """A target's verdict; ``n/a`` where a class is missing (a sample without negatives ranks nothing)."""
+    return "n/a (one class)" if not (f["n_positive"] and f["n_negative"]) else ("met" if met else "NOT met")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -177,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:<34}{label:<10}{f['n_positive']:>6}{f['n_negative']:>7}{_fmt(f['roc_auc']):>7}  "
                   f"{_fmt(b['precision'], 2):>6}/{_fmt(b['recall'], 2):<6}  {_fmt(f['precision'], 2):>6}/"
                   f"{_fmt(f['recall'], 2):<6}{_fmt(f['recall_at_p80'], 2):>7}  "
-                  f"AUC {'met' if f['auc_target_met'] else 'NOT met'}, R@P80 {'met' if f['pr_target_met'] else 'NOT met'}")
+                  f"AUC {_verdict(f['auc_target_met'], f)}, R@P80 {_verdict(f['pr_target_met'], f)}")
         q = e["consecutive_q"]
         print(f"{'':<34}consecutive frames: q{a.q_m:g} {q['q_m']:.4f}, q{a.q_k:g} {q['q_k']:.4f} (n={q['n']})")
     result = {
@@ -196,12 +203,17 @@ def main(argv: list[str] | None = None) -> int:
                          else str(m), "manifest_sha": file_digest(m), "stride": a.stride_real,
                          "cross_scene_negatives": not a.no_cross_scene}
                      for n, k, _, m in sets if k == "real"},
-            "command": "python scripts/calibrate_thresholds.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "command": " ".join(["python scripts/calibrate_thresholds.py", *(sys.argv[1:] if argv is None else argv)]),
             "git_revision": git_revision(), "date": time.strftime("%Y-%m-%d"),
             "never": "the paper-default suite (seed 0)"},
         "descriptor_dim": desc.dim,
         "descriptor_conf": {k: v for k, v in desc.conf.items() if k not in ("thresholds", "xfeat")},
     }
+    if a.samples:
+        rows = [t[n].assign(set=n, sample=lab) for lab, t in (("any_step", any_step), ("same_step", same_step))
+                for n in D]
+        atomic_write_text(a.samples, pd.concat(rows, ignore_index=True).to_csv(index=False, float_format="%.6g"))
+        print(f"wrote {a.samples}")
     if not a.dry_run:
         atomic_write_text(a.out, json.dumps(result, indent=2, default=float) + "\n")
         print(f"wrote {a.out}")

@@ -90,3 +90,32 @@ def test_pair_samples_label_same_and_any_step():
     assert lab[(0, 1)] == 1.0 and lab[(3, 0)] == 1.0 and lab[(0, 2)] == 0.0 and lab[(3, 3)] == 0.0
     assert np.all(anyp["score"].to_numpy() == (anyp["u"] < 2).to_numpy(float))
     assert len(pair_samples(enc, D, stride=2, any_step=True, progress=False)) == 4
+
+
+def test_calibration_script_on_the_fixture_suite(tmp_path):
+    """The script end to end on fixture-sized development suites (seed 2), without real data."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "MPLBACKEND": "Agg"}
+    cmd = [sys.executable, str(root / "scripts" / "calibrate_thresholds.py"), "--synth-preset", "fixture",
+           "--dev-out", str(tmp_path / "dev"), "--real", "--out", str(tmp_path / "th.json"),
+           "--samples", str(tmp_path / "samples.csv")]
+    refused = subprocess.run(cmd + ["--synth-seeds", "0"], capture_output=True, text=True, env=env, timeout=600)
+    assert refused.returncode != 0 and "paper-default" in refused.stderr
+    done = subprocess.run(cmd + ["--synth-seeds", "2"], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    res = json.loads((tmp_path / "th.json").read_text())
+    th = res["thresholds"]
+    assert 0 < th["tau_k"] <= th["tau_m"] < 1 and -1 < th["tau"] < 1
+    assert res["provenance"]["synthetic"]["seeds"] == [2] and res["provenance"]["real"] == {}
+    names = set(res["figures"])
+    assert names == {"dev-fixture-synthetic-cad-s2", "dev-fixture-synthetic-indoor-s2"}
+    for f in res["figures"].values():  # the rule: recall >= 0.8 on every set with positives
+        after = f["any_step"]["after"]
+        assert after["n_positive"] == 0 or after["recall"] >= 0.8
+    assert "tau" in done.stdout and "R@P80" in done.stdout and (tmp_path / "samples.csv").is_file()
