@@ -37,6 +37,8 @@ _register("run", "cerpe.pipeline.run", "run a method (cerpe, cerpe-wo-em, baseli
 _register("eval", "cerpe.pipeline.evaluate", "compute the paper's metrics for a run folder")
 _register("bench", "cerpe.pipeline.bench", "benchmark per-stage latency, memory and bytes")
 _register("paper", "cerpe.pipeline.paper", "build every table and figure (what `make paper` runs)")
+_register("dev", "cerpe.pipeline.dev", "development report: the four methods on the real development sets and "
+          "synthetic development seeds (never the paper-default suite)")
 _register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over Zenoh")
 _register("data", "cerpe.datasets.data_cli", "list public datasets, download one (resumable, checked) and print its manifest")
 

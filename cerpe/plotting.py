@@ -266,30 +266,42 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
 
 
 def gate_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], table: pd.DataFrame, points: pd.DataFrame,
-                overlap: float = 0.2, title: str = ""):
+                overlap: float = 0.2, title: str = "",
+                curves_covis: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None):
     """The descriptor gate against ground-truth overlap: ROC per setting, and cosine vs overlap.
 
     Args:
-        curves: ``{setting: (fpr, tpr)}``.
+        curves: ``{setting: (fpr, tpr)}`` with the old ordered label (dashed).
         table: rows with ``setting, roc_auc, tau, precision, recall`` (and, when
-            present, ``roc_auc_ceiling``: the best AUC any symmetric score can reach).
+            present, ``roc_auc_ceiling``: the best AUC any symmetric score can reach,
+            and ``covis_roc_auc, covis_precision, covis_recall``: the co-visibility label).
         points: rows with ``setting, gate_score, overlap_gt``.
         overlap: the overlap ratio that counts as overlapping.
+        curves_covis: ``{setting: (fpr, tpr)}`` with the co-visibility label of unordered
+            pairs (solid; overlap >= ``overlap`` both ways positive, < 0.05 both ways negative).
     """
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.3))
     ax = axes[0]
+    colours = {}
+    for s, (fpr, tpr) in (curves_covis or {}).items():
+        r = table[table["setting"] == s].iloc[0]
+        line, = ax.plot(fpr, tpr, lw=1.5, label=f"{s}, co-visibility label: AUC {r['covis_roc_auc']:.3f}, "
+                                                 f"P {r['covis_precision']:.2f} / R {r['covis_recall']:.2f} at tau")
+        colours[s] = line.get_color()
     for s, (fpr, tpr) in curves.items():
         r = table[table["setting"] == s].iloc[0]
         ceiling = r.get("roc_auc_ceiling", float("nan"))
         bound = f" (symmetric-score ceiling {ceiling:.3f})" if np.isfinite(ceiling) else ""
-        ax.plot(fpr, tpr, lw=1.3,
-                label=f"{s}: AUC {r['roc_auc']:.3f}{bound}, P {r['precision']:.2f} / R {r['recall']:.2f} at tau")
+        ax.plot(fpr, tpr, lw=1.0, ls="--", color=colours.get(s),
+                label=f"{s}, ordered label: AUC {r['roc_auc']:.3f}{bound}, P {r['precision']:.2f} / "
+                      f"R {r['recall']:.2f} at tau")
     ax.plot([0, 1], [0, 1], color="0.6", lw=0.7, ls=":")
     ax.set_xlabel("false positive rate")
     ax.set_ylabel("true positive rate")
-    ax.set_title(f"gate ROC: descriptor cosine vs GT overlap >= {overlap:g} (all ordered pairs, all steps)", fontsize=8)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"gate ROC: descriptor cosine vs GT co-visibility (solid: unordered pairs, overlap >= {overlap:g} "
+                 f"both ways vs < 0.05 both ways; dashed: ordered pairs, overlap >= {overlap:g})", fontsize=7)
+    ax.legend(fontsize=6, loc="lower right")
     ax = axes[1]
     for s, g in points.groupby("setting"):
         ax.scatter(g["overlap_gt"], g["gate_score"], s=4, alpha=0.35, label=s)

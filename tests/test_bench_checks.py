@@ -69,6 +69,9 @@ def test_suite_printout_carries_the_gate_figures():
     assert f"ROC AUC {gate['roc_auc']:.3f}" in text and "at tau 0.6500" in text
     assert f"precision {gate['precision']:.3f}, recall {gate['recall']:.3f}" in text
     assert "symmetric score can reach 0.967" in text and "25 % of ordered pairs" in text
+    # the co-visibility label: step 0 positive (0.9), steps 2-3 negative (0.3, 0.7), step 1 left out
+    assert "over 3 pairs (1 positive, 1 left out): ROC AUC 1.000" in text
+    assert "precision 0.500, recall 1.000 (targets >= 0.8)" in text  # open at 0.65: 0.9 and 0.7
     assert "gate" not in "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([]), "ego_per_robot": {}}))
 
 

@@ -89,3 +89,38 @@ def test_no_symmetric_score_beats_the_ceiling(seed):
     q = gate_quality(steps, tau=0.5)
     if np.isfinite(q["roc_auc"]):
         assert q["roc_auc"] <= q["roc_auc_ceiling"] + 1e-12
+
+
+def test_covisibility_label_known_answers():
+    from cerpe.pipeline.evaluate import covisibility_label
+
+    o_ij = np.array([0.2, 0.5, 0.04, 0.0, 0.3, 0.04, np.nan, 0.19])
+    o_ji = np.array([0.2, 0.1, 0.0, 0.049, 0.05, 0.05, 0.5, 0.9])
+    got = covisibility_label(o_ij, o_ji)
+    np.testing.assert_array_equal(got, [1.0, np.nan, 0.0, 0.0, np.nan, np.nan, np.nan, np.nan])
+
+
+def test_covisibility_gate_quality_hand_made_example():
+    """Unordered pairs: positive both ways >= 0.2, negative both ways < 0.05, the rest left out."""
+    steps = _two_robot_steps([(0, 0.9, 0.5, 0.4),     # positive
+                              (1, 0.7, 0.3, 0.25),    # positive
+                              (2, 0.6, 0.02, 0.01),   # negative
+                              (3, 0.3, 0.5, 0.1),     # one way only: left out
+                              (4, 0.2, 0.0, 0.0),     # negative
+                              (5, 0.4, 0.21, 0.6),    # positive
+                              (6, 0.8, 0.3, 0.3)])    # positive; r0's descriptor of r1 lost below
+    steps.loc[(steps["step"] == 6) & (steps["ego"] == "r0"), "gate_score"] = np.nan
+    q = gate_quality(steps, tau=0.5)
+    assert q["covis_n_pairs"] == 6 and q["covis_n_positive"] == 4 and q["covis_n_left_out"] == 1
+    # positives 0.9 0.7 0.4 0.8 against negatives 0.6 0.2: 7 of 8 comparisons won
+    assert q["covis_roc_auc"] == pytest.approx(7 / 8)
+    # open at 0.5: 0.9 0.7 0.8 (right), 0.6 (wrong); 0.4 missed
+    assert q["covis_precision"] == pytest.approx(3 / 4) and q["covis_recall"] == pytest.approx(3 / 4)
+    assert q["covis_open_rate"] == pytest.approx(4 / 6)
+    # the old ordered label is still there, unchanged: 13 ordered rows with a score, 8 overlapping
+    assert q["n_pairs"] == 13 and q["n_overlapping"] == 8 and np.isfinite(q["roc_auc"])
+
+
+def test_covisibility_gate_quality_without_pair_columns_is_empty():
+    q = gate_quality(pd.DataFrame({"gate_score": [0.9, 0.1], "overlap_gt": [0.5, 0.0]}), tau=0.5)
+    assert q["covis_n_pairs"] == 0 and np.isnan(q["covis_roc_auc"]) and np.isnan(q["covis_recall"])

@@ -39,6 +39,9 @@ def test_main_results_table(ctx):
     assert row.status == "ok" and row.e_rot_rad == pytest.approx(0.1, abs=1e-6)
     assert row.success_pct == pytest.approx(100 * 6 / 8) and row.n_frames == 2 * 2 * 8
     assert np.isfinite(row.e_pos_m)  # metric method: predicted translation error reported
+    # every pair overlaps 0.5 both ways from step 0: success after co-visibility is the success rate
+    assert "success_after_covis_pct" in df.columns
+    assert row.success_after_covis_pct == pytest.approx(100 * 6 / 8)
     sift = df[(df.setting == "toy") & (df.method == "sift-ransac")].iloc[0]
     assert np.isnan(sift.e_pos_m) and np.isfinite(sift.e_pos_gt_scale_m)
     assert (df[df.method.isin(["nope", "co-visnet"]) & (df.setting == "toy")].status == "not available offline").all()
@@ -53,7 +56,7 @@ def test_markdown_and_latex_layout(ctx, tmp_path):
     assert [p.name for p in paths] == ["main_results.csv", "main_results.md", "main_results.tex"]
     md = paths[1].read_text()
     assert "not supplied" in md and "n/a" in md and "SuperGlue stand-in (ALIKED+LightGlue)" in md
-    assert md.splitlines()[0].count("toy:") == 3
+    assert md.splitlines()[0].count("toy:") == 3 and "covis" not in md  # the paper's layout only
     tex = paths[2].read_text()
     for token in (r"\toprule", r"\midrule", r"\bottomrule", r"\multicolumn{3}{c}{toy}", r"\cmidrule(lr){2-4}",
                   "SuperGlue"):
@@ -114,3 +117,20 @@ def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
     other = table1.cerpe_row_note("paper", [{"backbone_metric_unit": True, "track_previous": False}])
     assert "skips the scale step" not in other and "keyframes, as in the paper" in other
     assert "VGGT" in other
+
+
+def test_gate_data_and_figure_carry_both_labels(ctx):
+    gate = paper.gate_data(ctx)
+    row = gate["table"].iloc[0]
+    # the toy pairs overlap 0.5 both ways: all positive under both labels, so no ROC curve (one class)
+    assert row["covis_n_positive"] == row["covis_n_pairs"] == 2 * 8 and row["n_overlapping"] == row["n_pairs"]
+    assert gate["curves_covis"] == {} and gate["curves"] == {}
+    table = pd.DataFrame([{"setting": "s", "roc_auc": 0.7, "tau": 0.5, "precision": 0.6, "recall": 0.4,
+                           "roc_auc_ceiling": 0.9, "covis_roc_auc": 0.95, "covis_precision": 0.9, "covis_recall": 0.8}])
+    curve = (np.array([0.0, 0.2, 1.0]), np.array([0.0, 0.8, 1.0]))
+    fig = plotting.gate_figure({"s": curve}, table, gate["points"].assign(setting="s"), curves_covis={"s": curve})
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert any("co-visibility label: AUC 0.950, P 0.90 / R 0.80" in t for t in labels)
+    assert any("ordered label: AUC 0.700 (symmetric-score ceiling 0.900)" in t for t in labels)
+    out = plotting.save_figure(fig, ctx.figures_dir / "gate_quality")
+    assert all(p.exists() for p in out)

@@ -13,6 +13,11 @@ the ground truth:
 * success: the method produced an estimate for the frame. A frame without an
   estimate (including every frame before the first anchor) is a failure: it
   counts in ``success_pct`` and is excluded from the error means.
+* success after co-visibility (``success_after_covis_pct``): the success rate over
+  the evaluated frames at or after the pair's first co-visible step, i.e. the first
+  step whose ground-truth overlap is at least 0.2 both ways (:data:`COVIS_POSITIVE`);
+  pairs that are never co-visible, and data without overlap ground truth, give none
+  (NaN): before the robots have seen the same place no method can succeed directly.
 
 Frames without ground truth cannot be evaluated and are left out (counted in
 ``n_no_gt``). Run folders of one (setting, method) with different configuration
@@ -38,7 +43,7 @@ log = logging.getLogger(__name__)
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",
                       *(f"est_{c}" for c in POSE), *(f"gt_{c}" for c in POSE))
-SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames")
+SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct")
 
 
 class EvalError(CerpeError, ValueError):
@@ -148,6 +153,11 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
 
 
 GATE_OVERLAP = 0.2  # issue 4 / calibration: a pair "overlaps" when the GT overlap ratio is at least this
+# The co-visibility label of an unordered pair (issue 18): positive when the overlap ratio is at least
+# COVIS_POSITIVE both ways, negative when it is below COVIS_NEGATIVE both ways, left out in between
+# (as place-recognition benchmarks leave out the ambiguous band).
+COVIS_POSITIVE = GATE_OVERLAP
+COVIS_NEGATIVE = 0.05
 
 
 def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -235,6 +245,66 @@ def _reverse_overlap(rows: pd.DataFrame) -> np.ndarray:
     return rows[key].merge(rev, on=key, how="left")["_rev"].to_numpy(float)
 
 
+def covisibility_label(o_ij: np.ndarray, o_ji: np.ndarray, positive: float = COVIS_POSITIVE,
+                       negative: float = COVIS_NEGATIVE) -> np.ndarray:
+    """Label of the unordered pair with overlap ratios ``o_ij`` (i's pixels j sees) and ``o_ji``.
+
+    Returns ``[n]`` float: 1 where both are ``>= positive``, 0 where both are
+    ``< negative``, NaN otherwise (the ambiguous band, or an unknown overlap).
+    """
+    a, b = np.asarray(o_ij, float), np.asarray(o_ji, float)
+    out = np.full(np.broadcast(a, b).shape, np.nan)
+    out[(a >= positive) & (b >= positive)] = 1.0
+    out[(a < negative) & (b < negative)] = 0.0
+    return out
+
+
+def covisibility_pairs(steps: pd.DataFrame) -> pd.DataFrame:
+    """One row per unordered pair and step of ``steps.csv`` rows, with its co-visibility label.
+
+    Columns ``encounter, step, a, b`` (``a < b``), ``gate_score`` (mean of the two
+    directions' finite scores: the cosine is the same both ways, one may be missing),
+    ``o_ab``, ``o_ba`` (the two directions' ``overlap_gt``, NaN where a row is missing)
+    and ``label`` (:func:`covisibility_label`). Empty without the pair columns.
+    """
+    key = ["encounter", "step", "ego", "other"]
+    cols = ["encounter", "step", "a", "b", "gate_score", "o_ab", "o_ba", "label"]
+    if not all(c in steps.columns for c in key + ["gate_score", "overlap_gt"]) or steps.empty:
+        return pd.DataFrame(columns=cols)
+    df = steps[key].copy()
+    ego, other = df["ego"].astype(str), df["other"].astype(str)
+    df["a"], df["b"] = np.where(ego < other, ego, other), np.where(ego < other, other, ego)
+    ov = pd.to_numeric(steps["overlap_gt"], errors="coerce")
+    df["gate_score"] = pd.to_numeric(steps["gate_score"], errors="coerce")
+    df["o_ab"] = ov.where(ego == df["a"])
+    df["o_ba"] = ov.where(ego == df["b"])
+    g = df.groupby(["encounter", "step", "a", "b"], sort=True).agg(
+        gate_score=("gate_score", "mean"), o_ab=("o_ab", "max"), o_ba=("o_ba", "max")).reset_index()
+    g["label"] = covisibility_label(g["o_ab"].to_numpy(float), g["o_ba"].to_numpy(float))
+    return g[cols]
+
+
+def covis_gate_quality(pairs: pd.DataFrame, tau: float | None) -> dict[str, float]:
+    """The gate against the co-visibility label over :func:`covisibility_pairs` rows.
+
+    Returns ``covis_n_pairs`` (labelled unordered pairs with a score), ``covis_n_positive``,
+    ``covis_n_left_out`` (ambiguous or unknown overlap), ``covis_roc_auc``, and
+    ``covis_precision``, ``covis_recall``, ``covis_open_rate`` of ``score >= tau``.
+    """
+    score = pairs["gate_score"].to_numpy(float)
+    label = pairs["label"].to_numpy(float)
+    scored = np.isfinite(score)
+    ok = scored & np.isfinite(label)
+    s, y = score[ok], label[ok] > 0.5
+    out = {"covis_n_pairs": int(ok.sum()), "covis_n_positive": int(y.sum()),
+           "covis_n_left_out": int((scored & ~np.isfinite(label)).sum()), "covis_roc_auc": roc_auc(s, y)}
+    pr = (precision_recall(s, y, tau) if tau is not None and len(s) else
+          {"precision": float("nan"), "recall": float("nan")})
+    out.update({"covis_precision": pr["precision"], "covis_recall": pr["recall"],
+                "covis_open_rate": float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")})
+    return out
+
+
 def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_OVERLAP) -> dict[str, float]:
     """How well the descriptor gate predicts overlap, over all ordered pairs and steps of ``steps``.
 
@@ -246,7 +316,10 @@ def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_O
         (the run's threshold), ``precision`` and ``recall`` at it, ``open_rate``, and
         :func:`symmetric_bound`'s ``roc_auc_ceiling``, ``mixed_share`` and
         ``roc_auc_consistent`` over the pairs whose reverse is present (NaN when
-        ``encounter, step, ego, other`` are missing).
+        ``encounter, step, ego, other`` are missing). These use the old, ordered label
+        (``overlap_gt >= overlap`` of each direction); the ``covis_*`` fields of
+        :func:`covis_gate_quality` use the symmetric co-visibility label of the
+        unordered pair (both ways >= 0.2 positive, both < 0.05 negative, the rest left out).
     """
     ok = np.isfinite(pd.to_numeric(steps.get("gate_score"), errors="coerce")) & np.isfinite(
         pd.to_numeric(steps.get("overlap_gt"), errors="coerce"))
@@ -261,7 +334,24 @@ def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_O
     out.update(precision_recall(s, y, out["tau"]) if tau is not None and len(s) else
                {"precision": float("nan"), "recall": float("nan")})
     out["open_rate"] = float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")
+    out.update(covis_gate_quality(covisibility_pairs(steps), tau))
     return out
+
+
+def first_covisible_step(steps: pd.DataFrame, overlap: float = COVIS_POSITIVE) -> np.ndarray:
+    """``[n]`` per row of ``steps.csv``: the first step at which the row's pair (encounter,
+    unordered robot pair) overlaps at least ``overlap`` both ways; ``inf`` where it never
+    does or the overlap ground truth is missing."""
+    n = len(steps)
+    if n == 0 or "overlap_gt" not in steps.columns:
+        return np.full(n, np.inf)
+    ov = pd.to_numeric(steps["overlap_gt"], errors="coerce").to_numpy(float)
+    covis = (ov >= overlap) & (_reverse_overlap(steps) >= overlap)
+    ego, other = steps["ego"].astype(str), steps["other"].astype(str)
+    pair = pd.DataFrame({"encounter": steps["encounter"].astype(str).to_numpy(),
+                         "a": np.where(ego < other, ego, other), "b": np.where(ego < other, other, ego),
+                         "t": np.where(covis, steps["step"].astype(float).to_numpy(), np.inf)})
+    return pair.groupby(["encounter", "a", "b"])["t"].transform("min").to_numpy(float)
 
 
 def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.DataFrame:
@@ -274,8 +364,12 @@ def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.
 
     Returns:
         The evaluated rows (with ground truth) plus columns ``success`` (bool),
-        ``e_pos_m``, ``e_pos_gt_scale_m``, ``e_rot_rad`` (NaN where no estimate).
+        ``e_pos_m``, ``e_pos_gt_scale_m``, ``e_rot_rad`` (NaN where no estimate) and
+        ``after_covis`` (bool: at or after the pair's first co-visible step,
+        :func:`first_covisible_step`, found over all steps, evaluated or not).
     """
+    first = first_covisible_step(steps)
+    steps = steps.assign(after_covis=steps["step"].astype(float).to_numpy() >= first)
     df = steps[steps["step"].astype(int) % int(every) == 0].copy()
     gt = df[[f"gt_{c}" for c in POSE]].to_numpy(float)
     has_gt = np.all(np.isfinite(gt), axis=1)
@@ -302,7 +396,13 @@ def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.
 
 
 def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
-    """Means of the errors over successful frames and the success rate, grouped by ``by``."""
+    """Means of the errors over successful frames and the success rate, grouped by ``by``.
+
+    ``success_after_covis_pct`` is the success rate over the frames with ``after_covis``
+    (NaN where there are none), ``n_frames_after_covis`` their number.
+    """
+    after = frames["after_covis"].astype(bool) if "after_covis" in frames else pd.Series(False, frames.index)
+    frames = frames.assign(_succ_ac=frames["success"].astype(float).where(after), _after=after)
     g = frames.groupby(list(by), sort=True, dropna=False)
     out = pd.DataFrame({
         "e_pos_m": g["e_pos_m"].mean(),
@@ -312,6 +412,8 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
         "success_pct": 100.0 * g["success"].mean(),
         "n_frames": g["success"].size(),
         "n_success": g["success"].sum(),
+        "success_after_covis_pct": 100.0 * g["_succ_ac"].mean(),
+        "n_frames_after_covis": g["_after"].sum(),
     })
     return out.reset_index()
 
@@ -394,7 +496,9 @@ def main(args: argparse.Namespace) -> int:
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print("Errors are means over frames with an estimate; frames without one count as failures "
-          "(success_pct). e_pos_m is NaN for methods without metric scale.")
+          "(success_pct). e_pos_m is NaN for methods without metric scale. success_after_covis_pct: "
+          f"success over the frames at or after the pair's first step with GT overlap >= {COVIS_POSITIVE:g} "
+          "both ways (NaN without overlap ground truth or such a step).")
     if args.csv:
         atomic_write_text(args.csv, table.to_csv(index=False))
         print(f"written: {args.csv}")

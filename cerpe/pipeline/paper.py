@@ -39,7 +39,7 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, read_json
 from ..errors import CerpeError
-from .evaluate import GATE_OVERLAP, EvalError, evaluate_runs, gate_quality, roc_curve
+from .evaluate import GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_runs, gate_quality, roc_curve
 from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
 from .provenance import code_hash, file_digest
 from .run import run_method
@@ -380,12 +380,15 @@ def gate_data(ctx: PaperContext, method: str = "cerpe") -> dict:
 
     Returns:
         ``table``: one row per setting with :func:`~cerpe.pipeline.evaluate.gate_quality`'s
-        fields (ROC AUC of the cosine against ``overlap_gt >= 0.2`` over all ordered
-        pairs and steps, the run's ``tau``, precision and recall at it, open rate);
-        ``curves``: ``{setting: (fpr, tpr)}``; ``points``: ``setting, gate_score,
-        overlap_gt`` rows for a scatter; ``overlap``: the label threshold.
+        fields: the co-visibility label of unordered pairs (``covis_*``: ROC AUC, precision
+        and recall at the run's ``tau``) and, beside it, the old ordered label (ROC AUC of
+        the cosine against ``overlap_gt >= 0.2`` over all ordered pairs and steps, precision
+        and recall at ``tau``, open rate, the symmetric-score ceiling);
+        ``curves_covis`` and ``curves``: ``{setting: (fpr, tpr)}`` of the two labels;
+        ``points``: ``setting, gate_score, overlap_gt`` rows for a scatter; ``overlap``: the
+        label threshold.
     """
-    rows, curves, points = [], {}, []
+    rows, curves, curves_covis, points = [], {}, {}, []
     for (s, m), p in sorted(ctx.run_dirs.items()):
         if m != method:
             continue
@@ -399,10 +402,15 @@ def gate_data(ctx: PaperContext, method: str = "cerpe") -> dict:
         if q["n_overlapping"] and q["n_overlapping"] < q["n_pairs"]:
             fpr, tpr, _ = roc_curve(S.loc[ok, "gate_score"], S.loc[ok, "overlap_gt"] >= GATE_OVERLAP)
             curves[s] = (fpr, tpr)
+        cp = covisibility_pairs(S)
+        cp = cp[cp["gate_score"].notna() & cp["label"].notna()]
+        if 0 < q["covis_n_positive"] < q["covis_n_pairs"]:
+            fpr, tpr, _ = roc_curve(cp["gate_score"], cp["label"] > 0.5)
+            curves_covis[s] = (fpr, tpr)
         points.append(S.loc[ok, ["gate_score", "overlap_gt"]].assign(setting=s))
     if not rows:
         raise PaperError(f"no finished {method} runs under {ctx.runs_root}")
-    return {"table": pd.DataFrame(rows), "curves": curves, "overlap": GATE_OVERLAP,
+    return {"table": pd.DataFrame(rows), "curves": curves, "curves_covis": curves_covis, "overlap": GATE_OVERLAP,
             "points": pd.concat(points, ignore_index=True)}
 
 

@@ -22,7 +22,9 @@ PACKAGES: tuple[str, ...] = ("numpy", "torch", "kornia", "opencv-python-headless
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 # Code that never changes what a method computes: editing it keeps cached runs valid.
 NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py", "pipeline/bench.py",
-               "pipeline/provenance.py", "plotting.py", "cli.py", "atomicio.py"}
+               "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py", "pipeline/calibrate.py",
+               "plotting.py", "cli.py",
+               "atomicio.py"}
 # What the per-frame baselines run, besides their own package.
 BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py")
 

@@ -1,0 +1,209 @@
+"""The development report's figures (``cerpe dev``), per set and method, read from run folders.
+
+One row per (set, method) (:func:`method_row`):
+
+* ``e_pos_m`` / ``e_pos_gt_scale_m`` (predicted scale / ground-truth scale), ``e_rot_rad``
+  mean and ``e_rot_median_rad``, ``success_pct``: the paper's metrics over the evaluated
+  frames (:mod:`cerpe.pipeline.evaluate`);
+* ``success_after_covis_pct``: success over the evaluated frames at or after the pair's
+  first co-visible step (ground-truth overlap >= 0.2 both ways);
+* ``n_direct`` / ``n_requests``: evaluated frames with a direct estimate (a placed
+  collaborator view) / with the gate open (an image requested; always, for the per-frame
+  baselines);
+* ``anchors_rejected`` / ``anchors_replaced``: how often the robots counted the
+  degradations ``anchor:inconsistent`` / ``anchor:replaced`` (0 where the algorithm does
+  not have them);
+* ``carried_longest_steps``, ``carried_runs_over_3``: wrong estimates carried
+  (:func:`wrong_runs`): the longest run of consecutive steps of one ordered pair whose
+  estimate is more than 0.3 rad wrong and comes from the same anchor, and how many such
+  runs are longer than 3 steps (issue 18's target: none). Over every step with an
+  estimate and ground truth, evaluated or not;
+* ``bytes_per_robot_step``: mean ``bytes_total`` of ``robots.csv`` (everything a robot
+  put on the wire per step).
+
+:func:`gate_row` adds the descriptor gate's quality per set from CERPE's ``steps.csv``:
+the co-visibility label (``covis_*``) beside the old ordered label.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from .evaluate import Run, frame_errors, gate_quality, load_run, summarise
+
+WRONG_RAD = 0.3  # an estimate this far off in rotation is "wrong" (issue 18)
+CARRIED_MAX_STEPS = 3  # issue 18's target: no wrong estimate carried for more than this many steps
+REJECTED = "anchor:inconsistent"
+REPLACED = "anchor:replaced"
+
+REPORT_COLS: tuple[str, ...] = (
+    "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
+    "success_after_covis_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
+    "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
+GATE_COLS: tuple[str, ...] = (
+    "set", "tau", "covis_roc_auc", "covis_precision", "covis_recall", "covis_n_pairs", "covis_n_positive",
+    "covis_n_left_out", "roc_auc", "precision", "recall", "roc_auc_ceiling", "n_pairs", "n_overlapping")
+
+
+def wrong_runs(steps: pd.DataFrame, wrong_rad: float = WRONG_RAD) -> pd.DataFrame:
+    """Runs of wrong estimates carried from one anchor.
+
+    A run is a maximal sequence of consecutive steps of one ordered pair (encounter,
+    ego, other) whose estimate's rotation error exceeds ``wrong_rad`` and whose
+    ``anchor_step`` is the same (a direct estimate is its own anchor; a row without
+    ``anchor_step`` or with -1, e.g. a per-frame baseline, is an anchor of its own).
+
+    Args:
+        steps: ``steps.csv`` rows (est_* / gt_* pose columns, ``source``, optional ``anchor_step``).
+
+    Returns:
+        One row per run: ``encounter, ego, other, anchor_step, first_step, n_steps``.
+    """
+    cols = ["encounter", "ego", "other", "anchor_step", "first_step", "n_steps"]
+    f = frame_errors(steps, metric_scale=False, every=1)
+    f = f[f["success"] & (f["e_rot_rad"] > wrong_rad)].copy()
+    if f.empty:
+        return pd.DataFrame(columns=cols)
+    step = f["step"].astype(int)
+    anchor = (pd.to_numeric(f["anchor_step"], errors="coerce").fillna(-1).astype(int)
+              if "anchor_step" in f else pd.Series(-1, f.index))
+    f["anchor_step"] = np.where(anchor >= 0, anchor, step)
+    f = f.assign(step=step).sort_values(["encounter", "ego", "other", "step"], kind="stable")
+    key = f["encounter"].astype(str) + "\0" + f["ego"].astype(str) + "\0" + f["other"].astype(str)
+    start = ((key != key.shift()) | (f["step"].diff() != 1) | (f["anchor_step"].diff() != 0)).to_numpy()
+    f["_run"] = np.cumsum(start)
+    g = f.groupby("_run", sort=True)
+    out = pd.DataFrame({"encounter": g["encounter"].first(), "ego": g["ego"].first(), "other": g["other"].first(),
+                        "anchor_step": g["anchor_step"].first(), "first_step": g["step"].min(),
+                        "n_steps": g["step"].size()})
+    return out.reset_index(drop=True)[cols]
+
+
+def carried(runs: pd.DataFrame, longer_than: int = CARRIED_MAX_STEPS) -> dict[str, int]:
+    """``carried_longest_steps`` (0 without runs) and ``carried_runs_over_3`` (runs longer than ``longer_than``)."""
+    n = runs["n_steps"].to_numpy(int) if len(runs) else np.zeros(0, int)
+    return {"carried_longest_steps": int(n.max()) if n.size else 0,
+            "carried_runs_over_3": int((n > longer_than).sum())}
+
+
+def count_degradation(robots: pd.DataFrame, name: str) -> int:
+    """How often ``name`` appears in the ``;``-joined ``degradations`` column of ``robots.csv`` rows."""
+    if "degradations" not in robots.columns:
+        return 0
+    return int(sum(str(v).split(";").count(name) for v in robots["degradations"].dropna()))
+
+
+def method_row(run: Run, set_name: str | None = None) -> dict:
+    """The report's figures (:data:`REPORT_COLS`) of one run folder."""
+    frames = frame_errors(run.steps, run.metric_scale, run.every)
+    s = summarise(frames.assign(_all=0), ["_all"]).iloc[0] if len(frames) else None
+    row = {"set": set_name or run.setting, "method": run.method}
+    for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
+              "success_after_covis_pct"):
+        row[k] = float(s[k]) if s is not None else float("nan")
+    row["n_frames"] = int(s["n_frames"]) if s is not None else 0
+    row["n_frames_after_covis"] = int(s["n_frames_after_covis"]) if s is not None else 0
+    row["n_direct"] = int((frames["source"].astype(str) == "direct").sum())
+    row["n_requests"] = int(frames["gate_open"].astype(bool).sum()) if "gate_open" in frames else 0
+    row["anchors_rejected"] = count_degradation(run.robots, REJECTED)
+    row["anchors_replaced"] = count_degradation(run.robots, REPLACED)
+    row.update(carried(wrong_runs(run.steps)))
+    b = pd.to_numeric(run.robots.get("bytes_total"), errors="coerce")
+    row["bytes_per_robot_step"] = float(b.mean()) if b is not None and len(b) else float("nan")
+    return {k: row[k] for k in REPORT_COLS}
+
+
+def run_tau(run: Run) -> float | None:
+    """The gate threshold ``tau`` a CERPE run recorded in ``run.json`` (None for the baselines)."""
+    tau = run.meta.get("config", {}).get("method_config", {}).get("cerpe", {}).get("tau")
+    return None if tau is None else float(tau)
+
+
+def gate_row(run: Run, set_name: str | None = None) -> dict:
+    """The descriptor gate's quality (:data:`GATE_COLS`) over a CERPE run's pairs and steps."""
+    q = gate_quality(run.steps, run_tau(run))
+    return {"set": set_name or run.setting, **{k: q[k] for k in GATE_COLS if k != "set"}}
+
+
+def report(runs: Iterable[tuple[str, Path]]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(table, gate)`` over ``(set name, run folder)`` pairs: :func:`method_row` for every
+    run, :func:`gate_row` for every run of a method with a gate (``cerpe``)."""
+    rows, gates = [], []
+    for name, path in runs:
+        run = load_run(path)
+        rows.append(method_row(run, name))
+        if run.method == "cerpe":
+            gates.append(gate_row(run, name))
+    return pd.DataFrame(rows, columns=list(REPORT_COLS)), pd.DataFrame(gates, columns=list(GATE_COLS))
+
+
+# --------------------------------------------------------------------------- formatting
+def _f(v: float, nd: int = 3) -> str:
+    return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def _cells(r: pd.Series) -> list[str]:
+    return [str(r["set"]), str(r["method"]), f"{_f(r['e_pos_m'], 3)} / {_f(r['e_pos_gt_scale_m'], 3)}",
+            _f(r["e_rot_rad"]), _f(r["e_rot_median_rad"]), _f(r["success_pct"], 1),
+            _f(r["success_after_covis_pct"], 1), f"{int(r['n_direct'])} / {int(r['n_requests'])}",
+            str(int(r["anchors_rejected"])),
+            f"{int(r['carried_longest_steps'])} ({int(r['carried_runs_over_3'])})",
+            _f(r["bytes_per_robot_step"], 0), str(int(r["n_frames"]))]
+
+
+HEADER = ["set", "method", "e_pos m (pred / GT scale)", "e_rot mean", "e_rot med", "succ %", "succ>covis %",
+          "placed / req", "rejected", "wrong carried (>3)", "B/robot/step", "frames"]
+GATE_HEADER = ["set", "tau", "covis AUC", "covis P", "covis R", "covis pairs (pos)", "left out",
+               "ordered AUC", "ordered P", "ordered R", "ceiling"]
+
+
+def _gate_cells(r: pd.Series) -> list[str]:
+    return [str(r["set"]), _f(r["tau"], 4), _f(r["covis_roc_auc"]), _f(r["covis_precision"]),
+            _f(r["covis_recall"]), f"{int(r['covis_n_pairs'])} ({int(r['covis_n_positive'])})",
+            str(int(r["covis_n_left_out"])), _f(r["roc_auc"]), _f(r["precision"]), _f(r["recall"]),
+            _f(r["roc_auc_ceiling"])]
+
+
+LEGEND = ("e_rot in rad; succ>covis: success over frames at or after the pair's first step with GT overlap >= 0.2 "
+          "both ways; placed / req: evaluated frames with a direct estimate / with an image requested; rejected: "
+          f"'{REJECTED}' counted; wrong carried: longest run of consecutive steps of one pair more than "
+          f"{WRONG_RAD} rad wrong from one anchor (runs longer than {CARRIED_MAX_STEPS} steps); B/robot/step: "
+          "bytes a robot sent per step. Gate: the descriptor cosine against the co-visibility label (unordered "
+          "pair, overlap >= 0.2 both ways positive, < 0.05 both ways negative, the rest left out) at the run's "
+          "tau, beside the old ordered label (overlap_gt >= 0.2 per direction) and its symmetric-score ceiling.")
+
+
+def _text_table(header: Sequence[str], rows: list[list[str]]) -> str:
+    w = [max(len(h), *(len(r[k]) for r in rows)) if rows else len(h) for k, h in enumerate(header)]
+    line = lambda cells: "  ".join(c.ljust(w[k]) if k < 2 else c.rjust(w[k]) for k, c in enumerate(cells))
+    return "\n".join([line(header), line(["-" * n for n in w])] + [line(r) for r in rows])
+
+
+def format_text(table: pd.DataFrame, gate: pd.DataFrame) -> str:
+    """The report as fixed-width text (what ``cerpe dev`` prints)."""
+    out = [_text_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
+    if len(gate):
+        out += ["", "descriptor gate (CERPE's pairs and steps):",
+                _text_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+    return "\n".join(out + ["", LEGEND])
+
+
+def _md_table(header: Sequence[str], rows: list[list[str]]) -> str:
+    return "\n".join(["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+                     + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def format_markdown(table: pd.DataFrame, gate: pd.DataFrame, provenance: dict | None = None) -> str:
+    """The report as Markdown (tables, legend, and the provenance as a JSON block)."""
+    out = ["# cerpe development report", "", _md_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
+    if len(gate):
+        out += ["", "Descriptor gate (CERPE's pairs and steps):", "",
+                _md_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+    out += ["", LEGEND]
+    if provenance:
+        out += ["", "```json", json.dumps(provenance, indent=1, sort_keys=True, default=str), "```"]
+    return "\n".join(out) + "\n"
