@@ -7,9 +7,10 @@ Usage::
 
 1. Direct estimates (every ``dir_*`` of the runs, accepted or rejected) against ground truth:
    per-axis rotation sigma = median rotation error / 1.5382 (the median of a 3-D isotropic
-   Gaussian's norm is 1.5382 sigma), translation sigma = a + b * distance between the cameras
-   from the same median rule in distance bins; samples more than 0.5 rad off are left out
-   (gross errors are the kernel's job, not the noise model's).
+   Gaussian's norm is 1.5382 sigma); translation across the line between the cameras:
+   per-axis sigma = a + b * distance from the Rayleigh median rule in distance bins; along
+   it: the factor of the median |error| / 0.6745 over that; samples more than 0.5 rad off are
+   left out (gross errors are the kernel's job, not the noise model's).
 2. Odometry increments of every robot against ground truth (synthetic sets and real sets
    with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
    single steps (least squares on squared errors, own-odometry failures left out), then the
@@ -55,6 +56,10 @@ def _sets(runs: Path) -> list[Path]:
     return out
 
 
+RAYLEIGH_MEDIAN = 1.1774  # median of |x| for x ~ N(0, sigma^2 I_2), in sigmas
+NORMAL_ABS_MEDIAN = 0.6745  # median of |x| for x ~ N(0, sigma^2)
+
+
 def fit_direct(sets: list[Path]) -> dict:
     S = []
     for d in sets:
@@ -63,18 +68,21 @@ def fit_direct(sets: list[Path]) -> dict:
     S = pd.concat(S, ignore_index=True)
     good = S[S["rot_err_rad"] < 0.5]
     rot = float(np.median(good["rot_err_rad"]) / MAXWELL_MEDIAN)
+    # across the line between the cameras: per-axis sigma = a + b * distance (medians in distance bins)
     bins = np.unique(np.quantile(good["dist_m"], np.linspace(0, 1, 6)))
     idx = np.clip(np.searchsorted(bins, good["dist_m"], side="right") - 1, 0, len(bins) - 2)
     x = np.array([good["dist_m"][idx == b].median() for b in range(len(bins) - 1)])
-    y = np.array([good["trans_err_m"][idx == b].median() / MAXWELL_MEDIAN for b in range(len(bins) - 1)])
-    A = np.stack([np.ones_like(x), x], 1)
-    (a, b), *_ = np.linalg.lstsq(A, y, rcond=None)
+    y = np.array([good["perp_m"][idx == b].median() / RAYLEIGH_MEDIAN for b in range(len(bins) - 1)])
+    (a, b), *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), y, rcond=None)
+    a, b = float(max(a, 1e-3)), float(max(b, 0.0))
+    along = float(np.median(np.abs(good["along_m"]) / (a + b * good["dist_m"])) / NORMAL_ABS_MEDIAN)
     per_set = S.groupby("set").agg(n=("rot_err_rad", "size"), rot_median=("rot_err_rad", "median"),
-                                   trans_median=("trans_err_m", "median"),
+                                   along_median=("along_m", lambda v: float(np.median(np.abs(v)))),
+                                   perp_median=("perp_m", "median"), dist_median=("dist_m", "median"),
                                    gross_pct=("rot_err_rad", lambda v: 100 * float(np.mean(v >= 0.5))))
-    return {"direct_rot_rad": rot, "direct_trans_m": float(max(a, 0.0)), "direct_trans_rel": float(max(b, 0.0)),
-            "n": int(len(S)), "n_used": int(len(good)), "per_set": per_set.reset_index().to_dict("records"),
-            "bins_m": x.tolist(), "sigma_t_m": y.tolist()}
+    return {"direct_rot_rad": rot, "direct_trans_m": a, "direct_trans_rel": b,
+            "direct_along_factor": float(max(along, 1.0)), "n": int(len(S)), "n_used": int(len(good)),
+            "per_set": per_set.reset_index().to_dict("records"), "bins_m": x.tolist(), "sigma_perp_m": y.tolist()}
 
 
 def fit_odometry(sets: list[Path]) -> dict:
@@ -115,10 +123,12 @@ def fit_odometry(sets: list[Path]) -> dict:
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
 
 
-def scaled(conf: GraphConfig, odo: float, direct: float, k: float) -> GraphConfig:
+def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float | None = None) -> GraphConfig:
     f = {n: getattr(conf, n) * odo for n in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad",
                                              "odo_trans_per_step", "odo_trans_per_m")}
     f.update({n: getattr(conf, n) * direct for n in ("direct_rot_rad", "direct_trans_m", "direct_trans_rel")})
+    if along is not None:
+        f["direct_along_factor"] = along
     return dataclasses.replace(conf, **f, kernel_k=k)
 
 
@@ -132,7 +142,8 @@ def summary(steps: pd.DataFrame, every: int) -> dict:
     return out
 
 
-def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[float], ks: list[float]) -> pd.DataFrame:
+def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[float], ks: list[float],
+         alongs: list[float]) -> pd.DataFrame:
     rows = []
     ref = {}
     for d in sets:
@@ -140,14 +151,14 @@ def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[flo
             if (d / m / "run.json").is_file():
                 r = load_run(d / m)
                 ref[(d.name, m)] = summary(r.steps, r.every)
-    for o, di, k in itertools.product(odo, direct, ks):
-        conf = scaled(base, o, di, k)
+    for o, di, k, al in itertools.product(odo, direct, ks, alongs):
+        conf = scaled(base, o, di, k, al)
         for d in sets:
             run = load_run(d / "cerpe-graph")
             s = summary(replay_run(d / "cerpe-graph", conf), run.every)
             c, w = ref.get((d.name, "cerpe"), {}), ref.get((d.name, "cerpe-wo-em"), {})
             bound = 0.7 * min(c.get("e_pos_m", np.nan), w.get("e_pos_m", np.nan))
-            rows.append({"odo_x": o, "direct_x": di, "kernel_k": k, "set": d.name, **s,
+            rows.append({"odo_x": o, "direct_x": di, "kernel_k": k, "along": al, "set": d.name, **s,
                          "cerpe_e_pos": c.get("e_pos_m"), "woem_e_pos": w.get("e_pos_m"), "bound_e_pos": bound,
                          "cerpe_e_rot": c.get("e_rot_rad"), "cerpe_success": c.get("success_pct"),
                          "pos_ok": bool(s["e_pos_m"] <= bound), "rot_ok": bool(s["e_rot_rad"] <= c.get("e_rot_rad", np.inf)),
@@ -162,6 +173,8 @@ def main() -> int:
     p.add_argument("--odo", type=float, nargs="+", default=[1.0, 2.0, 4.0])
     p.add_argument("--direct", type=float, nargs="+", default=[1.0, 2.0])
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0])
+    p.add_argument("--along", type=float, nargs="+", default=[1.0], help="direct_along_factor values")
+    p.add_argument("--kernel", default="cauchy", choices=("cauchy", "huber", "none"))
     p.add_argument("--out", type=Path, default=None, help="write the fit (and grid) as JSON here")
     args = p.parse_args()
     sets = _sets(args.runs)
@@ -177,8 +190,9 @@ def main() -> int:
     print(pd.DataFrame(odo["growth"]).to_string(index=False))
     result = {"direct": direct, "odometry": odo, "command": " ".join(sys.argv)}
     if args.grid:
-        base = GraphConfig(**{k: v for k, v in {**direct, **odo}.items() if k in GraphConfig.__dataclass_fields__})
-        g = grid(sets, base, args.odo, args.direct, args.k)
+        base = GraphConfig(**{k: v for k, v in {**direct, **odo}.items() if k in GraphConfig.__dataclass_fields__},
+                           kernel=args.kernel)
+        g = grid(sets, base, args.odo, args.direct, args.k, args.along)
         with pd.option_context("display.width", 250, "display.max_columns", 30, "display.max_rows", 500):
             print(g.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
         result["grid"] = g.to_dict("records")

@@ -100,7 +100,7 @@ def test_one_wrong_anchor_among_five_good_ones_is_down_weighted():
     s = simulate_pair(seed=4, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[4, 8, 12, 16, 20, 24],
                       direct_rot=noise_rot, direct_trans=noise_trans)
     wrong = s.truth[16] @ make_se3(so3_exp(np.array([0.0, 0.5, 0.0])), np.zeros(3))
-    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0)
+    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0, direct_along_factor=1.0)
     _, out = feed(s, conf, replace={16: DirectEstimate(16, wrong)})
     for t in range(16, 40):  # from the wrong anchor on: within the good anchors' noise (3 sigma)
         r = out[t]
@@ -125,6 +125,7 @@ def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating():
 def test_predicted_sigma_is_calibrated_when_the_noise_model_is_right():
     conf = GraphConfig(odo_rot_per_step=0.002, odo_rot_per_m=0.0, odo_rot_per_rad=0.0, odo_trans_per_step=0.004,
                        odo_trans_per_m=0.0, direct_rot_rad=0.02, direct_trans_m=0.05, direct_trans_rel=0.0,
+                       direct_along_factor=1.0,
                        kernel="none")
     e2, s2 = [], []
     for seed in range(12):

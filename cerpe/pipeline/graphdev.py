@@ -89,18 +89,24 @@ def replay_run(run_dir: Path | str, conf: GraphConfig) -> pd.DataFrame:
 
 
 def direct_samples(steps: pd.DataFrame) -> pd.DataFrame:
-    """Every recorded direct estimate against ground truth: ``rot_err_rad``, ``trans_err_m``, the
-    distance between the cameras ``dist_m`` (ground truth), ``inliers``, ``verdict``, ``encounter``,
-    ``step``; the errors of a right perturbation (in camera i's frame, as the noise model)."""
+    """Every recorded direct estimate against ground truth: ``rot_err_rad``, ``trans_err_m`` (a right
+    perturbation's, in camera i's frame, as the noise model), the translation error along the line
+    between the cameras ``along_m`` (signed) and across it ``perp_m``, their distance ``dist_m``
+    (ground truth), ``inliers``, ``verdict``, ``encounter``, ``step``, ``ego``, ``other``."""
     T_dir, T_gt = _poses(steps, "dir"), _poses(steps, "gt")
     ok = np.all(np.isfinite(T_dir.reshape(len(steps), -1)), axis=1) & np.all(np.isfinite(T_gt.reshape(len(steps), -1)), axis=1)
     D = se3_inverse(T_gt[ok]) @ T_dir[ok]
     from ..geometry import rotation_angle
 
+    e = T_dir[ok][:, :3, 3] - T_gt[ok][:, :3, 3]
+    dist = np.linalg.norm(T_gt[ok][:, :3, 3], axis=1)
+    u = T_gt[ok][:, :3, 3] / np.maximum(dist, 1e-12)[:, None]
+    along = np.sum(e * u, axis=1)
     return pd.DataFrame({
         "encounter": steps.loc[ok, "encounter"].to_numpy(), "step": steps.loc[ok, "step"].to_numpy(),
+        "ego": steps.loc[ok, "ego"].to_numpy(), "other": steps.loc[ok, "other"].to_numpy(),
         "rot_err_rad": rotation_angle(D[:, :3, :3]), "trans_err_m": np.linalg.norm(D[:, :3, 3], axis=1),
-        "dist_m": np.linalg.norm(T_gt[ok][:, :3, 3], axis=1),
+        "along_m": along, "perp_m": np.linalg.norm(e - along[:, None] * u, axis=1), "dist_m": dist,
         "inliers": steps.loc[ok, "direct_inliers"].to_numpy() if "direct_inliers" in steps else -1,
         "verdict": steps.loc[ok, "anchor_verdict"].fillna("").to_numpy() if "anchor_verdict" in steps else "",
     })
