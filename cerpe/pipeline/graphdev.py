@@ -46,7 +46,8 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     X_i_all, X_j_all = _poses(ego.reset_index(), "odom"), _poses(other.reset_index(), "odom")
     X_i = dict(zip(ego.index, X_i_all))
     X_j = dict(zip(other.index, X_j_all))
-    failed = {t: any(f in str(d).split(";") for f in OWN_FAILURES) for t, d in ego["degradations"].fillna("").items()}
+    failed = {t: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)
+              for t, d in ego["degradations"].items()}
     T_dir = _poses(steps, "dir")
     graph = PairGraph(conf)
     est = np.full((len(steps), 4, 4), np.nan)
@@ -125,7 +126,7 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
     r = robot_rows.sort_values("step")
     X = _poses(r, "odom")
     steps = r["step"].astype(int).to_numpy()
-    bad = r["degradations"].fillna("").astype(str).map(lambda d: any(f in d.split(";") for f in OWN_FAILURES)).to_numpy()
+    bad = r["degradations"].map(lambda d: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)).to_numpy()
     for w in windows:
         for a in range(len(steps) - w):
             b = a + w
