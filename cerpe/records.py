@@ -70,6 +70,9 @@ class PairRecord:
         T_direct: this step's direct estimate as the pass gave it, whatever anchor
             verification said of it (None without one); ``dir_*`` columns.
         direct_inliers: inliers of the registration behind ``T_direct`` (-1: unknown or none).
+        switch: with ``backend="graph"``, what the switch (the paper's CERPE) said at this
+            step, ``(source, T_cj_ci, reason, anchor_step)``: the graph reads nothing back
+            into the algorithm, so one pass yields both methods' records. Not a column.
     """
 
     step: int
@@ -92,6 +95,7 @@ class PairRecord:
     cov: np.ndarray | None = None
     T_direct: np.ndarray | None = None
     direct_inliers: int = -1
+    switch: tuple | None = None
 
     def as_row(self) -> dict:
         row = {

@@ -370,8 +370,9 @@ class RobotAgent:
         """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
         st = self._state()
         source, T, reason, anchor_step = self.relative(other)
-        cov = None
+        cov = switch = None
         if self.config.backend == "graph":
+            switch = (source, T, reason, anchor_step)
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
         best, via = st.memory_scores.get(other, (float("nan"), -1))
@@ -381,7 +382,7 @@ class RobotAgent:
                           anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
                           direct_via=info.direct_via, anchor_verdict=info.verdict,
                           check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m, cov=cov,
-                          T_direct=info.direct_T, direct_inliers=info.direct_inliers)
+                          T_direct=info.direct_T, direct_inliers=info.direct_inliers, switch=switch)
 
     def _graph_relative(self, st: StepState, other: str,
                         reason: str) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:

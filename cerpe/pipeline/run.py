@@ -27,6 +27,7 @@ seed, manifest or code) is refused unless ``--overwrite`` is given.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import shutil
@@ -90,7 +91,6 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
 
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
     """
-    import dataclasses
 
     from .. import algorithm
     from ..backbones.build import build_plugins
@@ -117,36 +117,69 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
 
     plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options)
 
-    # Propagation feeds nothing back (anchors come only from direct estimates; the
-    # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
-    # equals the full method's pass with its propagated estimates removed. A
-    # cerpe-wo-em run after a cerpe run in the same process reuses that pass, each
-    # encounter's records once (tests/test_pipeline_woem.py checks it against a
-    # real propagate=False run).
-    pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None}}, sort_keys=True,
-                          default=str)
+    # Propagation and the pose graph feed nothing back (anchors come only from direct
+    # estimates; the gate, memory, scale and odometry never read a propagated pose or
+    # the graph), so the three CERPE rows are views of ONE pass run with propagation and
+    # the graph: "cerpe" its switch records (PairRecord.switch), "w/o EM" those with the
+    # propagated estimates removed, "cerpe-graph" the pass itself. A CERPE method run
+    # after another in the same process reuses the pass (tests/test_pipeline_woem.py
+    # checks each view against a real run of that configuration).
+    pass_cfg = dataclasses.replace(cfg, propagate=True, backend="graph")
+    shared = (cfg.propagate, cfg.backend) in ((True, "switch"), (False, "switch"), (True, "graph"))
+    pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None, "backend": None}},
+                          sort_keys=True, default=str)
 
-    keep_pass = cfg.propagate and cfg.backend == "switch"  # what a later cerpe-wo-em may reuse
+    def view(res: StepResult) -> StepResult:
+        if cfg.backend == "graph":
+            return res
+        res = switch_view(res)
+        return res if cfg.propagate else without_propagation(res)
 
     def steps(encounter: Any) -> Iterator[StepResult]:
+        if not shared:  # a configuration whose records are not a view of the shared pass
+            yield from algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
+                                               config=cfg, seed=seed)
+            return
         key = (pass_key, seed, _encounter_identity(encounter))
-        if not cfg.propagate and key in _FULL_PASSES:
-            for res in _FULL_PASSES.pop(key):
-                yield without_propagation(res)
+        if key in _FULL_PASSES:
+            for res in _FULL_PASSES[key]:
+                yield view(res)
             return
         keep: list[StepResult] = []
         for res in algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
-                                           config=cfg, seed=seed):
-            if keep_pass:
-                keep.append(res)
-            yield res
-        if keep_pass:
-            _FULL_PASSES[key] = keep  # records only (no images): a few MB per setting
+                                           config=pass_cfg, seed=seed):
+            keep.append(res)
+            yield view(res)
+        _FULL_PASSES[key] = keep  # records only (no images): a few MB per setting
+        while len(_FULL_PASSES) > _KEEP_PASSES:
+            _FULL_PASSES.pop(next(iter(_FULL_PASSES)))
 
     return conf, steps
 
 
 _FULL_PASSES: dict[tuple, list[StepResult]] = {}
+_KEEP_PASSES = 64  # encounters' passes kept in the process (oldest dropped first)
+
+
+def switch_view(res: StepResult) -> StepResult:
+    """The paper's CERPE (``backend="switch"``) view of a step run with ``backend="graph"``.
+
+    Pair estimates come from :attr:`PairRecord.switch`; the graph's degradations and
+    its stage time are removed. A step without switch records is returned as it is.
+    """
+    if not any(p.switch is not None for p in res.pairs):
+        return res
+    pairs = []
+    for p in res.pairs:
+        if p.switch is not None:
+            source, T, reason, anchor_step = p.switch
+            p = dataclasses.replace(p, source=source, T_cj_ci=T, reason=reason, anchor_step=anchor_step,
+                                    cov=None, switch=None)
+        pairs.append(p)
+    robots = [dataclasses.replace(r, timings_s={**r.timings_s, "graph": 0.0},
+                                  degradations=[d for d in r.degradations if not d.startswith("graph:")])
+              for r in res.robots]
+    return StepResult(step=res.step, pairs=pairs, robots=robots)
 
 
 def _encounter_identity(encounter: Any) -> str:
@@ -156,8 +189,6 @@ def _encounter_identity(encounter: Any) -> str:
 
 def without_propagation(res: StepResult) -> StepResult:
     """The "w/o EM" view of a full CERPE step: propagated estimates become ``none``."""
-    import dataclasses
-
     pairs = []
     for p in res.pairs:
         # reasons that only a propagated (or no longer propagated) estimate has
