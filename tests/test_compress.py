@@ -290,3 +290,17 @@ def test_shipped_projection_fits_the_offline_descriptor_in_one_kilobyte():
         d = np.random.default_rng(0).standard_normal(dim).astype(np.float32)
         frame = codec.message(0, 1, d).encode()
         assert len(frame) == codec.wire_bytes() and len(frame) + len(PoseMessage(0, 1, np.eye(4)).encode()) <= 1024
+
+
+def test_compressed_messages_preset_runs_a_team_with_webp_replies(world, tmp_path):
+    from cerpe.algorithm.config import COMPRESSED_MESSAGES
+
+    desc, path = _fit_on(world, tmp_path)
+    cfg = CerpeConfig(**{**COMPRESSED_MESSAGES, "descriptor_projection": str(path), "descriptor_codec_tau": -1.0},
+                      min_scale_pixels=20)
+    team = Team(world.robot_ids, desc, GTBackbone(world), SensorDepthDouble(), cfg)
+    res = [team.step(*_inputs(world, t)) for t in range(6)]
+    assert all(r.degradations == [] for x in res for r in x.robots)
+    assert any(r.bytes_sent["reply"] > 0 for x in res for r in x.robots)
+    assert team.agents[1].cur.reply_cache is None or team.agents[1].cur.reply_cache.codec == "webp"
+    assert any(p.source == "direct" for x in res for p in x.pairs)
