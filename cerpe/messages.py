@@ -3,7 +3,7 @@
 Frame layout (little endian), shared by every message type::
 
     magic  b"CE"   2 B
-    version u8     1 B
+    version u8     1 B   (2: coded descriptors and the image reply's codec field)
     type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply)
     sender  u16    2 B
     step    u32    4 B
@@ -30,13 +30,18 @@ import numpy as np
 from .geometry import GeometryError, se3_from_tq_xyzw, se3_to_tq_xyzw
 
 MAGIC = b"CE"
-VERSION = 1
+VERSION = 2
 _HEADER = struct.Struct("<2sBBHI")
 _CRC = struct.Struct("<I")
 HEADER_BYTES = _HEADER.size + _CRC.size  # 14
 
 DESCRIPTOR_DTYPES = {"fp32": 0, "fp16": 1, "int8": 2}
-_DTYPE_CODES = {v: k for k, v in DESCRIPTOR_DTYPES.items()}
+# compressed descriptors (cerpe.compress): the payload is an opaque code of a fitted projection
+CODED_DESCRIPTOR_DTYPES = {"pca-int8": 3, "pca-pq": 4}
+_DTYPE_CODES = {v: k for k, v in {**DESCRIPTOR_DTYPES, **CODED_DESCRIPTOR_DTYPES}.items()}
+# image reply codecs; a code the receiver does not know decodes as "unknown-<code>" (counted, not used)
+REPLY_CODECS = {"jpeg": 1, "webp": 2}
+_REPLY_CODES = {v: k for k, v in REPLY_CODECS.items()}
 
 
 class MessageError(CerpeError, ValueError):
@@ -55,7 +60,11 @@ class DescriptorMessage:
     """Robot ``sender``'s global descriptor at ``step``.
 
     The descriptor is quantised for the wire as ``dtype`` (fp32, fp16 or int8 with
-    one fp32 scale); receivers use the decoded, quantised values.
+    one fp32 scale); receivers use the decoded, quantised values. A *coded* dtype
+    (``pca-int8``, ``pca-pq``: :mod:`cerpe.compress`) carries ``descriptor`` as the
+    ``[n] uint8`` code of a fitted projection and quantiser, identified by
+    ``codebook`` (u32); only a :class:`~cerpe.compress.DescriptorCodec` of that
+    codebook turns it back into values; the empty code is the zero descriptor.
     """
 
     TYPE: ClassVar[int] = 1
@@ -63,8 +72,21 @@ class DescriptorMessage:
     step: int
     descriptor: np.ndarray
     dtype: str = "fp16"
+    codebook: int = 0
+
+    @property
+    def coded(self) -> bool:
+        return self.dtype in CODED_DESCRIPTOR_DTYPES
 
     def encode(self) -> bytes:
+        if self.coded:
+            code = np.asarray(self.descriptor)
+            if code.dtype != np.uint8 or code.ndim != 1:  # the empty code is the zero descriptor (a blank frame)
+                raise MessageError(f"coded descriptor ({self.dtype}) must be an [n] uint8 code")
+            if not 0 <= int(self.codebook) < 2**32:
+                raise MessageError(f"codebook id {self.codebook} out of range")
+            head = struct.pack("<BII", CODED_DESCRIPTOR_DTYPES[self.dtype], code.size, int(self.codebook))
+            return _frame(self.TYPE, self.sender, self.step, head + code.tobytes())
         d = np.asarray(self.descriptor, dtype=np.float32).ravel()
         if d.size == 0 or not np.all(np.isfinite(d)):
             raise MessageError("descriptor must be non-empty and finite")
@@ -83,7 +105,9 @@ class DescriptorMessage:
 
     @staticmethod
     def wire_bytes(dim: int, dtype: str) -> int:
-        """Exact frame size for a descriptor of ``dim`` values in ``dtype``."""
+        """Exact frame size for a descriptor of ``dim`` values in ``dtype`` (coded: ``dim`` code bytes)."""
+        if dtype in CODED_DESCRIPTOR_DTYPES:
+            return HEADER_BYTES + 9 + dim
         per = {"fp32": 4, "fp16": 2, "int8": 1}[dtype]
         return HEADER_BYTES + 5 + dim * per + (4 if dtype == "int8" else 0)
 
@@ -120,9 +144,13 @@ class ImageRequest:
 
 @dataclass(frozen=True)
 class ImageReply:
-    """Robot ``sender``'s image of ``step`` as JPEG bytes, with its intrinsics.
+    """Robot ``sender``'s image of ``step`` as encoded bytes (``jpeg``: the field keeps its
+    name, whatever ``codec`` made them), with its intrinsics.
 
-    ``intrinsics`` is ``(fx, fy, cx, cy)`` in pixels of the encoded image.
+    ``intrinsics`` is ``(fx, fy, cx, cy)`` in pixels of the encoded image (scaled with
+    it when the image was downsized). ``codec`` is one of :data:`REPLY_CODECS`; a
+    frame with a codec id this version does not know decodes with ``codec =
+    "unknown-<id>"`` so that the receiver can count it and not use the image.
     """
 
     TYPE: ClassVar[int] = 4
@@ -130,28 +158,48 @@ class ImageReply:
     step: int
     jpeg: bytes
     intrinsics: tuple[float, float, float, float]
+    codec: str = "jpeg"
 
     def encode(self) -> bytes:
-        payload = struct.pack("<4fI", *self.intrinsics, len(self.jpeg)) + self.jpeg
+        if self.codec not in REPLY_CODECS:
+            raise MessageError(f"image reply codec must be one of {list(REPLY_CODECS)}, got {self.codec!r}")
+        payload = struct.pack("<4fBI", *self.intrinsics, REPLY_CODECS[self.codec], len(self.jpeg)) + self.jpeg
         return _frame(self.TYPE, self.sender, self.step, payload)
 
     @staticmethod
     def from_image(sender: int, step: int, image_rgb: np.ndarray,
-                   intrinsics: tuple[float, float, float, float], quality: int = 90) -> "ImageReply":
+                   intrinsics: tuple[float, float, float, float], quality: int = 90,
+                   codec: str = "jpeg", scale: float = 1.0) -> "ImageReply":
+        """Encode ``image_rgb`` with ``codec`` at ``quality`` (0-100), downsized by ``scale``
+        (area interpolation; intrinsics scaled to the encoded pixels)."""
         import cv2
 
-        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image_rgb[:, :, ::-1]),
-                               [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+        if codec not in REPLY_CODECS:
+            raise MessageError(f"image reply codec must be one of {list(REPLY_CODECS)}, got {codec!r}")
+        img, K = image_rgb, tuple(float(v) for v in intrinsics)
+        if not 0.0 < float(scale) <= 1.0:
+            raise MessageError(f"image reply scale must be in (0, 1], got {scale}")
+        if scale != 1.0:
+            H, W = image_rgb.shape[:2]
+            w, h = max(8, int(round(W * scale))), max(8, int(round(H * scale)))
+            img = cv2.resize(image_rgb, (w, h), interpolation=cv2.INTER_AREA)
+            sx, sy = w / W, h / H  # pixel centres: c' = (c + 0.5) * s - 0.5
+            K = (K[0] * sx, K[1] * sy, (K[2] + 0.5) * sx - 0.5, (K[3] + 0.5) * sy - 0.5)
+        ext, flag = (".jpg", cv2.IMWRITE_JPEG_QUALITY) if codec == "jpeg" else (".webp", cv2.IMWRITE_WEBP_QUALITY)
+        ok, buf = cv2.imencode(ext, np.ascontiguousarray(img[:, :, ::-1]), [flag, int(quality)])
         if not ok:
-            raise MessageError("JPEG encoding failed")
-        return ImageReply(sender, step, buf.tobytes(), tuple(float(v) for v in intrinsics))
+            raise MessageError(f"{codec} encoding failed")
+        return ImageReply(sender, step, buf.tobytes(), K, codec)
 
     def image_rgb(self) -> np.ndarray:
         import cv2
 
+        if self.codec not in REPLY_CODECS:
+            raise MessageError(f"image reply from robot {self.sender} step {self.step}: unknown codec {self.codec}")
         arr = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_COLOR)
         if arr is None:
-            raise MessageError(f"image reply from robot {self.sender} step {self.step}: JPEG does not decode")
+            raise MessageError(f"image reply from robot {self.sender} step {self.step}: "
+                               f"{self.codec} does not decode")
         return arr[:, :, ::-1].copy()
 
 
@@ -175,6 +223,11 @@ def decode(frame: bytes) -> Message:
             dtype = _DTYPE_CODES.get(code)
             if dtype is None:
                 raise MessageError(f"unknown descriptor dtype code {code}")
+            if dtype in CODED_DESCRIPTOR_DTYPES:
+                (book,) = struct.unpack("<I", p[5:9])
+                if len(p) != 9 + dim:
+                    raise MessageError("coded descriptor length does not match its code size")
+                return DescriptorMessage(sender, step, np.frombuffer(p[9:], np.uint8).copy(), dtype, book)
             raw = p[5:]
             if dtype == "fp32":
                 d = np.frombuffer(raw, "<f4", count=dim).astype(np.float32)
@@ -201,10 +254,11 @@ def decode(frame: bytes) -> Message:
                 raise MessageError("image request has wrong length")
             return ImageRequest(sender, step, struct.unpack("<H", p)[0])
         if mtype == ImageReply.TYPE:
-            fx, fy, cx, cy, n = struct.unpack("<4fI", p[:20])
-            if len(p) != 20 + n:
-                raise MessageError("image reply length does not match its JPEG size")
-            return ImageReply(sender, step, bytes(p[20:]), (fx, fy, cx, cy))
+            fx, fy, cx, cy, ccode, n = struct.unpack("<4fBI", p[:21])
+            if len(p) != 21 + n:
+                raise MessageError("image reply length does not match its image size")
+            return ImageReply(sender, step, bytes(p[21:]), (fx, fy, cx, cy),
+                              _REPLY_CODES.get(ccode, f"unknown-{ccode}"))
     except (struct.error, ValueError, GeometryError) as exc:
         if isinstance(exc, MessageError):
             raise

@@ -61,7 +61,7 @@ def test_request_and_reply_round_trip_and_sizes():
     img = np.ascontiguousarray(np.clip(img + rng.integers(0, 8, img.shape), 0, 255).astype(np.uint8))
     rep = ImageReply.from_image(2, 5, img, (50.0, 51.0, 31.5, 23.5), quality=90)
     frame = rep.encode()
-    assert len(frame) == HEADER_BYTES + 20 + len(rep.jpeg)
+    assert len(frame) == HEADER_BYTES + 21 + len(rep.jpeg)  # intrinsics, codec, length
     back = decode(frame)
     assert isinstance(back, ImageReply) and back.jpeg == rep.jpeg
     assert back.intrinsics == pytest.approx((50.0, 51.0, 31.5, 23.5))

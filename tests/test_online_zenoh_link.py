@@ -327,9 +327,11 @@ def test_malformed_payloads_on_our_keys_are_counted(team_of):
 def test_other_protocol_version_is_one_counted_degradation(team_of, caplog):
     team = team_of(["r0", "r1"])
     raw = raw_session(team.ports["r0"])
-    other = w.MAGIC + bytes([w.LINK_PROTOCOL + 1, 1])
+    from cerpe.messages import VERSION
+
+    other = w.MAGIC + bytes([w.LINK_PROTOCOL + 1, VERSION])
     try:
-        token = raw.liveliness().declare_token(f"cerpe/t/r1/alive/v{w.LINK_PROTOCOL + 1}.1/{raw.zid()}")
+        token = raw.liveliness().declare_token(f"cerpe/t/r1/alive/v{w.LINK_PROTOCOL + 1}.{VERSION}/{raw.zid()}")
         time.sleep(0.3)
         for t in range(3):
             raw.put(w.data_key("t", "r1", "pose"), frames_of(1, t)["pose"], attachment=other)
@@ -340,7 +342,8 @@ def test_other_protocol_version_is_one_counted_degradation(team_of, caplog):
         raw.close()
     assert inbox.degradations.count("link:protocol-mismatch") == 1
     assert team["r0"].stats["frames_foreign_protocol"] == 3
-    assert "speaks cerpe link protocol v2.1, this robot v1.1" in caplog.text
+    assert (f"speaks cerpe link protocol v{w.LINK_PROTOCOL + 1}.{VERSION}, this robot v{w.LINK_PROTOCOL}.{VERSION}"
+            in caplog.text)
 
 
 def test_robot_of_another_team_is_named_and_counted(team_of, caplog):

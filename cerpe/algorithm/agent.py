@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from ..compress import make_codec
 from ..geometry import scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory, cosine
 from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage, decode
@@ -60,6 +61,18 @@ class RobotAgent:
         self.last_step: int | None = None
         self.cur: StepState | None = None
         self.previous: Previous | None = None
+        # compressed descriptor messages (cerpe.compress; None: the full descriptor at descriptor_dtype)
+        self.codec = make_codec(self.config.descriptor_codec, self.config.descriptor_projection)
+        self.gate_tau = float(self.config.tau)
+        if self.codec is not None:
+            dim = getattr(descriptor, "dim", None)
+            if dim is not None and int(dim) != self.codec.projection.dim:
+                raise AlgorithmError(f"robot {self.robot_id}: descriptor_codec {self.codec.name!r}: the projection "
+                                     f"takes {self.codec.projection.dim} values, the descriptor gives {dim}")
+            tau = self.config.descriptor_codec_tau
+            self.gate_tau = float(tau if tau is not None else self.codec.tau if self.codec.tau is not None
+                                  else self.config.tau)
+        self._kf_wire: dict[int, np.ndarray] = {}  # keyframe step -> its codec values (the memory-aware gate)
 
     # ---------------------------------------------------------------- helpers
     def _where(self, step: int | None = None) -> str:
@@ -111,13 +124,40 @@ class RobotAgent:
     def descriptor_frame(self, dtype: str) -> bytes:
         """This step's descriptor as a wire frame; the quantised values are kept for scoring."""
         st = self._state()
+        if self.codec is not None:
+            msg = self.codec.message(self.index, st.step, st.descriptor)
+            st.wire_descriptor = self.codec.dequantise(msg.descriptor)
+            return msg.encode()
         frame = DescriptorMessage(self.index, st.step, st.descriptor, dtype).encode()
         st.wire_descriptor = decode(frame).descriptor
         return frame
 
+    def _received_values(self, msg: DescriptorMessage) -> tuple[np.ndarray | None, str]:
+        """A received descriptor message -> the values the gate scores, or ``(None, fault)``."""
+        if self.codec is not None:
+            return self.codec.decode(msg)
+        if msg.coded:
+            return None, "codec-mismatch"
+        return msg.descriptor, ""
+
+    def _keyframe_values(self, kf: Keyframe) -> np.ndarray:
+        """A keyframe's descriptor as the gate compares it: its codec values (cached per keyframe) or itself."""
+        if self.codec is None:
+            return kf.descriptor
+        v = self._kf_wire.get(kf.step)
+        if v is None:
+            live = {k.step for k in self.memory.newest_first()}
+            self._kf_wire = {s: w for s, w in self._kf_wire.items() if s in live}
+            v = self._kf_wire[kf.step] = self.codec.wire(kf.descriptor)
+        return v
+
     # ---------------------------------------------------------------- 3. gate
-    def score_descriptor(self, other: str, descriptor: np.ndarray | None) -> float:
+    def score_descriptor(self, other: str, descriptor: "np.ndarray | DescriptorMessage | None") -> float:
         """Cosine score against a received descriptor (None: it did not arrive); records the gate decision.
+
+        A :class:`~cerpe.messages.DescriptorMessage` is decoded first (a compressed one by
+        this robot's codec); one of another codec or codebook, or whose code does not
+        decode, is counted (``descriptor:<fault>``) and keeps the gate closed.
 
         Returns the score of the current frame (the paper's gate score), NaN when
         none can be computed (the gate stays closed and the reason is kept). The
@@ -128,7 +168,14 @@ class RobotAgent:
         t0 = time.perf_counter()
         own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
         score, reason = float("nan"), ""
-        if descriptor is None:
+        if isinstance(descriptor, DescriptorMessage):
+            descriptor, fault = self._received_values(descriptor)
+            if fault:
+                self.degrade(f"descriptor:{fault}")
+                reason = f"descriptor-{fault}"
+        if reason:
+            pass  # counted above
+        elif descriptor is None:
             reason = "descriptor-missing"
         elif st.blank:
             reason = "own-descriptor-degenerate"
@@ -144,7 +191,7 @@ class RobotAgent:
                 score = cosine(own, d)
                 best = (score, -1)
                 for kf in self.memory.newest_first():
-                    c = cosine(kf.descriptor, d)
+                    c = cosine(self._keyframe_values(kf), d)
                     if c > best[0]:
                         best = (c, kf.step)
                 st.memory_scores[other] = best
@@ -155,12 +202,13 @@ class RobotAgent:
         return score
 
     def gate_open(self, other: str) -> bool:
-        """``score >= tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes too."""
+        """``score >= gate_tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes
+        too (``gate_tau`` is ``tau``, or the codec's own threshold with a compressed descriptor)."""
         st = self._state()
         s = st.scores.get(other, float("nan"))
         if self.config.gate_memory and np.isfinite(s):
             s = st.memory_scores[other][0]
-        return bool(np.isfinite(s) and s >= self.config.tau)
+        return bool(np.isfinite(s) and s >= self.gate_tau)
 
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
         """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
@@ -172,7 +220,9 @@ class RobotAgent:
             t0 = time.perf_counter()
             st.reply_cache = ImageReply.from_image(self.index, st.step, st.image,
                                                    intrinsics_tuple(st.context.intrinsics),
-                                                   quality=self.config.jpeg_quality)
+                                                   quality=self.config.jpeg_quality
+                                                   if self.config.reply_quality is None else self.config.reply_quality,
+                                                   codec=self.config.reply_codec, scale=self.config.reply_scale)
             st.timings["gate"] += time.perf_counter() - t0
         return st.reply_cache
 

@@ -8,12 +8,19 @@ import numpy as np
 
 from ..errors import CerpeError
 from ..memory import MemoryConfig
-from ..messages import DESCRIPTOR_DTYPES
+from ..compress import CODECS as DESCRIPTOR_CODECS
+from ..messages import DESCRIPTOR_DTYPES, REPLY_CODECS
 from .anchors import AnchorConfig
 from .graph import GraphConfig
 
 PAPER_THRESHOLDS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2}
 BACKENDS: tuple[str, ...] = ("switch", "graph")
+# Smaller messages chosen on development data (issue 21; not the paper's protocol, which is CerpeConfig's
+# default): the int8 descriptor codec (gate ROC AUC within 0.01 of the full descriptor,
+# scripts/dev_descriptor_codecs.py) and WebP-75 full-resolution replies (scripts/dev_codecs.py:
+# 36 % of JPEG-90's bytes, the same placements). CerpeConfig(**COMPRESSED_MESSAGES) selects them.
+COMPRESSED_MESSAGES: dict[str, object] = {"descriptor_codec": "pca-int8", "reply_codec": "webp",
+                                          "reply_quality": 75, "reply_scale": 1.0}
 
 
 class AlgorithmError(CerpeError, ValueError):
@@ -39,6 +46,19 @@ class CerpeConfig:
         propagate: False is the paper's "CERPE w/o EM": only direct estimates.
         descriptor_dtype: wire precision (``fp16``: the paper's message size; ``fp32``, ``int8``).
         jpeg_quality: quality of image replies (OpenCV scale 0-100).
+        descriptor_codec: ``full`` (the paper's protocol: every descriptor value at
+            ``descriptor_dtype``), or a compressed codec of :mod:`cerpe.compress`
+            (``pca-int8``, ``pca-pq``: a fitted projection, then int8 / product
+            quantisation; the gate scores the decoded values, the keyframe rule keeps
+            the full descriptor).
+        descriptor_projection: the projection file of the compressed codecs (None: the
+            shipped ``cerpe/data/xfeat_salad_projection.npz``, fitted for the offline descriptor).
+        descriptor_codec_tau: the gate threshold on compressed scores (None: the codec's
+            calibrated value stored in the projection file, else ``tau``).
+        reply_codec: image reply codec, ``jpeg`` (the paper's) or ``webp``.
+        reply_quality: its quality 0-100 (None: ``jpeg_quality``).
+        reply_scale: image replies are downsized by this factor (1: full resolution, the
+            paper's), intrinsics scaled alike.
         min_scale_pixels: valid depth pixels a keyframe needs to vote in the scale.
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
@@ -98,6 +118,12 @@ class CerpeConfig:
     propagate: bool = True
     descriptor_dtype: str = "fp16"
     jpeg_quality: int = 90
+    descriptor_codec: str = "full"
+    descriptor_projection: str | None = None
+    descriptor_codec_tau: float | None = None
+    reply_codec: str = "jpeg"
+    reply_quality: int | None = None
+    reply_scale: float = 1.0
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
@@ -139,6 +165,18 @@ class CerpeConfig:
                                  f"got {self.descriptor_dtype!r}")
         if not (0 <= int(self.jpeg_quality) <= 100):
             raise AlgorithmError(f"config: jpeg_quality must be in 0..100, got {self.jpeg_quality}")
+        if self.descriptor_codec not in ("full", *DESCRIPTOR_CODECS):
+            raise AlgorithmError(f"config: descriptor_codec must be one of {['full', *DESCRIPTOR_CODECS]}, "
+                                 f"got {self.descriptor_codec!r}")
+        v = self.descriptor_codec_tau
+        if v is not None and not (np.isfinite(v) and -1.0 <= v <= 1.0):
+            raise AlgorithmError(f"config: descriptor_codec_tau must be a cosine in [-1, 1], got {v}")
+        if self.reply_codec not in REPLY_CODECS:
+            raise AlgorithmError(f"config: reply_codec must be one of {list(REPLY_CODECS)}, got {self.reply_codec!r}")
+        if self.reply_quality is not None and not (0 <= int(self.reply_quality) <= 100):
+            raise AlgorithmError(f"config: reply_quality must be in 0..100, got {self.reply_quality}")
+        if not (np.isfinite(self.reply_scale) and 0.0 < self.reply_scale <= 1.0):
+            raise AlgorithmError(f"config: reply_scale must be in (0, 1], got {self.reply_scale}")
         if int(self.min_scale_pixels) < 1:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):

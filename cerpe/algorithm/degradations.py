@@ -14,6 +14,12 @@ DEGRADATIONS: dict[str, str] = {
     "descriptor:zero-norm": "the descriptor of the own frame is all zero (also counted as frame:blank)",
     "descriptor:wrong-length": "a received descriptor of another length: gate closed for that pair",
     "descriptor:other-zero-norm": "a received descriptor that is zero or not finite (a blank frame): gate closed",
+    "descriptor:codec-mismatch": "a received descriptor in another codec than this robot's (full vs a compressed "
+                                 "codec of cerpe.compress, or another compressed codec): gate closed for that pair",
+    "descriptor:codebook-mismatch": "a compressed descriptor of another projection/codebook version: gate closed "
+                                    "for that pair",
+    "descriptor:bad-code": "a compressed descriptor whose code does not decode (wrong length, non-positive scale): "
+                           "gate closed for that pair",
     "backbone:non-finite-pose": "a view the backbone called placed has a NaN pose: treated as not placed",
     "ego:no-estimate": "the pass placed neither the current view nor a view to chain through, or there is no "
                        "scale: X keeps its value (constant position)",
@@ -36,7 +42,9 @@ DEGRADATIONS: dict[str, str] = {
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
     "msg:stale-request": "an image request for a step this robot is not at",
     "msg:stale-reply": "an image reply for another step",
-    "msg:undecodable-jpeg": "an image reply whose JPEG does not decode",
+    "msg:undecodable-jpeg": "an image reply whose JPEG (or WebP) does not decode",
+    "msg:unknown-reply-codec": "an image reply whose codec id this version does not know: not used, no direct "
+                               "estimate",
     "msg:truncated-jpeg": "an image reply whose JPEG has no end marker (truncated): not used, no direct estimate",
     "msg:image-size-mismatch": "an image reply that decodes to another size than its intrinsics (principal point "
                                "off the centre) or below 8x8 pixels: not used, no direct estimate",

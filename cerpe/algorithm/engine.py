@@ -77,7 +77,7 @@ class StepEngine:
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
         for p in peers:
-            a.score_descriptor(p, _field(got, p, "descriptor"))
+            a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
         for n in replies.sent.values():
@@ -103,11 +103,6 @@ class StepEngine:
         # 9. memory management
         a.manage_memory()
         return StepResult(step=t, pairs=pairs, robots=[a.record()])
-
-
-def _field(inbox: Inbox, peer: str, name: str):
-    msg = inbox.message(peer)
-    return None if msg is None else getattr(msg, name)
 
 
 def drive(runs: Sequence[StepRun]) -> list[StepResult]:

@@ -6,7 +6,7 @@ from collections import Counter
 
 import numpy as np
 
-from ..messages import ImageReply, MessageError
+from ..messages import REPLY_CODECS, ImageReply, MessageError
 from ..protocols import DescriptorEncoder, FrameContext, View
 from ..scene import CameraIntrinsics
 from .config import AlgorithmError
@@ -94,14 +94,17 @@ def received_view(other: str, reply: ImageReply) -> tuple[View | None, str]:
     The key differs from the owner's ``(other, step)`` because the pixels do:
     plug-ins shared by a simulated team may cache per key and must not mix the
     raw and the decoded image. Faults (counted as ``msg:<fault>`` by the robot):
-    ``truncated-jpeg`` (no end marker), ``undecodable-jpeg``,
+    ``unknown-reply-codec`` (a codec id this version does not know), ``truncated-jpeg``
+    (no end marker), ``undecodable-jpeg`` (the image, JPEG or WebP, does not decode),
     ``image-size-mismatch`` (the principal point of the reply's intrinsics lies
     more than :data:`MAX_PRINCIPAL_OFFSET` of the size off the decoded image's
     centre, or the image is smaller than 8x8 pixels).
     """
-    if not reply.jpeg.startswith(b"\xff\xd8"):  # no start-of-image marker: not a JPEG at all
+    if reply.codec not in REPLY_CODECS:  # a codec of another version: cannot be decoded here
+        return None, "unknown-reply-codec"
+    if reply.codec == "jpeg" and not reply.jpeg.startswith(b"\xff\xd8"):  # no start-of-image marker
         return None, "undecodable-jpeg"
-    if jpeg_truncated(reply.jpeg):
+    if reply.codec == "jpeg" and jpeg_truncated(reply.jpeg):
         return None, "truncated-jpeg"
     try:
         img = reply.image_rgb()
