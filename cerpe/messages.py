@@ -3,7 +3,7 @@
 Frame layout (little endian), shared by every message type::
 
     magic  b"CE"   2 B
-    version u8     1 B
+    version u8     1 B   (VERSION; 2 since image replies carry the sender's pose)
     type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply)
     sender  u16    2 B
     step    u32    4 B
@@ -30,7 +30,7 @@ import numpy as np
 from .geometry import GeometryError, se3_from_tq_xyzw, se3_to_tq_xyzw
 
 MAGIC = b"CE"
-VERSION = 1
+VERSION = 2  # 1: image replies without the sender's pose (decoded as garbled: another version)
 _HEADER = struct.Struct("<2sBBHI")
 _CRC = struct.Struct("<I")
 HEADER_BYTES = _HEADER.size + _CRC.size  # 14
@@ -120,9 +120,13 @@ class ImageRequest:
 
 @dataclass(frozen=True)
 class ImageReply:
-    """Robot ``sender``'s image of ``step`` as JPEG bytes, with its intrinsics.
+    """Robot ``sender``'s image of ``step`` as JPEG bytes, with its intrinsics and its newest odometry pose.
 
     ``intrinsics`` is ``(fx, fy, cx, cy)`` in pixels of the encoded image.
+    ``T_odom_cam`` is the sender's odometry pose ``X`` of step ``pose_step`` when it
+    answered (its pose of ``step`` when it had one, else of its previous step; -1 and
+    None: no pose), so a requester whose copy of the sender's pose message is lost
+    can still anchor the pair (see ``docs/ARCHITECTURE.md``, "Message loss").
     """
 
     TYPE: ClassVar[int] = 4
@@ -130,21 +134,33 @@ class ImageReply:
     step: int
     jpeg: bytes
     intrinsics: tuple[float, float, float, float]
+    pose_step: int = -1
+    T_odom_cam: np.ndarray | None = None
 
     def encode(self) -> bytes:
-        payload = struct.pack("<4fI", *self.intrinsics, len(self.jpeg)) + self.jpeg
+        if self.T_odom_cam is None or self.pose_step < 0:
+            pose = struct.pack("<i7d", -1, 0, 0, 0, 0, 0, 0, 1)
+        else:
+            try:
+                t, q = se3_to_tq_xyzw(self.T_odom_cam)
+            except GeometryError as exc:
+                raise MessageError(f"image reply pose: {exc}") from None
+            pose = struct.pack("<i7d", int(self.pose_step), *t, *q)
+        payload = struct.pack("<4f", *self.intrinsics) + pose + struct.pack("<I", len(self.jpeg)) + self.jpeg
         return _frame(self.TYPE, self.sender, self.step, payload)
 
     @staticmethod
     def from_image(sender: int, step: int, image_rgb: np.ndarray,
-                   intrinsics: tuple[float, float, float, float], quality: int = 90) -> "ImageReply":
+                   intrinsics: tuple[float, float, float, float], quality: int = 90,
+                   pose_step: int = -1, T_odom_cam: np.ndarray | None = None) -> "ImageReply":
         import cv2
 
         ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image_rgb[:, :, ::-1]),
                                [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
         if not ok:
             raise MessageError("JPEG encoding failed")
-        return ImageReply(sender, step, buf.tobytes(), tuple(float(v) for v in intrinsics))
+        return ImageReply(sender, step, buf.tobytes(), tuple(float(v) for v in intrinsics), int(pose_step),
+                          None if T_odom_cam is None else np.asarray(T_odom_cam, dtype=np.float64))
 
     def image_rgb(self) -> np.ndarray:
         import cv2
@@ -201,10 +217,15 @@ def decode(frame: bytes) -> Message:
                 raise MessageError("image request has wrong length")
             return ImageRequest(sender, step, struct.unpack("<H", p)[0])
         if mtype == ImageReply.TYPE:
-            fx, fy, cx, cy, n = struct.unpack("<4fI", p[:20])
-            if len(p) != 20 + n:
+            fx, fy, cx, cy = struct.unpack("<4f", p[:16])
+            pose_step, *v = struct.unpack("<i7d", p[16:76])
+            (n,) = struct.unpack("<I", p[76:80])
+            if len(p) != 80 + n:
                 raise MessageError("image reply length does not match its JPEG size")
-            return ImageReply(sender, step, bytes(p[20:]), (fx, fy, cx, cy))
+            if not np.all(np.isfinite(v)):
+                raise MessageError("image reply pose carries non-finite values")
+            T = None if pose_step < 0 else se3_from_tq_xyzw(v[:3], v[3:])
+            return ImageReply(sender, step, bytes(p[80:]), (fx, fy, cx, cy), max(int(pose_step), -1), T)
     except (struct.error, ValueError, GeometryError) as exc:
         if isinstance(exc, MessageError):
             raise

@@ -39,6 +39,8 @@ class CerpeConfig:
         propagate: False is the paper's "CERPE w/o EM": only direct estimates.
         descriptor_dtype: wire precision (``fp16``: the paper's message size; ``fp32``, ``int8``).
         jpeg_quality: quality of image replies (OpenCV scale 0-100).
+        request_retries: image requests sent again, within the step, to a peer whose reply
+            did not come (request or reply lost; counted ``msg:request-retried``); 0: never.
         min_scale_pixels: valid depth pixels a keyframe needs to vote in the scale.
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
@@ -98,6 +100,7 @@ class CerpeConfig:
     propagate: bool = True
     descriptor_dtype: str = "fp16"
     jpeg_quality: int = 90
+    request_retries: int = 1
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
@@ -139,6 +142,8 @@ class CerpeConfig:
                                  f"got {self.descriptor_dtype!r}")
         if not (0 <= int(self.jpeg_quality) <= 100):
             raise AlgorithmError(f"config: jpeg_quality must be in 0..100, got {self.jpeg_quality}")
+        if int(self.request_retries) < 0:
+            raise AlgorithmError(f"config: request_retries must be >= 0, got {self.request_retries}")
         if int(self.min_scale_pixels) < 1:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):
