@@ -213,6 +213,7 @@ def test_loss_option_reproduces_the_run_for_a_seed(tmp_path, gt_plugins):
     meta = rp.read_json(a / "run.json", "run.json")
     assert meta["channel"] == {"loss": 0.3, "garble": 0.1, "loss_seed": 5}
     assert meta["config"]["method_config"]["channel"] == meta["channel"]
+    assert meta["label"] == "CERPE (loss 30%, garble 10%, seed 5)"  # what cerpe eval lists for the run
     with pytest.raises(rp.RunError, match="another configuration"):  # resume knows the loss it ran with
         run("a", LossSpec(0.3, 0.1, 6))
     lossless = run("d", None)

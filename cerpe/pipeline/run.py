@@ -396,7 +396,9 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     for stale in out.rglob(".*.tmp"):  # leftovers of an interrupted atomic write
         stale.unlink(missing_ok=True)
     atomic_write_json(run_json, {
-        "method": method, "label": METHOD_LABELS[method], "fingerprint": fp, "config": config,
+        "method": method, "fingerprint": fp, "config": config,
+        "label": METHOD_LABELS[method] + ("" if loss is None or loss.lossless else
+                                          f" (loss {loss.p_drop:.0%}, garble {loss.p_garble:.0%}, seed {loss.seed})"),
         "metric_scale": method in CERPE_METHODS and getattr(setting, "metric_depth", None) != "none",
         "manifest": str(manifest),
         "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
