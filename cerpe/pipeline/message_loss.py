@@ -124,7 +124,7 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
 
 
 def _fingerprint(conf: dict, plan: list[tuple[str, float, int, Path]]) -> str:
-    h = hashlib.sha256(json.dumps(conf, sort_keys=True).encode())
+    h = hashlib.sha256(json.dumps(conf, sort_keys=True).encode() + Path(__file__).read_bytes())  # code: columns
     for m, p, s, out in plan:
         h.update(f"{m}:{p}:{s}:{out}".encode())
         for f in [out / "run.json", *sorted(out.glob("*/DONE.json"))]:
@@ -226,7 +226,8 @@ def write_tables(summary: pd.DataFrame, tables_dir: Path) -> list[Path]:
     note = (f"\nAt {CHECK_LOSS:.0%} loss, CERPE's success after co-visibility is {c['success_ratio']:.3f} x and "
             f"its e_rot {c['e_rot_ratio']:.3f} x the lossless values (target >= {CHECK_SUCCESS} and "
             f"<= {CHECK_EROT}: {'met' if c['passed'] else 'NOT met'}); "
-            f"{int(summary['encounters'].max())} encounter(s) of the setting.\n")
+            f"{int(summary['encounters'].max())} encounter(s) of the setting, their first "
+            f"{int(summary['steps'].max())} steps.\n")
     out = [tables_dir / "message_loss.csv", tables_dir / "message_loss.md"]
     atomic_write_text(out[0], summary.to_csv(index=False, float_format="%.6g"))
     atomic_write_text(out[1], markdown(summary) + note)
