@@ -3,7 +3,7 @@
 Frame layout (little endian), shared by every message type::
 
     magic  b"CE"   2 B
-    version u8     1 B   (2: coded descriptors and the image reply's codec field)
+    version u8     1 B   (VERSION; 2: coded descriptors, the image reply's codec and the sender's pose)
     type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply)
     sender  u16    2 B
     step    u32    4 B
@@ -30,7 +30,7 @@ import numpy as np
 from .geometry import GeometryError, se3_from_tq_xyzw, se3_to_tq_xyzw
 
 MAGIC = b"CE"
-VERSION = 2
+VERSION = 2  # 1: raw float descriptors, image replies without codec or pose (decoded as another version)
 _HEADER = struct.Struct("<2sBBHI")
 _CRC = struct.Struct("<I")
 HEADER_BYTES = _HEADER.size + _CRC.size  # 14
@@ -145,12 +145,16 @@ class ImageRequest:
 @dataclass(frozen=True)
 class ImageReply:
     """Robot ``sender``'s image of ``step`` as encoded bytes (``jpeg``: the field keeps its
-    name, whatever ``codec`` made them), with its intrinsics.
+    name, whatever ``codec`` made them), with its intrinsics and its newest odometry pose.
 
     ``intrinsics`` is ``(fx, fy, cx, cy)`` in pixels of the encoded image (scaled with
     it when the image was downsized). ``codec`` is one of :data:`REPLY_CODECS`; a
     frame with a codec id this version does not know decodes with ``codec =
     "unknown-<id>"`` so that the receiver can count it and not use the image.
+    ``T_odom_cam`` is the sender's odometry pose ``X`` of step ``pose_step`` when it
+    answered (its pose of ``step`` when it had one, else of its previous step; -1 and
+    None: no pose), so a requester whose copy of the sender's pose message is lost
+    can still anchor the pair (see ``docs/ARCHITECTURE.md``, "Message loss").
     """
 
     TYPE: ClassVar[int] = 4
@@ -159,19 +163,31 @@ class ImageReply:
     jpeg: bytes
     intrinsics: tuple[float, float, float, float]
     codec: str = "jpeg"
+    pose_step: int = -1
+    T_odom_cam: np.ndarray | None = None
 
     def encode(self) -> bytes:
         if self.codec not in REPLY_CODECS:
             raise MessageError(f"image reply codec must be one of {list(REPLY_CODECS)}, got {self.codec!r}")
-        payload = struct.pack("<4fBI", *self.intrinsics, REPLY_CODECS[self.codec], len(self.jpeg)) + self.jpeg
+        if self.T_odom_cam is None or self.pose_step < 0:
+            pose = struct.pack("<i7d", -1, 0, 0, 0, 0, 0, 0, 1)
+        else:
+            try:
+                t, q = se3_to_tq_xyzw(self.T_odom_cam)
+            except GeometryError as exc:
+                raise MessageError(f"image reply pose: {exc}") from None
+            pose = struct.pack("<i7d", int(self.pose_step), *t, *q)
+        payload = (struct.pack("<4f", *self.intrinsics) + pose
+                   + struct.pack("<BI", REPLY_CODECS[self.codec], len(self.jpeg)) + self.jpeg)
         return _frame(self.TYPE, self.sender, self.step, payload)
 
     @staticmethod
     def from_image(sender: int, step: int, image_rgb: np.ndarray,
                    intrinsics: tuple[float, float, float, float], quality: int = 90,
-                   codec: str = "jpeg", scale: float = 1.0) -> "ImageReply":
+                   codec: str = "jpeg", scale: float = 1.0, pose_step: int = -1,
+                   T_odom_cam: np.ndarray | None = None) -> "ImageReply":
         """Encode ``image_rgb`` with ``codec`` at ``quality`` (0-100), downsized by ``scale``
-        (area interpolation; intrinsics scaled to the encoded pixels)."""
+        (area interpolation; intrinsics scaled to the encoded pixels), with the sender's pose."""
         import cv2
 
         if codec not in REPLY_CODECS:
@@ -189,7 +205,8 @@ class ImageReply:
         ok, buf = cv2.imencode(ext, np.ascontiguousarray(img[:, :, ::-1]), [flag, int(quality)])
         if not ok:
             raise MessageError(f"{codec} encoding failed")
-        return ImageReply(sender, step, buf.tobytes(), K, codec)
+        return ImageReply(sender, step, buf.tobytes(), K, codec=codec, pose_step=int(pose_step),
+                          T_odom_cam=None if T_odom_cam is None else np.asarray(T_odom_cam, dtype=np.float64))
 
     def image_rgb(self) -> np.ndarray:
         import cv2
@@ -254,11 +271,17 @@ def decode(frame: bytes) -> Message:
                 raise MessageError("image request has wrong length")
             return ImageRequest(sender, step, struct.unpack("<H", p)[0])
         if mtype == ImageReply.TYPE:
-            fx, fy, cx, cy, ccode, n = struct.unpack("<4fBI", p[:21])
-            if len(p) != 21 + n:
+            fx, fy, cx, cy = struct.unpack("<4f", p[:16])
+            pose_step, *v = struct.unpack("<i7d", p[16:76])
+            ccode, n = struct.unpack("<BI", p[76:81])
+            if len(p) != 81 + n:
                 raise MessageError("image reply length does not match its image size")
-            return ImageReply(sender, step, bytes(p[21:]), (fx, fy, cx, cy),
-                              _REPLY_CODES.get(ccode, f"unknown-{ccode}"))
+            if not np.all(np.isfinite(v)):
+                raise MessageError("image reply pose carries non-finite values")
+            T = None if pose_step < 0 else se3_from_tq_xyzw(v[:3], v[3:])
+            return ImageReply(sender, step, bytes(p[81:]), (fx, fy, cx, cy),
+                              codec=_REPLY_CODES.get(ccode, f"unknown-{ccode}"),
+                              pose_step=max(int(pose_step), -1), T_odom_cam=T)
     except (struct.error, ValueError, GeometryError) as exc:
         if isinstance(exc, MessageError):
             raise

@@ -362,3 +362,33 @@ def calibration_figure(frames: pd.DataFrame, table: pd.DataFrame, title: str = "
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def message_loss_figure(summary: pd.DataFrame, title: str = ""):
+    """Success and errors against the fraction of frames lost (issue 21, figure 5b).
+
+    Args:
+        summary: :func:`cerpe.pipeline.message_loss.main`'s rows: ``method, loss,
+            success_pct, success_after_covis_pct, e_rot_rad, e_pos_m``.
+    Returns:
+        1x4 figure, one line per method over loss (%).
+    """
+    if summary.empty:
+        raise PlotError("message-loss figure: no rows")
+    plt = _plt()
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.6))
+    panels = (("success_pct", "success (%)"), ("success_after_covis_pct", "success after co-visibility (%)"),
+              ("e_rot_rad", "e_rot (rad, mean)"), ("e_pos_m", "e_pos (m, mean)"))
+    for ax, (col, label) in zip(axes, panels):
+        for m in [m for m in METHOD_ORDER if m in set(summary["method"])]:
+            f = summary[summary["method"] == m].sort_values("loss")
+            ax.plot(100 * f["loss"], f[col], "o-", color=METHOD_COLORS.get(m, "gray"), label=SHORT_LABELS.get(m, m))
+        ax.set_xlabel("frames lost (%)")
+        ax.set_ylabel(label)
+        if col.endswith("pct"):
+            ax.set_ylim(0, 105)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -14,6 +14,7 @@ for the sender, while loss and corruption are drawn per receiver.
 from __future__ import annotations
 
 import logging
+import zlib
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import Iterable
@@ -148,3 +149,37 @@ class Channel:
         """All bytes sent (by ``sender``, or by everyone)."""
         senders = [sender] if sender is not None else list(self.bytes_sent)
         return int(sum(sum(self.bytes_sent[s].values()) for s in senders))
+
+
+@dataclass(frozen=True)
+class LossSpec:
+    """The lossy channel of a run (``cerpe run --loss P --garble P --loss-seed N``).
+
+    Each encounter gets its own :class:`Channel`, seeded from ``seed`` and the
+    encounter's name (:meth:`channel`), so an encounter's draws depend on nothing
+    run before it: the same seed reproduces a run (and a resumed one) bit for bit.
+    """
+
+    p_drop: float = 0.0
+    p_garble: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, p in (("loss", self.p_drop), ("garble", self.p_garble)):
+            if not (np.isfinite(p) and 0.0 <= p <= 1.0):
+                raise TransportError(f"--{name} {p}: must be a probability in [0, 1]")
+        if int(self.seed) < 0:
+            raise TransportError(f"--loss-seed {self.seed}: must be >= 0")
+
+    @property
+    def lossless(self) -> bool:
+        return self.p_drop == 0.0 and self.p_garble == 0.0
+
+    def as_dict(self) -> dict:
+        """What run.json records (the seed only where something is drawn)."""
+        return {"loss": self.p_drop, "garble": self.p_garble, "loss_seed": None if self.lossless else int(self.seed)}
+
+    def channel(self, robots: Iterable[str], key: str) -> Channel:
+        """A fresh channel for one encounter (``key``: its name)."""
+        seq = np.random.SeedSequence([int(self.seed), zlib.crc32(str(key).encode())])
+        return Channel(robots, self.p_drop, self.p_garble, seed=int(seq.generate_state(1)[0]))

@@ -120,7 +120,7 @@ def test_reply_codecs_round_trip_with_scaled_intrinsics(codec, quality, scale):
     K = (100.0, 101.0, 63.5, 47.5)
     rep = ImageReply.from_image(1, 4, img, K, quality=quality, codec=codec, scale=scale)
     frame = rep.encode()
-    assert len(frame) == HEADER_BYTES + 21 + len(rep.jpeg)
+    assert len(frame) == HEADER_BYTES + 16 + 60 + 5 + len(rep.jpeg)  # intrinsics, pose, codec + length
     back = decode(frame)
     assert back.codec == codec and back.jpeg == rep.jpeg
     out = back.image_rgb()
@@ -140,7 +140,7 @@ def test_unknown_reply_codec_decodes_and_is_refused():
 
     rep = ImageReply.from_image(1, 4, _image(), (100.0, 101.0, 63.5, 47.5))
     frame = bytearray(rep.encode()[:-4])
-    frame[HEADER_BYTES - 4 + 16] = 9  # the codec byte after the four intrinsics
+    frame[HEADER_BYTES - 4 + 16 + 60] = 9  # the codec byte after the four intrinsics and the pose
     frame = bytes(frame) + struct.pack("<I", zlib.crc32(bytes(frame)) & 0xFFFFFFFF)
     back = decode(frame)
     assert back.codec == "unknown-9"
@@ -253,10 +253,10 @@ def _unknown(rep):
     class Future(ImageReply):
         def encode(self):
             f = bytearray(super().encode()[:-4])
-            f[HEADER_BYTES - 4 + 16] = 42
+            f[HEADER_BYTES - 4 + 16 + 60] = 42  # the codec byte after the intrinsics and the pose
             return bytes(f) + struct.pack("<I", zlib.crc32(bytes(f)) & 0xFFFFFFFF)
 
-    return Future(rep.sender, rep.step, rep.jpeg, rep.intrinsics, rep.codec)
+    return Future(rep.sender, rep.step, rep.jpeg, rep.intrinsics, rep.codec, rep.pose_step, rep.T_odom_cam)
 
 
 def test_codec_config_is_checked(world, tmp_path):

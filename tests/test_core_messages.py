@@ -61,9 +61,10 @@ def test_request_and_reply_round_trip_and_sizes():
     img = np.ascontiguousarray(np.clip(img + rng.integers(0, 8, img.shape), 0, 255).astype(np.uint8))
     rep = ImageReply.from_image(2, 5, img, (50.0, 51.0, 31.5, 23.5), quality=90)
     frame = rep.encode()
-    assert len(frame) == HEADER_BYTES + 21 + len(rep.jpeg)  # intrinsics, codec, length
+    assert len(frame) == HEADER_BYTES + 16 + 60 + 5 + len(rep.jpeg)  # intrinsics, pose, codec + length, image
     back = decode(frame)
     assert isinstance(back, ImageReply) and back.jpeg == rep.jpeg
+    assert back.pose_step == -1 and back.T_odom_cam is None  # no pose given: none on the wire
     assert back.intrinsics == pytest.approx((50.0, 51.0, 31.5, 23.5))
     dec = back.image_rgb()
     assert dec.shape == img.shape and np.abs(dec.astype(int) - img).mean() < 6  # JPEG, colour order kept
@@ -152,3 +153,20 @@ def test_channel_misuse():
         ch.send("a", "pose", b"xx", "zz")
     with pytest.raises(TransportError, match="empty"):
         ch.broadcast("a", "pose", b"")
+
+
+def test_reply_carries_the_senders_pose_and_another_version_is_garbled():
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 255, (16, 16, 3), dtype=np.uint8)
+    for _ in range(20):
+        X = random_se3(rng)
+        step = int(rng.integers(0, 1000))
+        back = decode(ImageReply.from_image(1, step + 1, img, (10, 10, 8, 8), pose_step=step, T_odom_cam=X).encode())
+        assert back.pose_step == step and np.allclose(back.T_odom_cam, X, atol=1e-12)
+    frame = bytearray(ImageReply.from_image(1, 2, img, (10, 10, 8, 8), pose_step=1, T_odom_cam=np.eye(4)).encode())
+    frame[2] = 1  # a version-1 frame (no pose): refused by name, counted as garbled by the links
+    import struct
+    import zlib
+    frame[-4:] = struct.pack("<I", zlib.crc32(bytes(frame[:-4])) & 0xFFFFFFFF)
+    with pytest.raises(MessageError, match="version"):
+        decode(bytes(frame))

@@ -19,6 +19,7 @@ from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricD
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
 from .anchors import Anchor, PairAnchors
+from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .graph import DirectEstimate, PairGraph
@@ -57,6 +58,7 @@ class RobotAgent:
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
+        self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
         self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
         self.last_step: int | None = None
         self.cur: StepState | None = None
@@ -175,8 +177,9 @@ class RobotAgent:
                 reason = f"descriptor-{fault}"
         if reason:
             pass  # counted above
-        elif descriptor is None:
+        elif descriptor is None:  # lost: the gate for this pair waits for the next step's descriptor
             reason = "descriptor-missing"
+            self.degrade("descriptor:missing")
         elif st.blank:
             reason = "own-descriptor-degenerate"
         else:
@@ -224,7 +227,11 @@ class RobotAgent:
                                                    if self.config.reply_quality is None else self.config.reply_quality,
                                                    codec=self.config.reply_codec, scale=self.config.reply_scale)
             st.timings["gate"] += time.perf_counter() - t0
-        return st.reply_cache
+        # the newest own pose goes with the image: this step's once odometry ran (or at the first
+        # step, identity), else the previous step's; a requester whose pose message is lost bridges from it
+        now = bool(st.ego_status) or self.last_step is None
+        return dataclasses.replace(st.reply_cache, pose_step=st.step if now else self.last_step,
+                                   T_odom_cam=self.X.copy())
 
     def accept_reply(self, other: str, reply: ImageReply) -> View | None:
         """Decode a collaborator's JPEG for the joint pass (see :func:`~cerpe.algorithm.frames.received_view`)."""
@@ -235,6 +242,8 @@ class RobotAgent:
         t0 = time.perf_counter()
         view, fault = received_view(other, reply)
         st.timings["gate"] += time.perf_counter() - t0
+        if reply.T_odom_cam is not None and 0 <= reply.pose_step <= st.step:
+            self._log_pose(other, reply.pose_step, reply.T_odom_cam)
         if view is None:  # the pair gets no direct estimate this step
             self.degrade(f"msg:{fault}")
             st.gate_reason[other] = f"reply-{fault}"
@@ -397,6 +406,18 @@ class RobotAgent:
         X = check_pose(X_j, f"{self._where()}: pose of robot {other}")
         self.poses[other] = (int(step), X)
         self._odometer(other, int(step), X)
+        if other != self.robot_id:
+            self._log_pose(other, int(step), X)
+
+    def reply_missing(self, other: str) -> None:
+        """The gate opened for ``other`` but no reply came (request or reply lost): counted; the anchor is carried."""
+        self.degrade("msg:reply-missing")
+        self._state().gate_reason.setdefault(other, "reply-missing")
+
+    def _log_pose(self, other: str, step: int, X: np.ndarray) -> None:
+        log_ = self.pose_logs.setdefault(other, PoseLog())
+        for _ in range(log_.note(step, X)):  # anchors stored with a bridged pose, now interpolated
+            self.degrade("pose:bridged-next")
 
     def _odometer(self, robot: str, step: int, X: np.ndarray) -> float:
         """Metres ``robot`` travelled: the distances between the successive poses seen of it, summed."""
@@ -473,11 +494,19 @@ class RobotAgent:
             if ests:
                 via, T = ests[0][1], ests[0][2]
                 info.direct_via, info.direct_T, info.direct_inliers = via, T, ests[0][3]
-                if not fresh:
-                    self.degrade("anchor:not-stored-pose-missing")
-                    return "direct", T, "anchor-not-stored: pose message missing", st.step
-                est = Anchor(st.step, T, self.X.copy(), pose[1].copy(), self._odometer(self.robot_id, st.step, self.X),
-                             self.odometers[other][2], st.metric_scale)
+                plog = self.pose_logs.get(other)
+                X_j = pose[1] if fresh else None if plog is None else plog.exact(st.step)
+                bridged = X_j is None
+                if bridged:  # the pose message is lost: bridge it (corrected when the next one comes)
+                    X_j = None if plog is None else plog.bridged(st.step)
+                    if X_j is None:
+                        self.degrade("anchor:not-stored-pose-missing")
+                        return "direct", T, "anchor-not-stored: pose message missing", st.step
+                    self.degrade("pose:bridged")
+                est = Anchor(st.step, T, self.X.copy(), X_j.copy(), self._odometer(self.robot_id, st.step, self.X),
+                             self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale)
+                if bridged:
+                    plog.defer(st.step, est)
                 if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
                     pair.anchor, info.verdict = est, "unchecked"
                     return "direct", T, "", st.step
@@ -504,12 +533,15 @@ class RobotAgent:
             return "none", None, "; ".join(r for r in (reason, why) if r), -1
         if pose is None:
             return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1
+        X_j = pose[1]
         if not fresh:
             self.degrade("pose:stale")
             reason = "; ".join(r for r in (reason, "stale-pose") if r)
+            plog = self.pose_logs.get(other)
+            X_j = X_j if plog is None else plog.bridged(st.step)  # the last velocity carried on
         if not verified:
             reason = "; ".join(r for r in (reason, "unverified") if r)
-        return "propagated", anchor.propagated(self.X, pose[1]), reason, anchor.step
+        return "propagated", anchor.propagated(self.X, X_j), reason, anchor.step
 
     def _direct_estimates(self, st: StepState, other: str) -> tuple[list[tuple[int, int, np.ndarray, int]], str]:
         """This step's direct estimates for ``other``: ``([(pass index of via, its step or -1, T_cj_ci, inliers)],

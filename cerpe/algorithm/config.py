@@ -59,6 +59,8 @@ class CerpeConfig:
         reply_quality: its quality 0-100 (None: ``jpeg_quality``).
         reply_scale: image replies are downsized by this factor (1: full resolution, the
             paper's), intrinsics scaled alike.
+        request_retries: image requests sent again, within the step, to a peer whose reply
+            did not come (request or reply lost; counted ``msg:request-retried``); 0: never.
         min_scale_pixels: valid depth pixels a keyframe needs to vote in the scale.
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
@@ -124,6 +126,7 @@ class CerpeConfig:
     reply_codec: str = "jpeg"
     reply_quality: int | None = None
     reply_scale: float = 1.0
+    request_retries: int = 1
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
@@ -177,6 +180,8 @@ class CerpeConfig:
             raise AlgorithmError(f"config: reply_quality must be in 0..100, got {self.reply_quality}")
         if not (np.isfinite(self.reply_scale) and 0.0 < self.reply_scale <= 1.0):
             raise AlgorithmError(f"config: reply_scale must be in (0, 1], got {self.reply_scale}")
+        if int(self.request_retries) < 0:
+            raise AlgorithmError(f"config: request_retries must be >= 0, got {self.request_retries}")
         if int(self.min_scale_pixels) < 1:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):

@@ -31,8 +31,18 @@ DEGRADATIONS: dict[str, str] = {
     "scale:unit-no-depth": "no metric depth at all: s = 1 (unit_scale_without_depth)",
     "scale:skipped-": "a keyframe without usable metric depth left out of the scale (suffix: why)",
     "depth:none": "the depth source had nothing for the current frame",
-    "pose:stale": "the other robot's pose of this step is missing: its last pose is used for propagation",
-    "anchor:not-stored-pose-missing": "a direct estimate without the other's pose of this step: not an anchor",
+    "pose:stale": "the other robot's pose of this step is missing: its pose is bridged from the last ones seen "
+                  "(constant velocity) for propagation",
+    "pose:bridged": "a direct estimate without the other's pose message of this step: the anchor is stored with "
+                    "that pose bridged (from the image reply's pose and earlier ones), corrected by the next",
+    "pose:bridged-next": "an anchor stored with a bridged pose corrected by interpolation once a later pose came",
+    "anchor:not-stored-pose-missing": "a direct estimate while no pose of the other was ever seen: not an anchor",
+    "descriptor:missing": "a peer's descriptor of this step did not arrive: the gate for that pair waits for the "
+                          "next step (closed now); the anchor is carried",
+    "msg:request-retried": "an image request sent again within the step because its reply did not come "
+                           "(request_retries)",
+    "msg:reply-missing": "the gate opened but no image reply arrived (request or reply lost): no direct estimate "
+                         "this step; the pair keeps its anchor",
     "anchor:inconsistent": "a direct estimate that disagrees with the pair's verified anchor propagated to it: "
                            "not an anchor; the anchor's propagation is reported instead",
     "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "

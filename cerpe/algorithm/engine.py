@@ -80,11 +80,23 @@ class StepEngine:
             a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
+        for _ in range(int(a.config.request_retries)):  # a lost request or reply: ask once more
+            again = {p: f for p, f in asked.items() if p not in replies.messages}
+            if not again:
+                break
+            more = self._book(link.request(t, again, self.wait_s))
+            for p in again:
+                a.degrade("msg:request-retried")
+            replies.messages.update(more.messages)
+            for p, n in more.sent.items():
+                replies.sent[p] = replies.sent.get(p, 0) + n
         for n in replies.sent.values():
             a.count_sent("request", n)
         for p in asked:
             if p in replies.messages:
                 a.accept_reply(p, replies.messages[p].message)
+            else:
+                a.reply_missing(p)
         # 4. ONE joint pass; 5. scale; 6. odometry; 7. broadcast the pose
         a.joint_pass()
         a.estimate_scale()

@@ -95,7 +95,8 @@ class Mailbox:
     Frames of the current or a later step (up to ``max_ahead_steps``) are kept
     until taken; of an earlier step they are ``late`` (a request is still handed
     to the handler, which counts it stale). Image requests of the current step are
-    answered once each by :meth:`answer`. Counts go to :attr:`stats` and, for the
+    answered once each by :meth:`answer` (again when the same request comes again: a
+    retry after a lost reply). Counts go to :attr:`stats` and, for the
     degradations, to the next :meth:`inbox`.
     """
 
@@ -138,7 +139,10 @@ class Mailbox:
             self.stats["too_far_ahead"] += 1
             return []
         slot = self._buf[int(msg.step)][kind]
-        if peer in slot:
+        if peer in slot and kind == "request":  # asked again (its reply was lost): answered again
+            self._answered.discard((int(msg.step), peer))
+            self.stats["request_repeated"] += 1
+        elif peer in slot:
             self.stats["duplicate"] += 1
             return []
         slot[peer] = Received(msg, int(nbytes))

@@ -53,11 +53,13 @@ RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "sift-ran
 # The paper's own systems figures (Section IV, RTX 4080 laptop, VGGT/SALAD): never our measurements.
 PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2": 438, "ms_3": 780}
 NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime",
-                              "05_uncertainty")
+                              "05_uncertainty", "06_message_loss")
 # outputs each notebook must leave (stems; figures as .png and .pdf)
-EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality", "calibration")
+EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality", "calibration",
+                                     "message_loss")
 NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv",  # written by notebook 04
-                                    "calibration.csv")  # notebook 05
+                                    "calibration.csv",  # notebook 05
+                                    "message_loss.csv", "message_loss.md")  # notebook 06
 PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
 SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
 
@@ -456,7 +458,8 @@ def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
     for e in ctx.settings:
         h.update(f"{e.name}:{e.status}:{e.detail}".encode())
     code = [ROOT / "cerpe" / "plotting.py", ROOT / "cerpe" / "pipeline" / "evaluate.py",
-            ROOT / "cerpe" / "pipeline" / "paper.py", ROOT / "cerpe" / "pipeline" / "table1.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
+            ROOT / "cerpe" / "pipeline" / "paper.py", ROOT / "cerpe" / "pipeline" / "table1.py",
+            ROOT / "cerpe" / "pipeline" / "message_loss.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())

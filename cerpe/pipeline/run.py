@@ -1,12 +1,14 @@
 """Run one method on every encounter of a dataset manifest and write a run folder.
 
-Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline]``
+Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline] [--loss P [--garble P] [--loss-seed N]]``
 
 Methods: ``cerpe`` (Algorithm 1), ``cerpe-wo-em`` (no ego-motion propagation:
 only direct estimates), ``cerpe-graph`` (our extension: the same messages, a robust
 pose graph per pair instead of the switch, with covariances), ``sift-ransac`` and ``aliked-lightglue`` (per pair and
 frame, no scale; ``aliked-lightglue`` stands in for the paper's SuperGlue row),
 and ``nope`` / ``co-visnet``, which exit with "not available offline".
+``--loss`` / ``--garble`` run the cerpe methods' robots over the in-process lossy
+channel (:class:`cerpe.transport.LossSpec`, recorded in ``run.json``).
 
 The run folder (see ``docs/ARCHITECTURE.md``)::
 
@@ -43,6 +45,7 @@ from ..tum import format_tum, format_tum_cov
 from ..errors import CerpeError
 from ..geometry import se3_inverse, se3_to_tq_xyzw
 from ..records import STAGES, PairRecord, RobotRecord, StepResult
+from ..transport import LossSpec
 from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, METHODS, UNAVAILABLE, check_method
 from .provenance import code_hash, config_dict, file_digest, fingerprint, git_revision, package_versions
 
@@ -60,12 +63,14 @@ StepSource = Callable[[Any], Iterator[StepResult]]
 
 
 def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
-                   every: int = 1, depth_options: dict | None = None) -> tuple[dict, StepSource]:
+                   every: int = 1, depth_options: dict | None = None,
+                   channel: LossSpec | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
     the cerpe methods; None keeps the preset's default; ``depth_options`` its
-    keyword options (manifest ``metric_depth_options``). ``every`` is the
+    keyword options (manifest ``metric_depth_options``); ``channel`` the lossy
+    channel of the cerpe methods (None: lossless). ``every`` is the
     setting's evaluation stride: per-frame baselines only compute evaluated steps
     (CERPE runs every step: its odometry and propagation need them).
 
@@ -73,9 +78,12 @@ def prepare_method(method: str, profile: str, seed: int, metric_depth: str | Non
     """
     check_method(method)
     if method in BASELINE_METHODS:
+        if channel is not None and not channel.lossless:
+            raise RunError(f"--loss/--garble: {method} exchanges no messages (a per-frame baseline); "
+                           f"only the cerpe methods run over the lossy channel")
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
-    return _cerpe_steps(method, profile, seed, metric_depth, depth_options)
+    return _cerpe_steps(method, profile, seed, metric_depth, depth_options, channel or LossSpec())
 
 
 def _conf_of(obj: Any) -> Any:
@@ -111,11 +119,12 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
 
 
 def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
-                 depth_options: dict | None = None) -> tuple[dict, StepSource]:
+                 depth_options: dict | None = None, loss: LossSpec = LossSpec()) -> tuple[dict, StepSource]:
     """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
     from .. import algorithm
 
     plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options)
+    conf["channel"] = loss.as_dict()
 
     # Propagation and the pose graph feed nothing back (anchors come only from direct
     # estimates; the gate, memory, scale and odometry never read a propagated pose or
@@ -136,9 +145,10 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
         return res if cfg.propagate else without_propagation(res)
 
     def steps(encounter: Any) -> Iterator[StepResult]:
+        channel = None if loss.lossless else loss.channel(encounter.robot_ids, encounter.name)
         if not shared:  # a configuration whose records are not a view of the shared pass
             yield from algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
-                                               config=cfg, seed=seed)
+                                               config=cfg, channel=channel, seed=seed)
             return
         key = (pass_key, seed, _encounter_identity(encounter))
         if key in _FULL_PASSES:
@@ -147,7 +157,7 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
             return
         keep: list[StepResult] = []
         for res in algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
-                                           config=pass_cfg, seed=seed):
+                                           config=pass_cfg, channel=channel, seed=seed):
             keep.append(res)
             yield view(res)
         _FULL_PASSES[key] = keep  # records only (no images): a few MB per setting
@@ -369,8 +379,10 @@ def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
 
 def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: str = "offline",
                seed: int = 0, overwrite: bool = False, progress: bool = True,
-               setting: Any = None) -> Path:
+               setting: Any = None, loss: LossSpec | None = None) -> Path:
     """Run ``method`` on every encounter of ``manifest`` into run folder ``out``.
+
+    ``loss``: the cerpe methods' robots talk over a lossy channel (None: lossless).
 
     Finished encounters (``DONE.json`` with this fingerprint) are skipped; a
     folder from another configuration raises :class:`RunError` unless
@@ -379,6 +391,9 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     check_method(method)
     if int(seed) < 0:
         raise RunError(f"--seed {seed}: must be >= 0")
+    if method in BASELINE_METHODS and loss is not None and not loss.lossless:  # before any data is loaded
+        raise RunError(f"--loss/--garble: {method} exchanges no messages (a per-frame baseline); "
+                       f"only the cerpe methods run over the lossy channel")
     manifest = Path(manifest).resolve()
     out = Path(out)
     ensure_dir(out, "--out", create=False)
@@ -387,8 +402,9 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
                        f"choose another --out (cerpe never writes into a folder it did not make)")
     setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
+    lossy = {} if loss is None or loss.lossless else {"channel": loss}  # test doubles take no channel
     mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
-                                  getattr(setting, "metric_depth_options", None))
+                                  getattr(setting, "metric_depth_options", None), **lossy)
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
@@ -411,11 +427,14 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     for stale in out.rglob(".*.tmp"):  # leftovers of an interrupted atomic write
         stale.unlink(missing_ok=True)
     atomic_write_json(run_json, {
-        "method": method, "label": METHOD_LABELS[method], "fingerprint": fp, "config": config,
+        "method": method, "fingerprint": fp, "config": config,
+        "label": METHOD_LABELS[method] + ("" if loss is None or loss.lossless else
+                                          f" (loss {loss.p_drop:.0%}, garble {loss.p_garble:.0%}, seed {loss.seed})"),
         "metric_scale": method in CERPE_METHODS and getattr(setting, "metric_depth", None) != "none",
         "manifest": str(manifest),
         "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
         "profile": config["profile"], "setting": setting.name, "command": " ".join(sys.argv),
+        "channel": mconf.get("channel", "n/a"),
     })
     from tqdm import tqdm
 
@@ -449,7 +468,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="run folder to write (resumed when it exists)")
     p.add_argument("--profile", default="offline",
                    help="backbone preset for the cerpe methods (default: offline; paper needs user weights)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, lossy channel)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (RANSAC; the lossy channel's unless --loss-seed)")
+    p.add_argument("--loss", type=float, default=0.0, metavar="P",
+                   help="cerpe methods: run the robots over the in-process lossy channel, each frame (descriptor, "
+                        "pose, image request, image reply) dropped on its way to each receiver with probability P "
+                        "(default 0: lossless). Losses are counted per robot and step (msg:lost, and what the "
+                        "robot did about it: descriptor:missing, msg:reply-missing, pose:stale, pose:bridged); "
+                        "recorded in run.json, part of the run's fingerprint")
+    p.add_argument("--garble", type=float, default=0.0, metavar="P",
+                   help="with --loss: probability that a frame that arrives is corrupted (bytes flipped or cut; "
+                        "counted msg:garbled, never used; default 0)")
+    p.add_argument("--loss-seed", type=int, default=None, metavar="N",
+                   help="seed of the channel's draws (default: --seed); the same seed reproduces the run bit for "
+                        "bit, another seed draws other losses")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a run folder written with another configuration instead of refusing")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -460,7 +491,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"cerpe run: method {args.method!r} not available offline: {UNAVAILABLE[args.method]}",
               file=sys.stderr)
         return 3
+    loss = None if args.loss == 0 and args.garble == 0 else \
+        LossSpec(args.loss, args.garble, args.seed if args.loss_seed is None else args.loss_seed)
     out = run_method(args.manifest, args.method, args.out, profile=args.profile, seed=args.seed,
-                     overwrite=args.overwrite, progress=not args.no_progress)
+                     overwrite=args.overwrite, progress=not args.no_progress, loss=loss)
     print(f"run folder: {out}")
     return 0
