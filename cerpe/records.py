@@ -39,8 +39,9 @@ class PairRecord:
         gate_score: cosine similarity of the two robots' current descriptors (the
             paper's gate score, what gate-quality metrics read); NaN if the other's
             descriptor message was lost or garbled.
-        gate_open: whether the ego requested the other's image: ``gate_score >= tau``,
-            or with ``gate_memory`` ``gate_score_memory >= tau``.
+        gate_open: whether the gate opened: ``gate_score >= tau``, or with ``gate_memory``
+            ``gate_score_memory >= tau`` (the ego requested the other's image unless
+            ``request_skipped``; with the policy ``always`` it requested it in any case).
         source: ``direct`` (from this step's pass), ``propagated`` (an anchor moved
             by both robots' ego-motion) or ``none``.
         T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
@@ -70,6 +71,8 @@ class PairRecord:
         T_direct: this step's direct estimate as the pass gave it, whatever anchor
             verification said of it (None without one); ``dir_*`` columns.
         direct_inliers: inliers of the registration behind ``T_direct`` (-1: unknown or none).
+        request_skipped: the gate opened but the request policy did not ask for the image
+            (``CerpeConfig.request_policy``, mode ``pays``: the pair's anchor was fresh and certain).
     """
 
     step: int
@@ -92,6 +95,7 @@ class PairRecord:
     cov: np.ndarray | None = None
     T_direct: np.ndarray | None = None
     direct_inliers: int = -1
+    request_skipped: bool = False
 
     def as_row(self) -> dict:
         row = {
@@ -107,6 +111,7 @@ class PairRecord:
                     else (float("nan"), float("nan")))
         row.update({"sigma_pos_m": float(pos), "sigma_rot_rad": float(rot), "direct_inliers": int(self.direct_inliers)})
         row.update(_pose_cols("dir", self.T_direct))
+        row["request_skipped"] = bool(self.request_skipped)
         return row
 
 

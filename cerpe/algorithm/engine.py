@@ -75,10 +75,11 @@ class StepEngine:
         a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.descriptor_dtype)))
         yield "descriptor"
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
+        # (and that the request policy wants: CerpeConfig.request_policy; the paper's asks them all)
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
         for p in peers:
             a.score_descriptor(p, _field(got, p, "descriptor"))
-        asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
+        asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.wants_image(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
         for n in replies.sent.values():
             a.count_sent("request", n)
