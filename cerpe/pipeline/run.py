@@ -59,22 +59,27 @@ StepSource = Callable[[Any], Iterator[StepResult]]
 
 
 def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
-                   every: int = 1, depth_options: dict | None = None) -> tuple[dict, StepSource]:
+                   every: int = 1, depth_options: dict | None = None,
+                   overrides: dict | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
     the cerpe methods; None keeps the preset's default; ``depth_options`` its
     keyword options (manifest ``metric_depth_options``). ``every`` is the
     setting's evaluation stride: per-frame baselines only compute evaluated steps
-    (CERPE runs every step: its odometry and propagation need them).
+    (CERPE runs every step: its odometry and propagation need them). ``overrides``:
+    :class:`~cerpe.algorithm.CerpeConfig` fields merged strictly into the method's
+    configuration (cerpe methods only; e.g. ``{"request_policy": {"mode": "pays"}}``).
 
     Raises :class:`~cerpe.pipeline.methods.MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
     check_method(method)
+    if overrides and method not in CERPE_METHODS:
+        raise RunError(f"method {method!r}: configuration overrides apply to the cerpe methods only")
     if method in BASELINE_METHODS:
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
-    return _cerpe_steps(method, profile, seed, metric_depth, depth_options)
+    return _cerpe_steps(method, profile, seed, metric_depth, depth_options, overrides)
 
 
 def _conf_of(obj: Any) -> Any:
@@ -85,7 +90,7 @@ def _conf_of(obj: Any) -> Any:
 
 
 def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
-                             depth_options: dict | None = None) -> tuple[Any, Any, dict]:
+                             depth_options: dict | None = None, overrides: dict | None = None) -> tuple[Any, Any, dict]:
     """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
 
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
@@ -100,6 +105,13 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method != "cerpe-wo-em"),
                               backend="graph" if method == "cerpe-graph" else "switch",
                               unit_scale_without_depth=(metric_depth == "none"))
+    if overrides:
+        from ..config import ConfigError, merge_conf
+
+        try:
+            cfg = algorithm.CerpeConfig(**merge_conf(cfg.as_dict(), overrides, "cerpe config"))
+        except ConfigError as exc:
+            raise RunError(str(exc)) from None
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
         "cerpe": config_dict(cfg), "preset": profile,
@@ -111,11 +123,11 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
 
 
 def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
-                 depth_options: dict | None = None) -> tuple[dict, StepSource]:
+                 depth_options: dict | None = None, overrides: dict | None = None) -> tuple[dict, StepSource]:
     """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
     from .. import algorithm
 
-    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options)
+    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options, overrides)
 
     # Propagation feeds nothing back (anchors come only from direct estimates; the
     # gate, memory, scale and odometry never read a propagated pose), so "w/o EM"
@@ -126,7 +138,7 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
     pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None}}, sort_keys=True,
                           default=str)
 
-    keep_pass = cfg.propagate and cfg.backend == "switch"  # what a later cerpe-wo-em may reuse
+    keep_pass = cfg.propagate and cfg.backend == "switch" and not overrides  # what a later cerpe-wo-em may reuse
 
     def steps(encounter: Any) -> Iterator[StepResult]:
         key = (pass_key, seed, _encounter_identity(encounter))
@@ -338,12 +350,13 @@ def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
 
 def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: str = "offline",
                seed: int = 0, overwrite: bool = False, progress: bool = True,
-               setting: Any = None) -> Path:
+               setting: Any = None, overrides: dict | None = None) -> Path:
     """Run ``method`` on every encounter of ``manifest`` into run folder ``out``.
 
     Finished encounters (``DONE.json`` with this fingerprint) are skipped; a
     folder from another configuration raises :class:`RunError` unless
-    ``overwrite`` (then it is replaced). Returns ``out``.
+    ``overwrite`` (then it is replaced). ``overrides``: CerpeConfig fields for a cerpe
+    method (recorded in ``run.json``; see :func:`prepare_method`). Returns ``out``.
     """
     check_method(method)
     if int(seed) < 0:
@@ -357,13 +370,16 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
     mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
-                                  getattr(setting, "metric_depth_options", None))
+                                  getattr(setting, "metric_depth_options", None),
+                                  **({"overrides": overrides} if overrides else {}))
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
         "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
         "method_config": mconf, "code": code_hash(method),
     }
+    if overrides:
+        config["overrides"] = overrides
     fp = fingerprint(config)
     run_json = out / "run.json"
     if run_json.exists():
