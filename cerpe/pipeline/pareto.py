@@ -7,7 +7,8 @@ Schemes, each a point of bytes per robot per step against e_rot / e_pos:
 * :data:`PARETO_SETTINGS`: CERPE with configuration overrides, run on a small subset
   of each setting's encounters (``n_encounters`` per setting, the first ones) to keep
   ``make paper`` cheap: ``always`` (an image to every peer at every step: the
-  always-send reference) and ours at several settings;
+  always-send reference) and ours at several settings
+  (about a minute of ``make paper`` each);
 * the per-frame baselines (images every step, as always-send) where their runs exist.
 
 Runs of the settings live beside the method runs, ``<runs>/<setting>/pareto-<name>/``,
@@ -38,14 +39,15 @@ PARETO_SETTINGS: dict[str, dict] = {
     "always": {"request_policy": {"mode": "always"}},
     "pays": {"request_policy": PAYS},
     "pays-int8": {"request_policy": PAYS, "descriptor_dtype": "int8"},
-    "pays-int8-q60": {"request_policy": PAYS, "descriptor_dtype": "int8", "jpeg_quality": 60},
+    # each further line costs about a minute of `make paper` (one encounter per synthetic setting), e.g.
+    # "pays-q60": {"request_policy": PAYS, "jpeg_quality": 60},
 }
 PARETO_LABELS: dict[str, str] = {
     "paper": "paper's protocol (gate, request every time)",
     "always": "always send (image to every peer, every step)",
     "pays": "ours: request when it pays",
     "pays-int8": "ours + int8 descriptor",
-    "pays-int8-q60": "ours + int8 descriptor + JPEG 60",
+    "pays-q60": "ours + JPEG 60",
     "aliked-lightglue": "per-frame ALIKED+LightGlue (images every step)",
     "sift-ransac": "per-frame SIFT+RANSAC (images every step)",
 }
@@ -142,7 +144,7 @@ def _loaded(r: SchemeRun) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
 
 
 def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
-    """One row per (setting, scheme) and per scheme over all settings (``setting == "all"``).
+    """One row per (setting, scheme) and per scheme over the settings that have every scheme (``"all"``).
 
     Columns: ``bytes_per_robot_step`` (all messages), ``descriptor_bytes``, ``image_bytes``
     (requests + replies) per robot per step, ``vs_always`` (bytes over the ``always``
@@ -159,11 +161,14 @@ def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
         for acc, df in zip((F, S, R), _loaded(r)):
             acc.append(df.assign(setting=r.setting, scheme=r.scheme))
     frames, steps, robots = (pd.concat(x, ignore_index=True) for x in (F, S, R))
+    # "all" pools the settings that have every scheme but the baselines (its rows cover the same frames)
+    have, need = robots.groupby("setting")["scheme"].agg(set), set(robots["scheme"]) - set(BASELINES)
+    common = [s for s, v in have.items() if need <= v]
     rows = []
     for setting in [*sorted(frames["setting"].unique()), "all"]:
-        fs = frames if setting == "all" else frames[frames["setting"] == setting]
-        rs = robots if setting == "all" else robots[robots["setting"] == setting]
-        ss = steps if setting == "all" else steps[steps["setting"] == setting]
+        pick = (lambda df: df[df["setting"].isin(common)]) if setting == "all" else \
+            (lambda df, s=setting: df[df["setting"] == s])
+        fs, rs, ss = pick(frames), pick(robots), pick(steps)
         summ = summarise(fs, ["scheme"]).set_index("scheme")
         for scheme, g in rs.groupby("scheme", sort=False):
             if scheme not in summ.index:
