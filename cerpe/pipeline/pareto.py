@@ -185,7 +185,8 @@ def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
                 "e_pos_gt_scale_m": s["e_pos_gt_scale_m"], "success_pct": s["success_pct"],
                 "success_after_covis_pct": s["success_after_covis_pct"], "n_frames": int(s["n_frames"]),
                 "requests": int((fr["bytes_pair"] > 0).sum()) if "bytes_pair" in fr else 0,
-                "requests_skipped": int(fr["request_skipped"].astype(bool).sum()) if "request_skipped" in fr else 0,
+                "requests_skipped": (int(fr["request_skipped"].fillna(False).astype(bool).sum())
+                                     if "request_skipped" in fr else 0),  # runs of older code lack it
             })
     t = pd.DataFrame(rows)
     for col, ref in (("vs_always", "always"), ("image_vs_paper", "paper")):
