@@ -392,3 +392,40 @@ def message_loss_figure(summary: pd.DataFrame, title: str = ""):
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def pareto_figure(table: pd.DataFrame, setting: str = "all", title: str = ""):
+    """Bytes per robot per step against e_rot and against e_pos, one point per scheme.
+
+    Args:
+        table: :func:`cerpe.pipeline.pareto.pareto_table` rows (``setting, scheme, label,
+            bytes_per_robot_step, e_rot_rad, e_pos_m``); the rows of ``setting`` are drawn.
+    Returns:
+        1x2 figure (log bytes axis); a scheme without a metric position (per-frame
+        baselines) is left out of the e_pos panel, which says so.
+    """
+    plt = _plt()
+    t = table[table["setting"] == setting]
+    if not len(t):
+        raise PlotError(f"pareto figure: no rows for setting {setting!r}")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.3))
+    cmap = plt.get_cmap("tab10")
+    for ax, (col, unit) in zip(axes, (("e_rot_rad", "rad"), ("e_pos_m", "m"))):
+        left_out = []
+        for k, (_, r) in enumerate(t.iterrows()):
+            x, y = float(r["bytes_per_robot_step"]), float(r[col])
+            if not (np.isfinite(x) and np.isfinite(y) and x > 0):
+                left_out.append(str(r["scheme"]))
+                continue
+            ax.scatter([x / 1000], [y], s=40, color=cmap(k % 10), label=f"{r['label']}", zorder=3)
+            ax.annotate(str(r["scheme"]), (x / 1000, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.set_xscale("log")
+        ax.set_xlabel("bytes per robot per step (KB, log)")
+        ax.set_ylabel(f"mean {col[:-2].replace('_', ' ')} ({unit})")
+        if left_out:
+            ax.text(0.02, 0.02, "no metric value: " + ", ".join(left_out), transform=ax.transAxes, fontsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.suptitle(title or f"bytes vs accuracy ({setting})")
+    fig.tight_layout()
+    return fig

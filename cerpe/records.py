@@ -39,8 +39,9 @@ class PairRecord:
         gate_score: cosine similarity of the two robots' current descriptors (the
             paper's gate score, what gate-quality metrics read); NaN if the other's
             descriptor message was lost or garbled.
-        gate_open: whether the ego requested the other's image: ``gate_score >= tau``,
-            or with ``gate_memory`` ``gate_score_memory >= tau``.
+        gate_open: whether the gate opened: ``gate_score >= tau``, or with ``gate_memory``
+            ``gate_score_memory >= tau`` (the ego requested the other's image unless
+            ``request_skipped``; with the policy ``always`` it requested it in any case).
         source: ``direct`` (from this step's pass), ``propagated`` (an anchor moved
             by both robots' ego-motion) or ``none``.
         T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
@@ -73,6 +74,8 @@ class PairRecord:
         switch: with ``backend="graph"``, what the switch (the paper's CERPE) said at this
             step, ``(source, T_cj_ci, reason, anchor_step)``: the graph reads nothing back
             into the algorithm, so one pass yields both methods' records. Not a column.
+        request_skipped: the gate opened but the request policy did not ask for the image
+            (``CerpeConfig.request_policy``, mode ``pays``: the pair's anchor was fresh and certain).
     """
 
     step: int
@@ -96,6 +99,7 @@ class PairRecord:
     T_direct: np.ndarray | None = None
     direct_inliers: int = -1
     switch: tuple | None = None
+    request_skipped: bool = False
 
     def as_row(self) -> dict:
         row = {
@@ -111,6 +115,7 @@ class PairRecord:
                     else (float("nan"), float("nan")))
         row.update({"sigma_pos_m": float(pos), "sigma_rot_rad": float(rot), "direct_inliers": int(self.direct_inliers)})
         row.update(_pose_cols("dir", self.T_direct))
+        row["request_skipped"] = bool(self.request_skipped)
         return row
 
 

@@ -26,7 +26,7 @@ input raises :class:`AlgorithmError` naming robot, step and field.
 
 Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
 ``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``graph`` (the pose-graph
-back end, ``graph_sim`` a simulated stream for it), ``agent`` (one robot's state and phases), ``link``
+back end, ``graph_sim`` a simulated stream for it), ``policy`` (when an open gate requests the image), ``agent`` (one robot's state and phases), ``link``
 (the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
 process), ``degradations`` (the counted names).
 """
@@ -37,10 +37,11 @@ from .degradations import DEGRADATIONS
 from .engine import StepEngine, drive
 from .graph import DirectEstimate, GraphConfig, GraphEstimate, PairGraph
 from .link import Inbox, Link, Mailbox, Received
+from .policy import PairView, PolicyConfig
 from .poses import direct_relative, ego_motion, registered_relative
 from .team import Team, run_encounter
 
 __all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "AnchorConfig", "CerpeConfig",
-           "DirectEstimate", "GraphConfig", "GraphEstimate", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph",
+           "DirectEstimate", "GraphConfig", "GraphEstimate", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph", "PairView", "PolicyConfig",
            "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
            "registered_relative", "run_encounter"]

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from ..compress import make_codec
-from ..geometry import scale_translation, se3_inverse
+from ..geometry import pose_cov_sigmas, scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory, cosine
 from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage, decode
 from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
@@ -23,6 +23,7 @@ from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .graph import DirectEstimate, PairGraph
+from .policy import PairView, decide
 from .poses import check_pose, direct_relative, ego_motion, registered_relative
 from .state import PairInfo, Previous, StepState
 
@@ -57,6 +58,7 @@ class RobotAgent:
         self.last_scale = float("nan")
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
+        self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
         self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
         self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
@@ -212,6 +214,32 @@ class RobotAgent:
         if self.config.gate_memory and np.isfinite(s):
             s = st.memory_scores[other][0]
         return bool(np.isfinite(s) and s >= self.gate_tau)
+
+    def wants_image(self, other: str) -> bool:
+        """Whether to request ``other``'s image this step: the gate and the request policy
+        (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens). A skipped
+        request is kept (``PairRecord.request_skipped``); the pair then propagates its anchor."""
+        st = self._state()
+        gate = self.gate_open(other)
+        conf = self.config.request_policy
+        ask, why = decide(conf, gate, self._pair_view(other, st.step) if conf.mode == "pays" else None)
+        st.requested[other] = ask
+        if gate and not ask:
+            st.skipped[other] = why
+        return ask
+
+    def _pair_view(self, other: str, step: int) -> PairView:
+        """What the request policy reads about a pair before this step's pass (anchors, odometers of
+        the previous step, the graph's last sigma)."""
+        pair = self.pairs.get(other)
+        if pair is None or pair.anchor is None:
+            return PairView(anchored=False, pending=bool(pair and pair.candidates))
+        a = pair.anchor
+        odo = [self.odometers.get(r, (0, None, o))[2] for r, o in ((self.robot_id, a.odo_i), (other, a.odo_j))]
+        rot, pos = self.sigmas.get(other, (float("nan"), float("nan")))
+        return PairView(anchored=True, pending=bool(pair.challengers), steps_since=step - a.step,
+                        travelled_m=abs(odo[0] - a.odo_i) + abs(odo[1] - a.odo_j),
+                        sigma_rot_rad=rot, sigma_pos_m=pos)
 
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
         """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
@@ -453,7 +481,8 @@ class RobotAgent:
                           anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
                           direct_via=info.direct_via, anchor_verdict=info.verdict,
                           check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m, cov=cov,
-                          T_direct=info.direct_T, direct_inliers=info.direct_inliers, switch=switch)
+                          T_direct=info.direct_T, direct_inliers=info.direct_inliers, switch=switch,
+                          request_skipped=other in st.skipped)
 
     def _graph_relative(self, st: StepState, other: str,
                         reason: str) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
@@ -477,6 +506,9 @@ class RobotAgent:
         st.timings["graph"] += time.perf_counter() - t0
         for what in res.degradations:
             self.degrade(what)
+        if res.cov is not None:  # what the request policy reads at the next gate
+            pos, rot = pose_cov_sigmas(res.cov)
+            self.sigmas[other] = (float(rot), float(pos))
         # what the switch said about its own anchors does not describe the graph's estimate
         reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
                            and not r.startswith("direct-rejected"))
@@ -489,7 +521,7 @@ class RobotAgent:
         fresh = pose is not None and pose[0] == st.step
         pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
         info = st.pair_info.setdefault(other, PairInfo())
-        if self.gate_open(other):
+        if st.requested.get(other, self.gate_open(other)):
             ests, reason = self._direct_estimates(st, other)
             if ests:
                 via, T = ests[0][1], ests[0][2]
@@ -522,7 +554,7 @@ class RobotAgent:
                 reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
                           f"of step {check.against}")
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
-            reason = st.gate_reason.get(other, "")
+            reason = "request-skipped" if other in st.skipped else st.gate_reason.get(other, "")
             if not self.config.propagate:
                 return "none", None, reason or "gate-closed", -1
         if not self.config.propagate:

@@ -12,6 +12,7 @@ from ..compress import CODECS as DESCRIPTOR_CODECS
 from ..messages import DESCRIPTOR_DTYPES, REPLY_CODECS
 from .anchors import AnchorConfig
 from .graph import GraphConfig
+from .policy import PolicyConfig
 
 PAPER_THRESHOLDS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2}
 BACKENDS: tuple[str, ...] = ("switch", "graph")
@@ -110,6 +111,10 @@ class CerpeConfig:
             covariance (:mod:`cerpe.algorithm.graph`). The messages are the same.
         graph: the graph's noise models, kernel and window (:class:`~cerpe.algorithm.graph.GraphConfig`;
             a dict of its fields is accepted).
+        request_policy: when a gate that opened asks for the image
+            (:class:`~cerpe.algorithm.policy.PolicyConfig`; a dict of its fields is accepted):
+            ``mode="gate"`` is the paper's (always), ``"pays"`` ours (only without a fresh,
+            certain anchor), ``"always"`` every peer at every step.
     """
 
     tau: float | None = None
@@ -147,18 +152,13 @@ class CerpeConfig:
     anchor_verify_support: int = 2
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
+    request_policy: PolicyConfig = field(default_factory=PolicyConfig)
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise AlgorithmError(f"config: backend must be one of {list(BACKENDS)}, got {self.backend!r}")
-        if isinstance(self.graph, dict):
-            known = {f.name for f in dataclasses.fields(GraphConfig)}
-            if set(self.graph) - known:
-                raise AlgorithmError(f"config: unknown graph field(s) {sorted(set(self.graph) - known)}; "
-                                     f"known: {sorted(known)}")
-            object.__setattr__(self, "graph", GraphConfig(**self.graph))
-        if not isinstance(self.graph, GraphConfig):
-            raise AlgorithmError(f"config: graph must be a GraphConfig or a dict, got {type(self.graph).__name__}")
+        for name, cls in (("graph", GraphConfig), ("request_policy", PolicyConfig)):
+            self._sub_config(name, cls)
         for name in ("tau", "tau_m", "tau_k"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and -1.0 <= v <= 1.0):
@@ -197,6 +197,18 @@ class CerpeConfig:
             v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
             if int(v) != v or v < low:
                 raise AlgorithmError(f"config: {name} must be an integer >= {low}, got {v}")
+
+    def _sub_config(self, name: str, cls: type) -> None:
+        """A nested config given as a dict of its fields becomes ``cls``; anything else but ``cls`` is an error."""
+        value = getattr(self, name)
+        if isinstance(value, dict):
+            known = {f.name for f in dataclasses.fields(cls)}
+            if set(value) - known:
+                raise AlgorithmError(f"config: unknown {name} field(s) {sorted(set(value) - known)}; "
+                                     f"known: {sorted(known)}")
+            object.__setattr__(self, name, cls(**value))
+        elif not isinstance(value, cls):
+            raise AlgorithmError(f"config: {name} must be a {cls.__name__} or a dict, got {type(value).__name__}")
 
     def resolved(self, descriptor_thresholds: dict[str, float] | None = None) -> "CerpeConfig":
         """Concrete thresholds: explicit value > descriptor calibration > paper."""

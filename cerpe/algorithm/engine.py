@@ -75,10 +75,11 @@ class StepEngine:
         a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.descriptor_dtype)))
         yield "descriptor"
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
+        # (and that the request policy wants: CerpeConfig.request_policy; the paper's asks them all)
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
         for p in peers:
             a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
-        asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.gate_open(p)}
+        asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.wants_image(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
         for _ in range(int(a.config.request_retries)):  # a lost request or reply: ask once more
             again = {p: f for p, f in asked.items() if p not in replies.messages}

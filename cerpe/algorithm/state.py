@@ -32,6 +32,8 @@ class StepState:
     prev_index: int | None = None
     own_views: dict[int, tuple[int, np.ndarray | None]] = field(default_factory=dict)
     pair_info: dict[str, "PairInfo"] = field(default_factory=dict)
+    requested: dict[str, bool] = field(default_factory=dict)  # peer -> image asked (request policy)
+    skipped: dict[str, str] = field(default_factory=dict)  # peer -> why the policy skipped an open gate
     scale: float = float("nan")
     metric_scale: bool = True  # False: s = 1 for want of metric depth (unit_scale_without_depth)
     ego_status: str = ""

@@ -7,7 +7,8 @@ Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture]``
    listed in Table I as "not supplied" with the manifest to fill;
 2. every method runs on every enabled setting (``cerpe run``; cached in
    ``build/runs/<setting>/<method>/`` and resumed; a run of another
-   configuration is replaced);
+   configuration is replaced); the Pareto settings (:mod:`cerpe.pipeline.pareto`) run
+   on the first encounter of each synthetic setting (``build/runs/<setting>/pareto-*``);
 3. the notebooks run with papermill into ``build/notebooks/`` and write
    ``tables/`` and ``figures/``. When the inputs' fingerprint (run
    fingerprints, notebooks, evaluation/plotting code, parameters) is unchanged
@@ -53,13 +54,14 @@ RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "sift-ran
 # The paper's own systems figures (Section IV, RTX 4080 laptop, VGGT/SALAD): never our measurements.
 PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2": 438, "ms_3": 780}
 NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime",
-                              "05_uncertainty", "06_message_loss")
+                              "05_uncertainty", "06_message_loss", "07_pareto")
 # outputs each notebook must leave (stems; figures as .png and .pdf)
 EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality", "calibration",
-                                     "message_loss")
+                                     "message_loss", "pareto")
 NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv",  # written by notebook 04
                                     "calibration.csv",  # notebook 05
-                                    "message_loss.csv", "message_loss.md")  # notebook 06
+                                    "message_loss.csv", "message_loss.md",  # notebook 06
+                                    "pareto.csv", "pareto.md")  # notebook 07
 PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
 SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
 
@@ -97,6 +99,7 @@ class PaperContext:
     settings: list[SettingEntry] = field(default_factory=list)
     run_dirs: dict[tuple[str, str], Path] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
+    extra_runs: list[Path] = field(default_factory=list)  # runs beside the methods' (the Pareto settings)
 
     @property
     def ok_settings(self) -> list[SettingEntry]:
@@ -449,8 +452,7 @@ def gate_data(ctx: PaperContext, method: str = "cerpe") -> dict:
 # --------------------------------------------------------------------------- notebooks
 def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
     h = hashlib.sha256(json.dumps(params, sort_keys=True).encode())
-    for key in sorted(ctx.run_dirs):
-        p = ctx.run_dirs[key]
+    for key, p in [*sorted(ctx.run_dirs.items()), *((str(q), q) for q in sorted(ctx.extra_runs))]:
         h.update(str(key).encode())
         for f in sorted(p.glob("*/DONE.json")) + [p / "run.json"]:
             if f.exists():
@@ -459,7 +461,8 @@ def _inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
         h.update(f"{e.name}:{e.status}:{e.detail}".encode())
     code = [ROOT / "cerpe" / "plotting.py", ROOT / "cerpe" / "pipeline" / "evaluate.py",
             ROOT / "cerpe" / "pipeline" / "paper.py", ROOT / "cerpe" / "pipeline" / "table1.py",
-            ROOT / "cerpe" / "pipeline" / "message_loss.py"] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
+            ROOT / "cerpe" / "pipeline" / "message_loss.py", ROOT / "cerpe" / "pipeline" / "pareto.py"] + [
+                ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())
@@ -515,6 +518,13 @@ def build_paper(profile_preset: str = "default", suite: str = "paper-default", f
         require_paper()
     ctx = context(nb_profile, preset=PRESETS.get(profile_preset, profile_preset), build=True, progress=progress,
                   validate=True)
+    from .pareto import context_runs  # the Pareto settings on a few encounters (notebook 07 reads them)
+
+    t0 = time.perf_counter()
+    runs, errors = context_runs(ctx, build=True, progress=progress)
+    ctx.extra_runs = sorted({r.path for r in runs if r.path.name.startswith("pareto-")})
+    ctx.errors += errors
+    log.info("Pareto settings: %.1f s", time.perf_counter() - t0)
     run_notebooks(ctx, force=force_notebooks)
     return ctx
 

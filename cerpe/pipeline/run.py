@@ -64,7 +64,7 @@ StepSource = Callable[[Any], Iterator[StepResult]]
 
 def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
                    every: int = 1, depth_options: dict | None = None,
-                   channel: LossSpec | None = None) -> tuple[dict, StepSource]:
+                   channel: LossSpec | None = None, overrides: dict | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
@@ -72,18 +72,22 @@ def prepare_method(method: str, profile: str, seed: int, metric_depth: str | Non
     keyword options (manifest ``metric_depth_options``); ``channel`` the lossy
     channel of the cerpe methods (None: lossless). ``every`` is the
     setting's evaluation stride: per-frame baselines only compute evaluated steps
-    (CERPE runs every step: its odometry and propagation need them).
+    (CERPE runs every step: its odometry and propagation need them). ``overrides``:
+    :class:`~cerpe.algorithm.CerpeConfig` fields merged strictly into the method's
+    configuration (cerpe methods only; e.g. ``{"request_policy": {"mode": "pays"}}``).
 
     Raises :class:`~cerpe.pipeline.methods.MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
     check_method(method)
+    if overrides and method not in CERPE_METHODS:
+        raise RunError(f"method {method!r}: configuration overrides apply to the cerpe methods only")
     if method in BASELINE_METHODS:
         if channel is not None and not channel.lossless:
             raise RunError(f"--loss/--garble: {method} exchanges no messages (a per-frame baseline); "
                            f"only the cerpe methods run over the lossy channel")
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
-    return _cerpe_steps(method, profile, seed, metric_depth, depth_options, channel or LossSpec())
+    return _cerpe_steps(method, profile, seed, metric_depth, depth_options, channel or LossSpec(), overrides)
 
 
 def _conf_of(obj: Any) -> Any:
@@ -94,7 +98,7 @@ def _conf_of(obj: Any) -> Any:
 
 
 def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
-                             depth_options: dict | None = None) -> tuple[Any, Any, dict]:
+                             depth_options: dict | None = None, overrides: dict | None = None) -> tuple[Any, Any, dict]:
     """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
 
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
@@ -108,6 +112,13 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method != "cerpe-wo-em"),
                               backend="graph" if method == "cerpe-graph" else "switch",
                               unit_scale_without_depth=(metric_depth == "none"))
+    if overrides:
+        from ..config import ConfigError, merge_conf
+
+        try:
+            cfg = algorithm.CerpeConfig(**merge_conf(cfg.as_dict(), overrides, "cerpe config"))
+        except ConfigError as exc:
+            raise RunError(str(exc)) from None
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
         "cerpe": config_dict(cfg), "preset": profile,
@@ -119,11 +130,12 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
 
 
 def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
-                 depth_options: dict | None = None, loss: LossSpec = LossSpec()) -> tuple[dict, StepSource]:
+                 depth_options: dict | None = None, loss: LossSpec = LossSpec(),
+                 overrides: dict | None = None) -> tuple[dict, StepSource]:
     """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
     from .. import algorithm
 
-    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options)
+    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options, overrides)
     conf["channel"] = loss.as_dict()
 
     # Propagation and the pose graph feed nothing back (anchors come only from direct
@@ -134,7 +146,9 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
     # after another in the same process reuses the pass (tests/test_pipeline_woem.py
     # checks each view against a real run of that configuration).
     pass_cfg = dataclasses.replace(cfg, propagate=True, backend="graph")
-    shared = (cfg.propagate, cfg.backend) in ((True, "switch"), (False, "switch"), (True, "graph"))
+    # ... unless something reads the graph back: the "pays" request policy reads its sigma
+    shared = ((cfg.propagate, cfg.backend) in ((True, "switch"), (False, "switch"), (True, "graph"))
+              and cfg.request_policy.mode in ("gate", "always"))
     pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None, "backend": None}},
                           sort_keys=True, default=str)
 
@@ -379,14 +393,15 @@ def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
 
 def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: str = "offline",
                seed: int = 0, overwrite: bool = False, progress: bool = True,
-               setting: Any = None, loss: LossSpec | None = None) -> Path:
+               setting: Any = None, loss: LossSpec | None = None, overrides: dict | None = None) -> Path:
     """Run ``method`` on every encounter of ``manifest`` into run folder ``out``.
 
     ``loss``: the cerpe methods' robots talk over a lossy channel (None: lossless).
 
     Finished encounters (``DONE.json`` with this fingerprint) are skipped; a
     folder from another configuration raises :class:`RunError` unless
-    ``overwrite`` (then it is replaced). Returns ``out``.
+    ``overwrite`` (then it is replaced). ``overrides``: CerpeConfig fields for a cerpe
+    method (recorded in ``run.json``; see :func:`prepare_method`). Returns ``out``.
     """
     check_method(method)
     if int(seed) < 0:
@@ -404,13 +419,16 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     every = evaluation_every(setting, manifest)
     lossy = {} if loss is None or loss.lossless else {"channel": loss}  # test doubles take no channel
     mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
-                                  getattr(setting, "metric_depth_options", None), **lossy)
+                                  getattr(setting, "metric_depth_options", None), **lossy,
+                                  **({"overrides": overrides} if overrides else {}))
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
         "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
         "method_config": mconf, "code": code_hash(method),
     }
+    if overrides:
+        config["overrides"] = overrides
     fp = fingerprint(config)
     run_json = out / "run.json"
     if run_json.exists():

@@ -1,0 +1,121 @@
+"""When to ask a collaborator for its image (issue 21, item 3): the request policy.
+
+The paper requests an image whenever the gate opens (``mode="gate"``, the default).
+``mode="pays"`` (ours) asks only when the gate opens AND the image pays for its bytes:
+
+* the pair has no verified anchor yet (an unverified candidate waits for the
+  estimates that verify it), or its anchor is disputed (rejected estimates are
+  waiting to replace it: they need more estimates to agree);
+* the estimate's predicted uncertainty exceeds a threshold: the pose graph's
+  marginal sigma of the previous step where ``backend="graph"``, else a
+  propagation model (:func:`propagation_sigma`: grows with the steps since the
+  anchor and the metres both robots travelled since);
+* more than ``max_steps`` steps passed since the last anchor (a fresh look now and
+  then, whatever the model says).
+
+``mode="always"`` asks every peer at every step, gate or not (the "always send
+images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
+decision; the agent fills the view from its anchors, odometers and graph.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..errors import CerpeError
+
+MODES: tuple[str, ...] = ("gate", "pays", "always")
+
+
+class PolicyError(CerpeError, ValueError):
+    """A request-policy configuration that cannot be used (names the field)."""
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Request policy (see the module docstring); ``CerpeConfig.request_policy``, a dict is accepted.
+
+    Attributes:
+        mode: ``gate`` (the paper: request whenever the gate opens), ``pays`` (ours),
+            ``always`` (every peer, every step).
+        max_sigma_rot_rad, max_sigma_pos_m: request when the predicted sigma of the
+            estimate (rotation, position) exceeds these.
+        max_steps: request when more steps than this passed since the last anchor.
+        rot_sigma0_rad, rot_sigma_per_step: propagation model (switch back end): a
+            fresh anchor's rotation sigma and its growth per step since.
+        pos_sigma0_m, pos_sigma_per_m: the same for position, growing per metre the
+            two robots travelled since the anchor (both odometers summed).
+    """
+
+    mode: str = "gate"
+    # thresholds checked on development data only (scripts/dev_policy.py; figures in the commit that says so)
+    max_sigma_rot_rad: float = 0.05
+    max_sigma_pos_m: float = 0.3
+    max_steps: int = 30
+    rot_sigma0_rad: float = 0.01
+    rot_sigma_per_step: float = 0.0035
+    pos_sigma0_m: float = 0.05
+    pos_sigma_per_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise PolicyError(f"request_policy: mode must be one of {list(MODES)}, got {self.mode!r}")
+        for name in ("max_sigma_rot_rad", "max_sigma_pos_m", "rot_sigma0_rad", "rot_sigma_per_step",
+                     "pos_sigma0_m", "pos_sigma_per_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise PolicyError(f"request_policy: {name} must be finite and >= 0, got {v!r}")
+        if not (isinstance(self.max_steps, int) and self.max_steps >= 0):
+            raise PolicyError(f"request_policy: max_steps must be an integer >= 0, got {self.max_steps!r}")
+
+
+@dataclass(frozen=True)
+class PairView:
+    """What the policy knows about one ordered pair at the gate (before this step's pass).
+
+    Attributes:
+        anchored: the pair has a verified anchor (switch) or graph node.
+        pending: unverified candidates or challengers wait for estimates to verify them.
+        steps_since: steps since that anchor (or node) was measured.
+        travelled_m: metres the two robots travelled since, odometers summed.
+        sigma_rot_rad, sigma_pos_m: the graph's marginal sigma of the last step (NaN:
+            none, e.g. the switch back end: the propagation model is used instead).
+    """
+
+    anchored: bool
+    pending: bool = False
+    steps_since: int = 0
+    travelled_m: float = 0.0
+    sigma_rot_rad: float = float("nan")
+    sigma_pos_m: float = float("nan")
+
+
+def propagation_sigma(conf: PolicyConfig, view: PairView) -> tuple[float, float]:
+    """``(rotation rad, position m)`` predicted sigma of the anchor propagated ``steps_since`` steps."""
+    return (conf.rot_sigma0_rad + conf.rot_sigma_per_step * max(view.steps_since, 0),
+            conf.pos_sigma0_m + conf.pos_sigma_per_m * max(view.travelled_m, 0.0))
+
+
+def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[bool, str]:
+    """``(request, why)``; ``why`` names the rule that asked, or why a request was skipped.
+
+    ``view`` is only read with ``mode="pays"`` (None there counts as "no anchor").
+    """
+    if conf.mode == "always":
+        return True, "always"
+    if not gate_open:
+        return False, "gate-closed"
+    if conf.mode == "gate":
+        return True, "gate"
+    if view is None or not view.anchored:
+        return True, "no-anchor"
+    if view.pending:
+        return True, "pending"
+    if view.steps_since > conf.max_steps:
+        return True, "stale"
+    rot, pos = view.sigma_rot_rad, view.sigma_pos_m
+    if not (math.isfinite(rot) and math.isfinite(pos)):
+        rot, pos = propagation_sigma(conf, view)
+    if rot > conf.max_sigma_rot_rad or pos > conf.max_sigma_pos_m:
+        return True, "uncertain"
+    return False, "anchor-fresh"

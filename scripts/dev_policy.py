@@ -1,0 +1,76 @@
+"""Tune the image-request policy on development data (never on the paper-default suite).
+
+Runs CERPE with the paper's protocol, always-send and the request policy at a few
+thresholds on the development sets of ``cerpe dev`` (synthetic suites of seed >= 1
+and the real ``datasets_manifest/dev-*.yaml`` sets whose data is present), every
+encounter, and prints the Pareto table (``cerpe.pipeline.pareto``) per set and over
+all, with the issue's check for each policy setting.
+
+    python scripts/dev_policy.py [--seeds 1] [--out build/dev] [--sets PATTERN ...]
+
+Runs are cached in ``<out>/runs/<set>/pareto-<name>/`` (resumed; a changed setting
+is a new run); the table goes to ``<out>/policy.{csv,md}``.
+"""
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import sys
+from pathlib import Path
+
+from cerpe.atomicio import atomic_write_text
+from cerpe.pipeline import dev, pareto
+
+ROOT = Path(__file__).resolve().parents[1]
+# name -> CerpeConfig overrides; "paper" and "always" are the references of the check
+GRID: dict[str, dict] = {
+    "paper": {"request_policy": {"mode": "gate"}},
+    "always": {"request_policy": {"mode": "always"}},
+    "pays": {"request_policy": {"mode": "pays"}},  # PolicyConfig's defaults
+    "pays-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
+                                      "max_steps": 15}},
+    "pays-loose": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.1, "max_sigma_pos_m": 0.6,
+                                      "max_steps": 60}},
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[1])
+    p.add_argument("--out", type=Path, default=ROOT / "build" / "dev")
+    p.add_argument("--sets", nargs="+", default=None, metavar="PATTERN")
+    p.add_argument("--schemes", nargs="+", default=list(GRID), choices=list(GRID))
+    args = p.parse_args(argv)
+    entries = [s for s in dev.real_sets(ROOT / "datasets_manifest") if s.status == "ok"]
+    from cerpe.synth import SUITES
+
+    for seed in args.seeds:
+        entries += [dev.synthetic_set(setting, seed, "dev", args.out, progress=False)
+                    for setting in SUITES["paper-default"]]
+    entries = [e for e in entries if not args.sets or any(fnmatch.fnmatchcase(e.name, q) for q in args.sets)]
+    runs, errors = pareto.scheme_runs([(e.name, e.manifest, None) for e in entries], args.out / "runs",
+                                      schemes={k: GRID[k] for k in args.schemes}, n_encounters=None, progress=False)
+    for msg in errors:
+        print(f"error: {msg}", file=sys.stderr)
+    table = pareto.pareto_table(runs)
+    md = "".join(f"\n### {s}\n\n{pareto.format_markdown(table, s)}" for s in table["setting"].unique())
+    checks = []
+    for scheme in (k for k in args.schemes if k.startswith("pays")):
+        for s in table["setting"].unique():
+            try:
+                c = pareto.check(table, scheme, s)
+            except pareto.ParetoError:
+                continue
+            checks.append(f"{scheme:12s} {s:32s} bytes/always {c['bytes_vs_always']:.3f}  image bytes/paper "
+                          f"{c['image_bytes_vs_paper']:.3f}  e_rot/paper {c['e_rot_vs_paper']:.3f}  "
+                          f"success/paper {c['success_vs_paper']:.3f}")
+    text = md + "\n```\n" + "\n".join(checks) + "\n```\n"
+    print(text)
+    atomic_write_text(args.out / "policy.csv", table.to_csv(index=False, float_format="%.6g"))
+    atomic_write_text(args.out / "policy.md", f"# request policy on development data\n\nsets: "
+                      f"{', '.join(e.name for e in entries)}\n{text}")
+    return 1 if errors else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""The image-request policy (issue 21 item 3): the rules on their own, then end to end with the
+ground-truth doubles (tests/gt_backbone.py), where anchors verify and the policy can skip."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
+
+from cerpe.algorithm import AlgorithmError, CerpeConfig, Team
+from cerpe.algorithm.policy import PairView, PolicyConfig, PolicyError, decide, propagation_sigma
+from cerpe.geometry import e_rot
+
+PAYS = PolicyConfig(mode="pays")
+FRESH = PairView(anchored=True, steps_since=1, travelled_m=0.5)
+
+
+def test_pays_skips_a_fresh_certain_anchor_and_asks_otherwise():
+    assert decide(PAYS, True, FRESH) == (False, "anchor-fresh")
+    assert decide(PAYS, True, PairView(anchored=False)) == (True, "no-anchor")
+    assert decide(PAYS, True, None) == (True, "no-anchor")
+    # an unverified candidate (no anchor yet) or challengers of the anchor wait for more estimates
+    assert decide(PAYS, True, PairView(anchored=False, pending=True))[0]
+    assert decide(PAYS, True, dataclasses.replace(FRESH, pending=True)) == (True, "pending")
+    assert decide(PAYS, True, dataclasses.replace(FRESH, steps_since=31)) == (True, "stale")
+    # the graph's sigma, when there is one, decides instead of the propagation model
+    assert decide(PAYS, True, dataclasses.replace(FRESH, sigma_rot_rad=0.06, sigma_pos_m=0.1)) == (True, "uncertain")
+    assert decide(PAYS, True, dataclasses.replace(FRESH, sigma_rot_rad=0.01, sigma_pos_m=0.31)) == (True, "uncertain")
+    assert decide(PAYS, True, dataclasses.replace(FRESH, steps_since=20, sigma_rot_rad=0.01,
+                                                  sigma_pos_m=0.1)) == (False, "anchor-fresh")
+    # the propagation model: rotation grows per step, position per metre travelled
+    assert decide(PAYS, True, dataclasses.replace(FRESH, steps_since=12)) == (True, "uncertain")  # 0.01+0.042
+    assert decide(PAYS, True, dataclasses.replace(FRESH, travelled_m=5.1)) == (True, "uncertain")  # 0.05+0.255
+    assert propagation_sigma(PAYS, PairView(True, steps_since=10, travelled_m=2.0)) == pytest.approx((0.045, 0.15))
+    # never without the gate, except "always"
+    assert decide(PAYS, False, PairView(anchored=False)) == (False, "gate-closed")
+    assert decide(PolicyConfig(), False, None) == (False, "gate-closed")
+    assert decide(PolicyConfig(), True, FRESH) == (True, "gate")  # the paper's: whenever the gate opens
+    assert decide(PolicyConfig(mode="always"), False, FRESH) == (True, "always")
+
+
+@pytest.mark.parametrize("bad", [{"mode": "sometimes"}, {"max_steps": -1}, {"max_steps": 1.5},
+                                 {"max_sigma_rot_rad": float("nan")}, {"pos_sigma_per_m": -0.1}])
+def test_bad_policy_config_is_one_clear_error(bad):
+    with pytest.raises(PolicyError, match=next(iter(bad))):
+        PolicyConfig(**bad)
+    with pytest.raises((PolicyError, AlgorithmError)):
+        CerpeConfig(request_policy=bad)
+    with pytest.raises(AlgorithmError, match="unknown request_policy"):
+        CerpeConfig(request_policy={"modus": "pays"})
+
+
+def _run(policy: dict, backend: str = "switch"):
+    world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
+    cfg = CerpeConfig(min_scale_pixels=20, request_policy=policy, backend=backend)
+    team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(), cfg)
+    results = list(team.run_encounter(world.to_encounter()))
+    P = {res.step: next(p for p in res.pairs if p.ego == "r0" and p.other == "r1") for res in results}
+    return world, results, P
+
+
+def test_agent_skips_requests_while_the_anchor_is_fresh_and_asks_again_when_it_is_not():
+    world, results, P = _run({"mode": "pays"})
+    _, base, B = _run({"mode": "gate"})
+    # verification still works: the unverified candidates keep asking until one is verified
+    assert [P[t].anchor_verdict for t in range(5, 8)] == ["unverified", "unverified", "verified"]
+    assert [B[t].anchor_verdict for t in range(5, 8)] == ["unverified", "unverified", "verified"]
+    assert all(P[t].bytes_pair > 0 and not P[t].request_skipped for t in range(5, 8))
+    # a fresh verified anchor with a low predicted sigma: the open gate asks for nothing
+    for t in (8, 9):
+        p = P[t]
+        assert p.gate_open and p.request_skipped and p.bytes_pair == 0 and p.anchor_verdict == ""
+        assert p.source == "propagated" and p.anchor_step == 7 and p.reason == "request-skipped"
+        gt = world.gt_T_cj_ci(t, 0, 1)
+        assert e_rot(p.T_cj_ci, gt) < 1e-5 and np.linalg.norm(p.T_cj_ci[:3, 3] - gt[:3, 3]) < 1e-4
+        assert B[t].bytes_pair > 0 and not B[t].request_skipped and B[t].source == "direct"
+    # 18 steps later the propagation model's sigma is above the thresholds: it asks again
+    assert P[25].gate_open and not P[25].request_skipped and P[25].bytes_pair > 0 and P[25].source == "direct"
+    assert P[25].anchor_verdict == "accepted"
+    sent = lambda rs: sum(r.bytes_sent.get("reply", 0) + r.bytes_sent.get("request", 0) for x in rs for r in x.robots)
+    assert sent(results) < sent(base)
+    # the paper's configuration never skips: every open gate requested
+    assert not any(p.request_skipped for res in base for p in res.pairs)
+    assert all(p.bytes_pair > 0 for res in base for p in res.pairs if p.gate_open)
+
+
+def test_pays_with_zero_thresholds_and_always_are_the_papers_records_where_the_gate_opens():
+    _, base, _ = _run({"mode": "gate"})
+    _, zero, _ = _run({"mode": "pays", "max_steps": 0, "max_sigma_rot_rad": 0.0, "max_sigma_pos_m": 0.0})
+    rows = lambda rs: [p.as_row() for res in rs for p in res.pairs]
+    for a, b in zip(rows(base), rows(zero)):
+        assert a.keys() == b.keys()
+        assert all(a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]) for k in a), a["step"]
+    _, always, _ = _run({"mode": "always"})
+    assert all(p.bytes_pair > 0 for res in always for p in res.pairs)  # gate or not
+    assert sum(p.source == "direct" for res in always for p in res.pairs) > \
+        sum(p.source == "direct" for res in base for p in res.pairs)
+
+
+def test_graph_backend_reads_the_graphs_sigma_instead_of_the_propagation_model():
+    # a propagation model that always says "uncertain": the switch asks, the graph's own sigma does not
+    policy = {"mode": "pays", "rot_sigma0_rad": 10.0, "max_sigma_pos_m": 1.0}  # graph: 0.46 m at step 7
+    _, _, S = _run(policy)
+    assert not S[8].request_skipped and S[8].bytes_pair > 0
+    _, _, G = _run(policy, backend="graph")
+    assert np.isfinite(G[7].cov).all()
+    assert G[8].request_skipped and G[8].bytes_pair == 0 and G[8].source == "propagated"
+    # and a threshold below the graph's sigma asks again
+    _, _, H = _run({"mode": "pays", "max_sigma_rot_rad": 1e-9}, backend="graph")
+    assert not H[8].request_skipped and H[8].bytes_pair > 0

@@ -1,0 +1,86 @@
+"""The Pareto step (issue 21 item 5a) on a tiny fake setting: runs per setting on a subset of
+encounters, cached; the table's ratios; the figure; configuration overrides of a real cerpe run."""
+from __future__ import annotations
+
+import pytest
+
+from cerpe import plotting
+from cerpe.pipeline import pareto
+from cerpe.pipeline import run as rp
+
+from test_pipeline_run_eval import _fake_steps, _setting
+
+REPLY = {"always": 1000, "gate": 500, "pays": 100}
+SCHEMES = {"always": {"request_policy": {"mode": "always"}}, "pays": {"request_policy": {"mode": "pays"}}}
+
+
+@pytest.fixture()
+def fake(monkeypatch):
+    calls = []
+
+    def prepare(method, profile, seed, depth=None, every=1, depth_options=None, overrides=None):
+        mode = ((overrides or {}).get("request_policy") or {}).get("mode", "gate")
+        calls.append(mode)
+
+        def steps(enc):
+            for res in _fake_steps(noise_rad={"always": 0.05, "gate": 0.1, "pays": 0.11}[mode])(enc):
+                for r in res.robots:
+                    r.bytes_sent = {"descriptor": 100, "reply": REPLY[mode]}
+                for p in res.pairs:
+                    p.bytes_pair, p.request_skipped = REPLY[mode], mode == "pays"
+                yield res
+        return {"fake": True, "mode": mode}, steps
+
+    monkeypatch.setattr(rp, "prepare_method", prepare)
+    return calls
+
+
+def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, fake):
+    m = tmp_path / "toy.yaml"
+    m.write_text("name: toy\n")
+    s = _setting(n_steps=6, n_enc=3)
+    runs, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes=SCHEMES, n_encounters=1,
+                                      progress=False)
+    assert not errors and [r.scheme for r in runs] == ["always", "pays"] and fake == ["always", "pays"]
+    assert sorted(p.name for p in runs[0].path.iterdir() if p.is_dir()) == ["enc0"]  # the subset only
+    # cached: found again without running; located without building; a changed setting runs anew
+    again, _ = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes=SCHEMES, n_encounters=1)
+    assert again == runs and len(fake) == 2
+    found, errs = pareto.scheme_runs([("toy", m, None)], tmp_path / "runs", schemes=SCHEMES, build=False)
+    assert found == runs and not errs
+    missing, errs = pareto.scheme_runs([("toy", m, None)], tmp_path / "runs", build=False,
+                                       schemes={"pays": {"request_policy": {"mode": "pays", "max_steps": 3}}})
+    assert not missing and "no current run" in errs[0]
+    # the paper protocol: a full run of all encounters, read on the subset's encounters only
+    paper = rp.run_method(m, "cerpe", tmp_path / "runs" / "toy" / "cerpe", setting=s, progress=False)
+    runs.append(pareto.SchemeRun("toy", "paper", paper, ("enc0",)))
+    t = pareto.pareto_table(runs)
+    assert set(t["setting"]) == {"toy", "all"}
+    row = t[(t["setting"] == "all")].set_index("scheme")
+    assert row.loc["always", "bytes_per_robot_step"] == pytest.approx(1100)
+    assert row.loc["pays", "vs_always"] == pytest.approx(200 / 1100)
+    assert row.loc["pays", "image_vs_paper"] == pytest.approx(100 / 500)
+    assert row.loc["paper", "e_rot_rad"] == pytest.approx(0.1, abs=1e-6)
+    assert row.loc["always", "e_rot_rad"] == pytest.approx(0.05, abs=1e-6)
+    assert row.loc["paper", "n_frames"] == row.loc["pays", "n_frames"] == 2 * 6  # one encounter each
+    assert row.loc["pays", "requests_skipped"] == 2 * 6 and row.loc["paper", "requests_skipped"] == 0
+    c = pareto.check(t, "pays")
+    assert c["bytes_vs_always"] == pytest.approx(200 / 1100) and c["e_rot_vs_paper"] == pytest.approx(1.1, abs=1e-4)
+    assert c["success_vs_paper"] == pytest.approx(1.0)
+    md = pareto.format_markdown(t)
+    assert md.count("\n") == 2 + 3 and "ours: request when it pays" in md
+    out = plotting.save_figure(plotting.pareto_figure(t), tmp_path / "fig" / "pareto")
+    assert all(p.stat().st_size > 1000 for p in out)
+    with pytest.raises(pareto.ParetoError):
+        pareto.check(t, "pays-int8")
+
+
+def test_overrides_reach_the_cerpe_config_strictly():
+    conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim",
+                                overrides={"request_policy": {"mode": "pays", "max_steps": 7}, "jpeg_quality": 60})
+    assert conf["cerpe"]["request_policy"]["mode"] == "pays" and conf["cerpe"]["request_policy"]["max_steps"] == 7
+    assert conf["cerpe"]["jpeg_quality"] == 60 and conf["cerpe"]["request_policy"]["max_sigma_pos_m"] == 0.3
+    with pytest.raises(rp.RunError, match="request_policy: unknown option.*modus"):
+        rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides={"request_policy": {"modus": "pays"}})
+    with pytest.raises(rp.RunError, match="cerpe methods only"):
+        rp.prepare_method("sift-ransac", "offline", 0, overrides={"jpeg_quality": 60})
