@@ -186,8 +186,10 @@ def gt_plugins(monkeypatch):
     """The real ``run`` path (prepare_method, the per-encounter lossy channel) over the ground-truth doubles."""
     world, setting = _world_setting()
 
-    def plugins_and_config(method, profile, metric_depth, depth_options=None):
-        cfg = CerpeConfig(min_scale_pixels=20, propagate=method != "cerpe-wo-em")
+    def plugins_and_config(method, profile, metric_depth, depth_options=None, overrides=None):
+        assert not overrides, "the ground-truth doubles take no overrides here"
+        cfg = CerpeConfig(min_scale_pixels=20, propagate=method != "cerpe-wo-em",
+                          backend="graph" if method == "cerpe-graph" else "switch")
         plugins = type("P", (), {"descriptor": OverlapDescriptor(world), "backbone": GTBackbone(world, seed=1),
                                  "depth": SensorDepthDouble()})
         return plugins, cfg, {"cerpe": dataclasses.asdict(cfg), "preset": profile}
