@@ -8,8 +8,8 @@ One row per (set, method) (:func:`method_row`):
 * ``success_after_covis_pct``: success over the evaluated frames at or after the pair's
   first co-visible step (ground-truth overlap >= 0.2 both ways);
 * ``n_direct`` / ``n_requests``: evaluated frames with a direct estimate (a placed
-  collaborator view) / with the gate open (an image requested; always, for the per-frame
-  baselines);
+  collaborator view) / with an image requested (the gate open and the request policy
+  asking; always, for the per-frame baselines);
 * ``anchors_rejected`` / ``anchors_replaced``: how often the robots counted the
   degradations ``anchor:inconsistent`` / ``anchor:replaced`` (0 where the algorithm does
   not have them);
@@ -108,7 +108,10 @@ def method_row(run: Run, set_name: str | None = None) -> dict:
     row["n_frames"] = int(s["n_frames"]) if s is not None else 0
     row["n_frames_after_covis"] = int(s["n_frames_after_covis"]) if s is not None else 0
     row["n_direct"] = int((frames["source"].astype(str) == "direct").sum())
-    row["n_requests"] = int(frames["gate_open"].astype(bool).sum()) if "gate_open" in frames else 0
+    asked = frames["gate_open"].astype(bool) if "gate_open" in frames else pd.Series(False, index=frames.index)
+    if "request_skipped" in frames:  # the request policy may skip an open gate's request
+        asked &= ~frames["request_skipped"].fillna(False).astype(bool)
+    row["n_requests"] = int(asked.sum())
     row["anchors_rejected"] = count_degradation(run.robots, REJECTED)
     row["anchors_replaced"] = count_degradation(run.robots, REPLACED)
     row.update(carried(wrong_runs(run.steps)))
