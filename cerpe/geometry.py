@@ -341,6 +341,52 @@ def propagate_relative_pose(
     )
 
 
+# --------------------------------------------------------------------------- pose covariances
+# A pose covariance here is ``[6,6]`` over the tangent ``xi = [omega, v]`` (rotation first, as
+# GTSAM orders it) of a right perturbation: the true pose is ``T @ exp(xi)``, i.e. the error
+# is expressed in the frame of the pose's own camera (``ci`` for ``T_cj_ci``).
+def se3_adjoint(T: ArrayLike) -> Array:
+    """``[...,6,6]`` adjoint of ``T`` in the ``[omega, v]`` order: ``T exp(xi) T^-1 = exp(Ad_T xi)``."""
+    T = _as_transform(T)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    A = np.zeros(T.shape[:-2] + (6, 6))
+    A[..., :3, :3] = R
+    A[..., 3:, 3:] = R
+    A[..., 3:, :3] = skew(t) @ R
+    return A
+
+
+def pose_cov_sigmas(cov: ArrayLike) -> tuple[Array, Array]:
+    """``(sigma_pos_m, sigma_rot_rad)`` of ``[...,6,6]`` covariances: the predicted RMS errors.
+
+    ``sqrt(trace)`` of the translation and rotation blocks: the expected value of
+    ``e_pos**2`` and (to first order) ``e_rot**2`` under the covariance; NaN where
+    the covariance is not finite.
+    """
+    C = np.asarray(cov, dtype=np.float64)
+    if C.shape[-2:] != (6, 6):
+        raise GeometryError(f"pose covariance: expected shape [...,6,6], got {C.shape}")
+    rot = np.sqrt(np.clip(np.trace(C[..., :3, :3], axis1=-2, axis2=-1), 0, None))
+    pos = np.sqrt(np.clip(np.trace(C[..., 3:, 3:], axis1=-2, axis2=-1), 0, None))
+    return pos, rot
+
+
+def pose_cov_in_parent(T: ArrayLike, cov: ArrayLike) -> Array:
+    """A right-perturbation covariance of ``T_a_b`` as ROS ``PoseWithCovariance`` orders it.
+
+    Returns ``[...,6,6]`` over ``(x, y, z, rot_x, rot_y, rot_z)``: the position error and
+    the rotation error (about fixed axes), both expressed in frame ``a`` (the pose's
+    parent, ``header.frame_id``). First order: ``dt = R v``, ``dtheta = R omega``.
+    """
+    T = _as_transform(T)
+    C = np.asarray(cov, dtype=np.float64)
+    R = T[..., :3, :3]
+    M = np.zeros(T.shape[:-2] + (6, 6))
+    M[..., :3, 3:] = R
+    M[..., 3:, :3] = R
+    return M @ C @ np.swapaxes(M, -1, -2)
+
+
 # --------------------------------------------------------------------------- errors (paper IV)
 def e_pos(t_est: ArrayLike, t_gt: ArrayLike) -> Array:
     """``||t_hat - t||_2`` in metres, over the last axis."""

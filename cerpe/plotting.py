@@ -14,14 +14,16 @@ import pandas as pd
 
 from .errors import CerpeError
 
-METHOD_ORDER: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe")
+METHOD_ORDER: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe",
+                                 "cerpe-graph")
 METHOD_COLORS: dict[str, str] = {
     "aliked-lightglue": "#1f77b4", "sift-ransac": "#17becf", "nope": "#2ca02c",
-    "co-visnet": "#9467bd", "cerpe-wo-em": "#ff7f0e", "cerpe": "#d62728",
+    "co-visnet": "#9467bd", "cerpe-wo-em": "#ff7f0e", "cerpe": "#d62728", "cerpe-graph": "#8c564b",
 }
 SHORT_LABELS: dict[str, str] = {
     "aliked-lightglue": "ALIKED+LG\n(SuperGlue stand-in)", "sift-ransac": "SIFT+RANSAC",
     "nope": "NOPE", "co-visnet": "Co-VisNet", "cerpe-wo-em": "CERPE w/o EM", "cerpe": "CERPE",
+    "cerpe-graph": "CERPE + graph (ours)",
 }
 
 
@@ -127,7 +129,7 @@ def qualitative_figure(traj_world: Mapping[str, np.ndarray], overlap: np.ndarray
                        rel: Mapping[str, pd.DataFrame], ego: str, other: str,
                        images: Sequence[tuple[str, np.ndarray, np.ndarray]] = (), title: str = "",
                        overlap_threshold: float = 0.05,
-                       metric_methods: Sequence[str] = ("cerpe", "cerpe-wo-em")):
+                       metric_methods: Sequence[str] = ("cerpe", "cerpe-wo-em", "cerpe-graph")):
     """Bird's-eye view of both trajectories + collaborator position in the ego frame + image pairs.
 
     Args:
@@ -212,8 +214,8 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
     """Bytes per robot per step, gate activations over time, per-stage latency.
 
     Args:
-        bytes_table: columns ``scheme`` (descriptor-only / CERPE gated / always send images),
-            ``bytes_per_robot_step`` (mean).
+        bytes_table: columns ``scheme`` (descriptor-only / CERPE gated / [CERPE + graph gated] / always
+            send images), ``bytes_per_robot_step`` (mean).
         gate: columns ``step, gate_score, gate_open, overlap_gt`` of one pair.
         latency: columns ``n_robots, stage, seconds`` (mean per team step).
         paper: the paper's own figures (descriptor KB, image KB, ms for 2/3 robots).
@@ -222,7 +224,9 @@ def communication_figure(bytes_table: pd.DataFrame, gate: pd.DataFrame, latency:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
     ax = axes[0]
     kb = bytes_table["bytes_per_robot_step"].to_numpy(float) / 1000.0
-    bars = ax.bar(range(len(kb)), kb, color=["tab:green", "tab:red", "tab:gray"][: len(kb)])
+    colours = ["tab:green", "tab:red", "tab:brown", "tab:gray"] if len(kb) == 4 else ["tab:green", "tab:red",
+                                                                                      "tab:gray"][: len(kb)]
+    bars = ax.bar(range(len(kb)), kb, color=colours)
     for bar_, v in zip(bars, kb):
         ax.text(bar_.get_x() + bar_.get_width() / 2, v, f"{v:.1f} KB", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(range(len(kb)))
@@ -312,6 +316,49 @@ def gate_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], table: pd.D
     ax.set_xlabel("ground-truth overlap ratio")
     ax.set_ylabel("descriptor cosine (fp16 wire)")
     ax.legend(fontsize=7, markerscale=3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------- uncertainty calibration
+def calibration_figure(frames: pd.DataFrame, table: pd.DataFrame, title: str = ""):
+    """Error against predicted sigma, position and rotation, per method with a covariance.
+
+    Args:
+        frames: evaluated frames of one setting (``evaluate.frame_errors``) with ``method,
+            success, e_pos_m, e_rot_rad, sigma_pos_m, sigma_rot_rad``.
+        table: :func:`cerpe.pipeline.evaluate.sigma_calibration` rows of the same setting.
+    Returns:
+        1x2 figure: each frame's error against its predicted sigma (dots), the RMS error per
+        bin of predicted sigma against the bin's RMS sigma (line), and the ideal ``y = x``.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.3))
+    for ax, (quantity, err, sig, unit) in zip(axes, (("position", "e_pos_m", "sigma_pos_m", "m"),
+                                                     ("rotation", "e_rot_rad", "sigma_rot_rad", "rad"))):
+        ok = frames[frames["success"].astype(bool)] if "success" in frames else frames
+        ok = ok[np.isfinite(pd.to_numeric(ok.get(sig, pd.Series(dtype=float)), errors="coerce"))] \
+            if sig in ok else ok.iloc[0:0]
+        top = 0.0
+        for m in _methods_present(ok) if len(ok) else []:
+            f = ok[ok["method"] == m]
+            c = METHOD_COLORS.get(m, "gray")
+            ax.scatter(f[sig], f[err], s=5, alpha=0.3, color=c)
+            t = table[(table["method"] == m) & (table["quantity"] == quantity) & (table["bin"] >= 0)]
+            w = table[(table["method"] == m) & (table["quantity"] == quantity) & (table["bin"] < 0)]
+            ratio = f", error/sigma {w['ratio'].iloc[0]:.2f}" if len(w) else ""
+            ax.plot(t["sigma_rms"], t["error_rms"], "o-", color=c, lw=1.5,
+                    label=f"{SHORT_LABELS.get(m, m)}: RMS error per sigma bin{ratio}")
+            top = max(top, float(np.nanmax(np.r_[f[sig].to_numpy(float), t["error_rms"].to_numpy(float), 0])))
+        if top > 0:
+            ax.plot([0, top], [0, top], ":", color="0.4", lw=1, label="calibrated (error = sigma)")
+            ax.legend(fontsize=7, loc="upper left")
+        else:
+            ax.text(0.5, 0.5, "no method with a covariance in this setting", transform=ax.transAxes, ha="center")
+        ax.set_xlabel(f"predicted sigma ({unit}, RMS: sqrt of the covariance trace)")
+        ax.set_ylabel(f"{quantity} error ({unit})")
+        ax.set_title(quantity)
     fig.suptitle(title)
     fig.tight_layout()
     return fig

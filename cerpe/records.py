@@ -12,12 +12,12 @@ from typing import Literal
 
 import numpy as np
 
-from .geometry import se3_to_tq_xyzw
+from .geometry import pose_cov_sigmas, se3_to_tq_xyzw
 
 Source = Literal["direct", "propagated", "none"]
 SOURCES: tuple[str, ...] = ("direct", "propagated", "none")
 
-STAGES: tuple[str, ...] = ("encode", "descriptor", "gate", "backbone", "scale", "propagation")
+STAGES: tuple[str, ...] = ("encode", "descriptor", "gate", "backbone", "scale", "propagation", "graph")
 
 
 def _pose_cols(prefix: str, T: np.ndarray | None) -> dict[str, float]:
@@ -63,6 +63,13 @@ class PairRecord:
         check_rot_rad, check_trans_m: disagreement of the direct estimate with what
             it was checked against (the propagated anchor, a second registration,
             an earlier candidate); NaN when nothing was compared.
+        cov: ``[6,6]`` covariance of ``T_cj_ci`` over ``[rotation, translation]`` of a
+            right perturbation (the error in camera i's frame; :mod:`cerpe.geometry`,
+            "pose covariances"); None for methods without one. ``as_row`` gives its
+            ``sigma_pos_m`` and ``sigma_rot_rad`` (predicted RMS errors; NaN without).
+        T_direct: this step's direct estimate as the pass gave it, whatever anchor
+            verification said of it (None without one); ``dir_*`` columns.
+        direct_inliers: inliers of the registration behind ``T_direct`` (-1: unknown or none).
     """
 
     step: int
@@ -82,6 +89,9 @@ class PairRecord:
     anchor_verdict: str = ""
     check_rot_rad: float = float("nan")
     check_trans_m: float = float("nan")
+    cov: np.ndarray | None = None
+    T_direct: np.ndarray | None = None
+    direct_inliers: int = -1
 
     def as_row(self) -> dict:
         row = {
@@ -93,6 +103,10 @@ class PairRecord:
             "check_rot_rad": self.check_rot_rad, "check_trans_m": self.check_trans_m,
         }
         row.update(_pose_cols("est", self.T_cj_ci))
+        pos, rot = (pose_cov_sigmas(self.cov) if self.cov is not None and np.all(np.isfinite(self.cov))
+                    else (float("nan"), float("nan")))
+        row.update({"sigma_pos_m": float(pos), "sigma_rot_rad": float(rot), "direct_inliers": int(self.direct_inliers)})
+        row.update(_pose_cols("dir", self.T_direct))
         return row
 
 

@@ -7,9 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import se3_to_tq_xyzw
+from .geometry import pose_cov_in_parent, se3_to_tq_xyzw
 
-__all__ = ["format_tum"]
+__all__ = ["COV_HEADER", "format_tum", "format_tum_cov", "parse_tum_cov"]
+
+COV_HEADER = ("timestamp, then the 6x6 covariance of the pose with this timestamp in the .tum file beside, "
+              "row-major (36 values), in ROS PoseWithCovariance order (x y z rot_x rot_y rot_z): position and "
+              "rotation (fixed axes) errors in the pose's parent frame; m^2, rad^2")
 
 
 def format_tum(stamps_s: np.ndarray, T: np.ndarray,
@@ -23,3 +27,36 @@ def format_tum(stamps_s: np.ndarray, T: np.ndarray,
         t, q = se3_to_tq_xyzw(Tk)
         lines.append(f"{s:.{stamp_decimals}f} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
     return "\n".join(lines) + "\n"
+
+
+def format_tum_cov(stamps_s: np.ndarray, T: np.ndarray, cov: np.ndarray, stamp_decimals: int = 9) -> str:
+    """The covariance companion of a TUM file: ``stamp c00 c01 ... c55`` per pose.
+
+    ``cov [N,6,6]`` are right-perturbation covariances over ``[rotation, translation]``
+    (:mod:`cerpe.geometry`, "pose covariances") of the poses ``T [N,4,4]``; written in ROS
+    ``PoseWithCovariance`` order and frame (:func:`~cerpe.geometry.pose_cov_in_parent`), so a
+    line pairs with the TUM line of the same stamp as a ``PoseWithCovarianceStamped`` would.
+    Non-finite covariances are written as ``nan``.
+    """
+    lines = [f"# {COV_HEADER}"]
+    for s, Tk, Ck in zip(stamps_s, T, cov):
+        C = pose_cov_in_parent(Tk, Ck) if np.all(np.isfinite(Ck)) else np.full((6, 6), np.nan)
+        lines.append(f"{s:.{stamp_decimals}f} " + " ".join(f"{v:.9g}" for v in C.ravel()))
+    return "\n".join(lines) + "\n"
+
+
+def parse_tum_cov(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps [N], cov [N,6,6])`` of :func:`format_tum_cov` text (ROS order, parent frame).
+
+    Raises ``ValueError`` naming the line for a line without 37 numbers.
+    """
+    stamps, covs = [], []
+    for k, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        v = line.split()
+        if len(v) != 37:
+            raise ValueError(f"covariance line {k}: {len(v)} values, expected 37 (stamp + 6x6)")
+        stamps.append(float(v[0]))
+        covs.append(np.array(v[1:], dtype=np.float64).reshape(6, 6))
+    return np.array(stamps), np.array(covs).reshape(-1, 6, 6)

@@ -104,7 +104,7 @@ CASES: list[tuple[str, Callable, str, str, str]] = [
     ("trajectory-all-nan", lambda r, d: (r / "enc0/r0/gt.txt").write_text("1000 nan 0 0 0 0 0 1\n"), "error", f"{R0}.trajectory", "gt.txt"),
     ("csv-header-missing-columns", lambda r, d: (_robot(d).update(trajectory_format="csv"), _lines(r / "enc0/r0/gt.txt", lambda L: ["t,x,y"] + L[1:])), "error", f"{R0}.trajectory line 1", "gt.txt"),
     ("camera-missing-fx", lambda r, d: _set_cam(r, fx=None), "error", f"{R0}.intrinsics.fx", "camera.yaml"),
-    ("camera-distortion", lambda r, d: _set_cam(r, distortion=[0.1, 0, 0, 0, 0]), "error", f"{R0}.intrinsics.distortion", "camera.yaml"),
+    ("camera-distortion-not-numbers", lambda r, d: _set_cam(r, distortion="barrel"), "error", f"{R0}.intrinsics.distortion", "camera.yaml"),
     ("camera-negative-width", lambda r, d: _set_cam(r, width=-32), "error", f"{R0}.intrinsics.width", "camera.yaml"),
     ("camera-not-mapping", lambda r, d: (r / "enc0/r0/camera.yaml").write_text("- 1\n- 2\n"), "error", f"{R0}.intrinsics", "camera.yaml"),
     ("camera-missing-file", lambda r, d: (r / "enc0/r0/camera.yaml").unlink(), "error", f"{R0}.intrinsics", "camera.yaml"),

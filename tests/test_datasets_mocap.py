@@ -204,3 +204,44 @@ def test_synth_manifest_gives_the_cad_world_an_outdoor_sensor() -> None:
 
     assert sensor_options("cad-intersection")["max_m"] >= 40
     assert sensor_options("indoor-team") == {}
+
+
+def test_distorted_camera_is_undistorted_once_on_load(tmp_path: Path) -> None:
+    """A camera.yaml with distortion: colour (bilinear) and 16-bit depth (nearest) are undistorted with
+    the same maps and the loaded intrinsics describe the undistorted images."""
+    import cv2
+
+    m = write_mocap(tmp_path, n_frames=2)
+    dist = [-0.25, 0.08, 0.001, -0.002, 0.0]
+    cam = dict(CAMERA, distortion=dist)
+    rng = np.random.default_rng(3)
+    for r in range(2):
+        (tmp_path / "enc0" / f"r{r}" / "camera.yaml").write_text(yaml.safe_dump(cam))
+        for f in (tmp_path / "enc0" / f"r{r}" / "depth").glob("*.png"):  # a depth ramp, so nearest vs blend shows
+            cv2.imwrite(str(f), (1000 + 50 * np.arange(W)[None, :] + 0 * np.arange(H)[:, None]).astype(np.uint16))
+        for f in (tmp_path / "enc0" / f"r{r}" / "rgb").glob("*.png"):
+            cv2.imwrite(str(f), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+    rob = load_setting(m).encounters[0].robots[0]
+    K0 = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+    assert not np.allclose(rob.intrinsics.K, K0)  # the undistorted camera
+    raw = cv2.imread(str(sorted((tmp_path / "enc0" / "r0" / "rgb").glob("*.png"))[0]))
+    mapx, mapy = cv2.initUndistortRectifyMap(K0, np.array(dist), None, rob.intrinsics.K, (W, H), cv2.CV_32FC1)
+    want = cv2.remap(raw, mapx, mapy, cv2.INTER_LINEAR)[:, :, ::-1]
+    np.testing.assert_array_equal(rob.image(0), want)
+    d = rob.depth_m(0)
+    assert d.shape == (H, W) and d.max() <= (1000 + 50 * (W - 1)) / 1000 + 1e-6
+    stored = {(1000 + 50 * u) / 1000 for u in range(W)} | {0.0}
+    assert {float(np.float32(v)) for v in np.unique(d)} <= {float(np.float32(v)) for v in stored}  # nearest: no blends
+
+
+def test_distorted_camera_with_npy_depth_is_refused(tmp_path: Path) -> None:
+    from cerpe.datasets import ManifestError
+
+    m = write_mocap(tmp_path, n_frames=2)
+    for r in range(2):
+        (tmp_path / "enc0" / f"r{r}" / "camera.yaml").write_text(yaml.safe_dump(dict(CAMERA, distortion=[0.1, 0, 0, 0, 0])))
+        for f in (tmp_path / "enc0" / f"r{r}" / "depth").glob("*.png"):
+            np.save(f.with_suffix(".npy"), np.full((H, W), 2.0, np.float32))
+            f.unlink()
+    with pytest.raises(ManifestError, match=r"robots\[0\]\.depth.*16-bit PNG"):
+        load_setting(m)

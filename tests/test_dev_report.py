@@ -141,7 +141,7 @@ def fixture_report(tmp_path_factory):
     return tmp, res, lines
 
 
-def test_dev_runs_the_four_methods_and_skips_absent_sets(fixture_report):
+def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
     tmp, res, lines = fixture_report
     assert res["errors"] == []
     assert any(ln.startswith("dev-absent: skipped (") and "not present" in ln for ln in lines)
@@ -159,7 +159,7 @@ def test_dev_runs_the_four_methods_and_skips_absent_sets(fixture_report):
     out = tmp / "out"
     for name in ("report.csv", "report.md", "report_gate.csv", "report-before.csv", "report-before.md"):
         assert (out / name).is_file(), name
-    assert pd.read_csv(out / "report-before.csv").shape[0] == 4
+    assert pd.read_csv(out / "report-before.csv").shape[0] == len(dev.METHODS) == 5
     md = (out / "report.md").read_text()
     assert "succ>covis %" in md and json.loads(md.split("```json")[1].split("```")[0])["synthetic"]["seeds"] == [2]
     assert "seed 2" in (out / "manifests" / "dev-fixture-synthetic-indoor-s2.yaml").read_text()

@@ -15,7 +15,8 @@ One step of one robot (:class:`StepEngine`, over a :class:`Link`):
 8. per peer: direct estimate (gate open, the collaborator placed: through the joint
    pass or its registrations against single own views), made the anchor when it is
    verified (:mod:`~cerpe.algorithm.anchors`), else the anchor propagated with both
-   odometries (``propagation``);
+   odometries (``propagation``); with ``backend="graph"`` (not in the paper) the pair's
+   robust pose graph over every direct estimate and both odometries instead (``graph``);
 9. keyframe rule (:mod:`cerpe.memory`).
 
 :class:`Team` runs N engines in one process over the lossy
@@ -24,19 +25,22 @@ Run-time faults are counted under the names in :data:`DEGRADATIONS`; malformed
 input raises :class:`AlgorithmError` naming robot, step and field.
 
 Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
-``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``agent`` (one robot's state and phases), ``link``
+``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``graph`` (the pose-graph
+back end, ``graph_sim`` a simulated stream for it), ``agent`` (one robot's state and phases), ``link``
 (the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
 process), ``degradations`` (the counted names).
 """
 from .agent import RobotAgent
 from .anchors import Anchor, AnchorConfig, PairAnchors
-from .config import PAPER_THRESHOLDS, AlgorithmError, CerpeConfig
+from .config import BACKENDS, PAPER_THRESHOLDS, AlgorithmError, CerpeConfig
 from .degradations import DEGRADATIONS
 from .engine import StepEngine, drive
+from .graph import DirectEstimate, GraphConfig, GraphEstimate, PairGraph
 from .link import Inbox, Link, Mailbox, Received
 from .poses import direct_relative, ego_motion, registered_relative
 from .team import Team, run_encounter
 
-__all__ = ["DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "AnchorConfig", "CerpeConfig", "Inbox",
-           "Link", "Mailbox", "PairAnchors", "Received", "RobotAgent", "StepEngine", "Team", "direct_relative",
-           "drive", "ego_motion", "registered_relative", "run_encounter"]
+__all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "AnchorConfig", "CerpeConfig",
+           "DirectEstimate", "GraphConfig", "GraphEstimate", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph",
+           "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
+           "registered_relative", "run_encounter"]

@@ -20,10 +20,14 @@ from ..scale import recover_scale
 from .anchors import Anchor, PairAnchors
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
+from .graph import DirectEstimate, PairGraph
 from .poses import check_pose, direct_relative, ego_motion, registered_relative
 from .state import PairInfo, Previous, StepState
 
 log = logging.getLogger(__name__)
+
+# reasons that describe the switch's anchors only (the graph keeps every direct estimate)
+_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired"})
 
 
 class RobotAgent:
@@ -50,6 +54,7 @@ class RobotAgent:
         self.X = np.eye(4)
         self.last_scale = float("nan")
         self.pairs: dict[str, PairAnchors] = {}
+        self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
         self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
         self.last_step: int | None = None
@@ -367,6 +372,9 @@ class RobotAgent:
         """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
         st = self._state()
         source, T, reason, anchor_step = self.relative(other)
+        cov = None
+        if self.config.backend == "graph":
+            source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
         best, via = st.memory_scores.get(other, (float("nan"), -1))
         return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
@@ -374,7 +382,37 @@ class RobotAgent:
                           source=source, T_cj_ci=T, reason=reason, bytes_pair=int(bytes_pair),
                           anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
                           direct_via=info.direct_via, anchor_verdict=info.verdict,
-                          check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m)
+                          check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m, cov=cov,
+                          T_direct=info.direct_T, direct_inliers=info.direct_inliers)
+
+    def _graph_relative(self, st: StepState, other: str,
+                        reason: str) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
+        """``backend="graph"``: the pair graph's estimate instead of the switch's (:mod:`~cerpe.algorithm.graph`).
+
+        The graph takes this step's odometry poses and this step's direct estimate (the
+        one anchor verification judged, whatever its verdict: the robust kernel weighs
+        it). ``source`` is ``direct`` when that estimate became a node, ``propagated``
+        otherwise, ``none`` before the first node; ``anchor_step`` is the newest node's step.
+        """
+        t0 = time.perf_counter()
+        info = st.pair_info.get(other, PairInfo())
+        graph = self.graphs.get(other)
+        if graph is None:
+            graph = self.graphs[other] = PairGraph(self.config.graph)
+        pose = self.poses.get(other)
+        direct = (None if info.direct_T is None else
+                  DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict))
+        res = graph.step(st.step, self.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
+                         direct, own_ok=st.ego_status in ("ok", "first"))
+        st.timings["graph"] += time.perf_counter() - t0
+        for what in res.degradations:
+            self.degrade(what)
+        # what the switch said about its own anchors does not describe the graph's estimate
+        reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
+                           and not r.startswith("direct-rejected"))
+        if res.T_cj_ci is None:
+            return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
+        return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
 
     def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
         pose = self.poses.get(other)
@@ -385,7 +423,7 @@ class RobotAgent:
             ests, reason = self._direct_estimates(st, other)
             if ests:
                 via, T = ests[0][1], ests[0][2]
-                info.direct_via = via
+                info.direct_via, info.direct_T, info.direct_inliers = via, T, ests[0][3]
                 if not fresh:
                     self.degrade("anchor:not-stored-pose-missing")
                     return "direct", T, "anchor-not-stored: pose message missing", st.step
@@ -395,7 +433,7 @@ class RobotAgent:
                     pair.anchor, info.verdict = est, "unchecked"
                     return "direct", T, "", st.step
                 others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
-                          for k2, _, T2 in ests[1:] if k2 != ests[0][0]]
+                          for k2, _, T2, _ in ests[1:] if k2 != ests[0][0]]
                 check = pair.offer(est, others)
                 info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
                 if check.verdict == "replaced":
@@ -424,8 +462,9 @@ class RobotAgent:
             reason = "; ".join(r for r in (reason, "unverified") if r)
         return "propagated", anchor.propagated(self.X, pose[1]), reason, anchor.step
 
-    def _direct_estimates(self, st: StepState, other: str) -> tuple[list[tuple[int, int, np.ndarray]], str]:
-        """This step's direct estimates for ``other``: ``([(pass index of via, its step or -1, T_cj_ci)], reason)``.
+    def _direct_estimates(self, st: StepState, other: str) -> tuple[list[tuple[int, int, np.ndarray, int]], str]:
+        """This step's direct estimates for ``other``: ``([(pass index of via, its step or -1, T_cj_ci, inliers)],
+        reason)`` (inliers -1 through the joint pass).
 
         Through the collaborator's registrations against single own views, most
         inliers first, when the backbone gives them; else through the joint pass
@@ -442,7 +481,7 @@ class RobotAgent:
                 return [], "own-view-not-placed"
             if not np.isfinite(st.scale):
                 return [], "no-scale"
-            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale))], ""
+            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale), -1)], ""
         if not np.isfinite(st.scale):
             return [], "no-scale"
         ests = []
@@ -452,7 +491,7 @@ class RobotAgent:
                 self.degrade("backbone:non-finite-pose")
             elif T_via_ci is not None:
                 ests.append((r.via, -1 if r.via == 0 else st.own_views[r.via][0],
-                             registered_relative(r.T_via_cam, T_via_ci, st.scale)))
+                             registered_relative(r.T_via_cam, T_via_ci, st.scale), int(r.inliers)))
         return ests, "" if ests else "registrations-not-usable"
 
     def _via_to_current(self, st: StepState, via: int) -> np.ndarray | None:

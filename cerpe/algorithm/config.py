@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -10,8 +10,10 @@ from ..errors import CerpeError
 from ..memory import MemoryConfig
 from ..messages import DESCRIPTOR_DTYPES
 from .anchors import AnchorConfig
+from .graph import GraphConfig
 
 PAPER_THRESHOLDS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2}
+BACKENDS: tuple[str, ...] = ("switch", "graph")
 
 
 class AlgorithmError(CerpeError, ValueError):
@@ -80,6 +82,12 @@ class CerpeConfig:
             one step through different own views agree (and verify each other) within
             these (the translation tolerance grows by ``anchor_trans_rel`` per metre
             between the cameras, as the anchor check's).
+        backend: ``switch`` is the paper's estimate (a direct estimate, else the anchor
+            propagated); ``graph`` (not in the paper: ``cerpe-graph``) reports each pair's
+            robust pose graph over every direct estimate and both odometries, with its
+            covariance (:mod:`cerpe.algorithm.graph`). The messages are the same.
+        graph: the graph's noise models, kernel and window (:class:`~cerpe.algorithm.graph.GraphConfig`;
+            a dict of its fields is accepted).
     """
 
     tau: float | None = None
@@ -108,8 +116,20 @@ class CerpeConfig:
     registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
     anchor_verify_support: int = 2
+    backend: str = "switch"
+    graph: GraphConfig = field(default_factory=GraphConfig)
 
     def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise AlgorithmError(f"config: backend must be one of {list(BACKENDS)}, got {self.backend!r}")
+        if isinstance(self.graph, dict):
+            known = {f.name for f in dataclasses.fields(GraphConfig)}
+            if set(self.graph) - known:
+                raise AlgorithmError(f"config: unknown graph field(s) {sorted(set(self.graph) - known)}; "
+                                     f"known: {sorted(known)}")
+            object.__setattr__(self, "graph", GraphConfig(**self.graph))
+        if not isinstance(self.graph, GraphConfig):
+            raise AlgorithmError(f"config: graph must be a GraphConfig or a dict, got {type(self.graph).__name__}")
         for name in ("tau", "tau_m", "tau_k"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and -1.0 <= v <= 1.0):

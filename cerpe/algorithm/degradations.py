@@ -5,6 +5,8 @@ ending in ``-`` is a prefix (the rest says which case).
 """
 from __future__ import annotations
 
+from .graph import GRAPH_DEGRADATIONS
+
 DEGRADATIONS: dict[str, str] = {
     "frame:blank": "own frame without texture (descriptor flag low-texture, zero-norm descriptor or grey-level "
                    "std below min_image_std): zero descriptor broadcast, no joint pass, X kept, never kept as "
@@ -44,6 +46,7 @@ DEGRADATIONS: dict[str, str] = {
                               "and version): its frames and requests are ignored",
     "link:team-mismatch": "online: a robot of the roster is up in another team (once per robot and team)",
     "link:duplicate-robot": "online: another session uses this robot's id in this team (once)",
+    **GRAPH_DEGRADATIONS,
 }
 
 

@@ -51,13 +51,16 @@ class PairInfo:
     frame or the joint pass); ``verdict``: what anchor verification said (``""``
     without a direct estimate, ``"unchecked"`` with ``verify_anchors=False``);
     ``check_rot_rad``, ``check_trans_m``: its disagreement with what it was checked
-    against (NaN when nothing was compared).
+    against (NaN when nothing was compared); ``direct_T``: the direct estimate itself
+    (before verification), ``direct_inliers`` its registration's inliers (-1: unknown).
     """
 
     direct_via: int = -1
     verdict: str = ""
     check_rot_rad: float = float("nan")
     check_trans_m: float = float("nan")
+    direct_T: np.ndarray | None = None
+    direct_inliers: int = -1
 
 
 @dataclass

@@ -27,15 +27,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
 from . import covisibility
 from .formats import (STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
-                      parse_transform, read_intrinsics, read_trajectory)
-from .manifest import Manifest, ManifestError, Problem, is_number, mapping_problems, not_a_mapping, type_name
+                      parse_transform, read_camera, read_trajectory)
+from .imageref import DepthFile, ImageFile, Undistortion, undistortion
+from .manifest import Manifest, ManifestError, Problem, type_name
 from .report import LoadReport
 from .sequence import positive_number, synchronise_robots, validate_encounter_list
 from .sync import check_window, poses_at, window_mask
@@ -98,7 +98,8 @@ class _RobotData:
     images: list[Path]
     orig_idx: np.ndarray  # index into the full image list (before windows)
     n_total: int  # images in the full list
-    intrinsics: CameraIntrinsics
+    intrinsics: CameraIntrinsics  # of the images as loaded (undistorted when the camera file has distortion)
+    undistort: Undistortion | None
     T_body_cam: np.ndarray
     traj: Trajectory | None
     depth: list[Path | None] | None
@@ -120,7 +121,9 @@ def _read_robot(m: Manifest, rob: dict, fr: str, enc_name: str, report: LoadRepo
             return None
 
     listed = attempt(list_images, m.resolve(rob["images"]), f"{fr}.images", rob.get("image_stamp_units", "s"))
-    intr = attempt(read_intrinsics, m.resolve(rob["intrinsics"]), f"{fr}.intrinsics")
+    cam = attempt(read_camera, m.resolve(rob["intrinsics"]), f"{fr}.intrinsics")
+    und = undistortion(*cam) if cam is not None else None  # distorted images are undistorted once, on load
+    intr = None if cam is None else (und.intrinsics if und is not None else cam[0])
     T_bc = attempt(parse_transform, rob.get("T_body_cam", "identity"), f"{fr}.T_body_cam", str(m.path), m.resolve)
     traj = None
     if rob.get("trajectory"):
@@ -151,8 +154,13 @@ def _read_robot(m: Manifest, rob: dict, fr: str, enc_name: str, report: LoadRepo
     if depth_dir is not None:
         depth = find_depth_files(depth_dir, [p.stem for p in images])
         report.count(enc_name, f"{rid}: frames without a depth file", sum(d is None for d in depth))
+        if und is not None and any(d is not None and d.suffix.lower() != ".png" for d in depth):
+            report.extend([Problem(str(depth_dir), f"{fr}.depth", "a distorted camera needs 16-bit PNG depth "
+                                   "(undistorted with the images); convert .npy/.exr depth or undistort it first")])
+            return None
     return _RobotData(
-        rid=rid, stamps_s=stamps, images=images, orig_idx=orig, n_total=len(listed[0]), intrinsics=intr, T_body_cam=T_bc, traj=traj,
+        rid=rid, stamps_s=stamps, images=images, orig_idx=orig, n_total=len(listed[0]), intrinsics=intr,
+        undistort=und, T_body_cam=T_bc, traj=traj,
         depth=depth, depth_units_per_m=float(rob.get("depth_units_per_m", 1.0)),
         gt_tol_s=float(rob.get("gt_tolerance_s", 0.02)), interpolate=bool(rob.get("interpolate", False)),
         max_gap_s=float(rob.get("interpolate_max_gap_s", 0.1)),
@@ -222,10 +230,16 @@ def load_encounter(m: Manifest, e: int, enc: dict, report: LoadReport) -> Encoun
         report.sync[name][d.rid] = {"max_abs_s": float(np.max(np.abs(r))) if len(r) else 0.0,
                                     "mean_abs_s": float(np.mean(np.abs(r))) if len(r) else 0.0, "mode": mode}
         try:
+            images, depth, units = [d.images[k] for k in ix], None, d.depth_units_per_m
+            if d.depth is not None:
+                depth = [d.depth[k] for k in ix]
+            if d.undistort is not None:  # read, then undistorted with the same maps (depth: nearest neighbour)
+                images = [ImageFile(p, d.undistort) for p in images]
+                if depth is not None:
+                    depth, units = [None if p is None else DepthFile(p, units, (), d.undistort) for p in depth], 1.0
             streams.append(RobotStream(
-                robot_id=d.rid, intrinsics=d.intrinsics, stamps_s=stamps, images=[d.images[k] for k in ix],
-                T_world_cam=T_wc, depth=[d.depth[k] for k in ix] if d.depth is not None else None,
-                depth_units_per_m=d.depth_units_per_m, frame_ids=[d.images[k].stem for k in ix],
+                robot_id=d.rid, intrinsics=d.intrinsics, stamps_s=stamps, images=images,
+                T_world_cam=T_wc, depth=depth, depth_units_per_m=units, frame_ids=[d.images[k].stem for k in ix],
             ))
         except SceneError as exc:
             report.add(Problem(str(m.path), f"{fe}.robots", str(exc)))

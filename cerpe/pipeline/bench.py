@@ -16,6 +16,12 @@ renders it once and a clone after ``make paper`` renders nothing. It reports:
 * peak resident memory of the process (``ru_maxrss``);
 * the backbone's cross-robot registration counters (offline backbone): gated pairs,
   collaborator views registered, views and image pairs the learned matcher ran on;
+* the pose-graph back end of ``cerpe-graph`` (our extension): its update per robot-step
+  (median, p90) over a ``--graph-seconds`` (60 s) encounter at 10 Hz per team size, each
+  robot updating one graph per peer; fed a simulated stream (odometry and direct
+  estimates with the graph's own noise levels, 5 % of them 0.5 rad wrong) with direct
+  estimates on the share of steps the gate opened in the walk above, since walking the
+  backbone for 600 steps per robot would take far longer than the graph itself;
 * accuracy figures of the same run (issue 4's checks): direct inter-robot rotation
   error (rad) on overlapping pairs, and per robot the per-step relative pose error
   (sum of per-step translation errors / path length, median per-step rotation
@@ -88,6 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='JSON options of the depth source, e.g. \'{"min_m": 0.5, "max_m": 40}\' for '
                              'an outdoor stereo sensor (default: the manifest\'s metric_depth_options; the '
                              'sensor without options sees 0.3-10 m)')
+    parser.add_argument("--graph-seconds", type=float, default=60.0,
+                        help="length of the encounter the graph update is timed over, at 10 Hz (default: 60)")
     parser.add_argument("--out", default=None, help="write the figures as JSON here")
 
 
@@ -342,6 +350,59 @@ def _fmt_acc(a: dict[str, Any]) -> list[str]:
     return lines
 
 
+GRAPH_TARGET_MS = 10.0  # issue 20: the graph update per robot-step, median
+
+
+def graph_latency(n_robots: int, seconds: float = 60.0, rate_hz: float = 10.0, direct_share: float = 0.5,
+                  seed: int = 0) -> dict[str, Any]:
+    """Time :meth:`~cerpe.algorithm.graph.PairGraph.step` per robot-step over a simulated encounter.
+
+    Each robot keeps one graph per peer (``n_robots - 1``) with the default configuration;
+    a robot-step's time is the sum over its graphs. Direct estimates come on a random
+    ``direct_share`` of the steps with the graph's own noise levels, 5 % of them 0.5 rad wrong.
+    """
+    from ..algorithm import CerpeConfig
+    from ..algorithm.graph import DirectEstimate, PairGraph
+    from ..algorithm.graph_sim import perturb, simulate_pair
+
+    conf = CerpeConfig().graph
+    n_steps = max(int(round(seconds * rate_hz)), 2)
+    rng = np.random.default_rng(seed)
+    share = float(np.clip(direct_share if np.isfinite(direct_share) else 0.5, 0.02, 1.0))
+    streams = []
+    for k in range(n_robots * (n_robots - 1)):
+        steps = [0] + [t for t in range(1, n_steps) if rng.random() < share]
+        s = simulate_pair(seed + k, n_steps, speed_m=1.0 / rate_hz, odo_rot=conf.odo_rot_per_step,
+                          odo_trans=conf.odo_trans_per_step, direct_steps=steps, direct_rot=conf.direct_rot_rad,
+                          direct_trans=conf.direct_trans_m)
+        for t in steps:
+            if rng.random() < 0.05:
+                s.direct[t] = perturb(rng, s.truth[t], 0.5 / np.sqrt(3), 0.5)
+        streams.append((PairGraph(conf), s))
+    per_robot: list[float] = []
+    nodes = 0
+    for t in range(n_steps):
+        for r in range(n_robots):
+            t0 = time.perf_counter()
+            for g, s in streams[r * (n_robots - 1):(r + 1) * (n_robots - 1)]:
+                d = DirectEstimate(t, s.direct[t]) if t in s.direct else None
+                g.step(t, s.X_i[t], s.X_j[t], t, d)
+            per_robot.append(1000 * (time.perf_counter() - t0))
+    nodes = sum(g.n_nodes for g, _ in streams)
+    return {"n_robots": n_robots, "seconds": float(seconds), "steps": n_steps, "direct_share": share,
+            "nodes": int(nodes), "update_ms": _stats(per_robot), "target_ms": GRAPH_TARGET_MS}
+
+
+def format_graph(g: dict[str, Any]) -> str:
+    u = g["update_ms"]
+    verdict = "met" if u["median"] < g["target_ms"] else "NOT met"
+    return (f"== graph update (cerpe-graph, our extension), {g['n_robots']} robots, simulated {g['seconds']:.0f} s "
+            f"encounter ({g['steps']} steps at 10 Hz, direct estimates on {100 * g['direct_share']:.0f} % of "
+            f"steps, {g['nodes']} nodes in {g['n_robots'] * (g['n_robots'] - 1)} graphs): per robot-step median "
+            f"{u['median']:.2f} ms, p90 {u['p90']:.2f} ms, mean {u['mean']:.2f} ms "
+            f"(target < {g['target_ms']:.0f} ms median: {verdict})")
+
+
 def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any]) -> str:
     lines = []
     for r in results:
@@ -376,7 +437,8 @@ def _check_args(args: argparse.Namespace) -> None:
     """One clear error per impossible option (before anything is rendered or built)."""
     for flag, value, least in (("--steps", args.steps, 1), ("--warmup", args.warmup, 0),
                                ("--encounters", args.encounters, 1), ("--width", args.width, 16),
-                               ("--height", args.height, 16), ("--frames", args.frames, 2)):
+                               ("--height", args.height, 16), ("--frames", args.frames, 2),
+                               ("--graph-seconds", args.graph_seconds, 1)):
         if value is not None and value < least:
             raise BenchError(f"{flag} {value}: must be >= {least}")
     bad = [n for n in args.robots if n < 2]
@@ -468,6 +530,11 @@ def main(args: argparse.Namespace) -> int:
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
     print(format_table(results, info))
+    report["graph"] = []
+    for r in results:
+        g = graph_latency(r["n_robots"], args.graph_seconds, direct_share=r["gate_open_ratio"])
+        report["graph"].append(g)
+        print(format_graph(g), flush=True)
     if args.all_encounters:
         suite = suite_accuracy(encounters, plugins, args.width, args.height)
         report["suite_accuracy"] = suite

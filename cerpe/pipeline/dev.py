@@ -2,7 +2,7 @@
 
 Usage: ``cerpe dev [--seeds 1] [--methods ...] [--sets PATTERN ...] [--label NAME]``
 
-Runs the four methods (``cerpe``, ``cerpe-wo-em``, ``sift-ransac``,
+Runs the methods (``cerpe``, ``cerpe-wo-em``, ``cerpe-graph``: our extension, ``sift-ransac``,
 ``aliked-lightglue``) over
 
 * the real development sets: every ``datasets_manifest/dev-*.yaml`` (``enabled:
@@ -43,7 +43,8 @@ from .provenance import code_hash, git_revision
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
-METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "sift-ransac", "aliked-lightglue")  # cerpe first: w/o EM reuses its pass
+METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "sift-ransac",
+                             "aliked-lightglue")  # cerpe first: w/o EM reuses its pass
 DEFAULT_SEEDS: tuple[int, ...] = (1,)
 PAPER_SEED = 0
 # Development suite sizes per paper setting (the world and the rest come from the paper-default preset):
@@ -234,7 +235,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="cache and report folder (default: build/dev in the checkout)")
     p.add_argument("--seeds", type=int, nargs="+", default=list(DEFAULT_SEEDS),
                    help="synthetic development seeds (default: %(default)s; 0, the paper-default suite, is refused)")
-    p.add_argument("--methods", nargs="+", default=list(METHODS), help="methods to run (default: all four)")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), help="methods to run (default: all five)")
     p.add_argument("--sets", nargs="+", default=None, metavar="PATTERN",
                    help="only the sets whose names match these patterns, e.g. 'dev-sun3d*' 'dev-synthetic-cad-s1'")
     p.add_argument("--synth", default="dev", choices=[*SYNTH_PRESETS, "none"],

@@ -418,6 +418,44 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
     return out.reset_index()
 
 
+SIGMA_COLS = {"position": ("e_pos_m", "sigma_pos_m"), "rotation": ("e_rot_rad", "sigma_rot_rad")}
+
+
+def sigma_calibration(frames: pd.DataFrame, n_bins: int = 6, by: Sequence[str] = ("setting", "method")) -> pd.DataFrame:
+    """Error against predicted sigma (calibration) over frames with an estimate and a covariance.
+
+    ``sigma_pos_m`` / ``sigma_rot_rad`` (``steps.csv``, methods with a covariance: ``cerpe-graph``)
+    are predicted RMS errors (``sqrt`` of the covariance block's trace), so a calibrated method
+    has, per bin of predicted sigma, an RMS error equal to the bin's RMS sigma (ratio 1).
+
+    Returns one row per group of ``by``, quantity (``position``, ``rotation``) and bin (quantiles
+    of the predicted sigma): ``n``, ``sigma_rms`` (RMS predicted sigma), ``error_rms`` (RMS error),
+    ``ratio`` (``error_rms / sigma_rms``) and ``within_2sigma_pct`` (errors within twice their own
+    sigma); a ``bin`` of -1 is the whole group. Empty without such frames.
+    """
+    cols = [*by, "quantity", "bin", "n", "sigma_rms", "error_rms", "ratio", "within_2sigma_pct"]
+    rows = []
+    for quantity, (err, sig) in SIGMA_COLS.items():
+        if err not in frames or sig not in frames:
+            continue
+        f = frames[frames["success"].astype(bool)].copy()
+        f = f[np.isfinite(pd.to_numeric(f[err], errors="coerce")) & np.isfinite(pd.to_numeric(f[sig], errors="coerce"))]
+        for key, g in f.groupby(list(by), sort=True):
+            e, sg = g[err].to_numpy(float), g[sig].to_numpy(float)
+            edges = np.unique(np.quantile(sg, np.linspace(0, 1, max(int(n_bins), 1) + 1)))
+            idx = np.clip(np.searchsorted(edges, sg, side="right") - 1, 0, max(len(edges) - 2, 0))
+            for b in [-1, *range(max(len(edges) - 1, 1))]:
+                m = np.ones(len(e), bool) if b < 0 else idx == b
+                if not m.any():
+                    continue
+                s_rms, e_rms = float(np.sqrt(np.mean(sg[m] ** 2))), float(np.sqrt(np.mean(e[m] ** 2)))
+                rows.append({**dict(zip(by, key if isinstance(key, tuple) else (key,))), "quantity": quantity,
+                             "bin": b, "n": int(m.sum()), "sigma_rms": s_rms, "error_rms": e_rms,
+                             "ratio": e_rms / s_rms if s_rms > 0 else float("nan"),
+                             "within_2sigma_pct": 100.0 * float(np.mean(e[m] <= 2 * sg[m]))})
+    return pd.DataFrame(rows, columns=cols)
+
+
 def check_consistent(runs: Iterable[Run]) -> None:
     """Refuse runs that must not share a table.
 

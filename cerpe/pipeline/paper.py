@@ -39,7 +39,8 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, read_json
 from ..errors import CerpeError
-from .evaluate import GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_runs, gate_quality, roc_curve
+from .evaluate import (GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_runs, gate_quality, roc_curve,
+                       sigma_calibration)
 from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
 from .provenance import code_hash, file_digest
 from .run import run_method
@@ -48,13 +49,15 @@ from .table1 import EXPECTED_TABLES
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
-RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "sift-ransac", "aliked-lightglue")
+RUN_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "sift-ransac", "aliked-lightglue")
 # The paper's own systems figures (Section IV, RTX 4080 laptop, VGGT/SALAD): never our measurements.
 PAPER_NUMBERS: dict[str, float] = {"descriptor_kb": 16.9, "image_kb": 26, "ms_2": 438, "ms_3": 780}
-NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime")
+NOTEBOOKS: tuple[str, ...] = ("01_main_results", "02_error_analysis", "03_qualitative", "04_communication_runtime",
+                              "05_uncertainty")
 # outputs each notebook must leave (stems; figures as .png and .pdf)
-EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality")
-NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv")  # written by notebook 04
+EXPECTED_FIGURES: tuple[str, ...] = ("error_analysis", "communication_runtime", "gate_quality", "calibration")
+NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.csv",  # written by notebook 04
+                                    "calibration.csv")  # notebook 05
 PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
 SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
 
@@ -239,7 +242,8 @@ def frames(ctx: PaperContext, setting: str | None = None) -> pd.DataFrame:
 
 # --------------------------------------------------------------------------- figure data
 def qualitative_data(ctx: PaperContext, setting: str, encounter: str | None = None,
-                     methods: Sequence[str] = ("cerpe", "cerpe-wo-em", "aliked-lightglue", "sift-ransac")) -> dict:
+                     methods: Sequence[str] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "aliked-lightglue",
+                                               "sift-ransac")) -> dict:
     """Inputs of :func:`cerpe.plotting.qualitative_figure` for one encounter of a setting.
 
     Picks the encounter with the most steps that have both overlapping and
@@ -327,10 +331,12 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
                 img = float(b["bytes_pair"].mean())
                 break
     always = desc + img * (S.groupby(["setting", "encounter"])["n_robots"].first().mean() - 1)
-    bytes_table = pd.DataFrame({
-        "scheme": ["descriptor + pose only", f"{METHOD_LABELS[method]} (gated images)", "always send images"],
-        "bytes_per_robot_step": [desc, gated, always],
-    })
+    schemes = [("descriptor + pose only", desc), (f"{METHOD_LABELS[method]} (gated images)", gated)]
+    graph = _robot_rows(ctx, "cerpe-graph") if method != "cerpe-graph" else pd.DataFrame()
+    if len(graph):  # the extension sends the same messages: its bar shows that
+        schemes.append(("CERPE + pose graph (ours; gated images, same messages)", float(graph["bytes_total"].mean())))
+    schemes.append(("always send images", always))
+    bytes_table = pd.DataFrame({"scheme": [n for n, _ in schemes], "bytes_per_robot_step": [v for _, v in schemes]})
     opens = S.groupby(["setting", "encounter", "ego", "other"])["gate_open"].sum()
     key = opens.idxmax()
     gate = S[(S["setting"] == key[0]) & (S["encounter"] == key[1]) & (S["ego"] == key[2]) & (S["other"] == key[3])]
@@ -358,6 +364,13 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
                     + [1000 * lat[lat["n_robots"] == n]["seconds"].sum() for n in sorted(lat["n_robots"].unique())],
     })
     paper_col = {0: PAPER_NUMBERS["descriptor_kb"] * 1000, 2: np.nan}
+    if len(graph) and "t_graph_s" in graph:  # the graph update of cerpe-graph per robot-step
+        ms = 1000 * graph["t_graph_s"].to_numpy(float)
+        summary = pd.concat([summary, pd.DataFrame({
+            "quantity": ["CERPE + pose graph bytes / robot / step", "graph update per robot-step, median (ms)",
+                         "graph update per robot-step, p90 (ms)"],
+            "this run": [float(graph["bytes_total"].mean()), float(np.median(ms)), float(np.percentile(ms, 90))]})],
+            ignore_index=True)
     summary["paper (RTX 4080 laptop, VGGT)"] = [paper_col.get(k, np.nan) for k in range(len(summary))]
     for k, q in enumerate(summary["quantity"]):
         if q.startswith("latency per team step, 2 "):
@@ -366,6 +379,23 @@ def communication_data(ctx: PaperContext, method: str = "cerpe") -> dict:
             summary.loc[k, "paper (RTX 4080 laptop, VGGT)"] = PAPER_NUMBERS["ms_3"]
     return {"bytes_table": bytes_table, "gate": gate, "latency": lat, "summary": summary,
             "paper": PAPER_NUMBERS, "image_bytes": img}
+
+
+def _robot_rows(ctx: PaperContext, method: str) -> pd.DataFrame:
+    """``robots.csv`` rows of every finished encounter of ``method``'s runs (empty when none)."""
+    rows = [pd.read_csv(d / "robots.csv") for (s, m), p in sorted(ctx.run_dirs.items()) if m == method and p.is_dir()
+            for d in sorted(p.iterdir()) if (d / "DONE.json").exists()]
+    return pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
+
+
+def calibration_data(ctx: PaperContext, n_bins: int = 6) -> dict:
+    """Inputs of :func:`cerpe.plotting.calibration_figure` per setting: ``{"frames": {setting: frames},
+    "table": sigma_calibration rows of every setting}`` over the methods whose runs carry a covariance."""
+    f = frames(ctx)
+    f = f[f["method"].isin([m for m in f["method"].unique()
+                            if "sigma_pos_m" in f and np.isfinite(f.loc[f["method"] == m, "sigma_pos_m"]).any()])]
+    return {"frames": {e.name: f[f["setting"] == e.name] for e in ctx.ok_settings},
+            "table": sigma_calibration(f, n_bins)}
 
 
 def _run_tau(run_dir: Path, method: str) -> float | None:

@@ -3,7 +3,8 @@
 Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline]``
 
 Methods: ``cerpe`` (Algorithm 1), ``cerpe-wo-em`` (no ego-motion propagation:
-only direct estimates), ``sift-ransac`` and ``aliked-lightglue`` (per pair and
+only direct estimates), ``cerpe-graph`` (our extension: the same messages, a robust
+pose graph per pair instead of the switch, with covariances), ``sift-ransac`` and ``aliked-lightglue`` (per pair and
 frame, no scale; ``aliked-lightglue`` stands in for the paper's SuperGlue row),
 and ``nope`` / ``co-visnet``, which exit with "not available offline".
 
@@ -14,6 +15,7 @@ The run folder (see ``docs/ARCHITECTURE.md``)::
     RUNDIR/<encounter>/robots.csv           one row per robot and step
     RUNDIR/<encounter>/poses/<i>__<j>.tum   estimate of T_cj_ci (TUM: stamp tx ty tz qx qy qz qw)
     RUNDIR/<encounter>/poses/<i>__<j>.gt.tum
+    RUNDIR/<encounter>/poses/<i>__<j>.cov   its 6x6 covariance per stamp (cerpe-graph only; ROS order)
     RUNDIR/<encounter>/odometry/<robot>.tum X_i^t (cerpe methods only)
     RUNDIR/<encounter>/DONE.json            written last; presence = encounter finished
 
@@ -36,7 +38,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, ensure_dir, read_json
-from ..tum import format_tum
+from ..tum import format_tum, format_tum_cov
 from ..errors import CerpeError
 from ..geometry import se3_inverse, se3_to_tq_xyzw
 from ..records import STAGES, PairRecord, RobotRecord, StepResult
@@ -95,7 +97,8 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
 
     plugins = build_plugins(profile, {"depth_conf": dict(depth_options or {})}, depth=metric_depth)
     # Without any metric depth (e.g. RGB-only data) poses stay up to scale: evaluated at GT scale only.
-    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method == "cerpe"),
+    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method != "cerpe-wo-em"),
+                              backend="graph" if method == "cerpe-graph" else "switch",
                               unit_scale_without_depth=(metric_depth == "none"))
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
@@ -123,6 +126,8 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
     pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None}}, sort_keys=True,
                           default=str)
 
+    keep_pass = cfg.propagate and cfg.backend == "switch"  # what a later cerpe-wo-em may reuse
+
     def steps(encounter: Any) -> Iterator[StepResult]:
         key = (pass_key, seed, _encounter_identity(encounter))
         if not cfg.propagate and key in _FULL_PASSES:
@@ -132,10 +137,10 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
         keep: list[StepResult] = []
         for res in algorithm.run_encounter(encounter, plugins.descriptor, plugins.backbone, plugins.depth,
                                            config=cfg, seed=seed):
-            if cfg.propagate:
+            if keep_pass:
                 keep.append(res)
             yield res
-        if cfg.propagate:
+        if keep_pass:
             _FULL_PASSES[key] = keep  # records only (no images): a few MB per setting
 
     return conf, steps
@@ -244,7 +249,7 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
     idx = {r.robot_id: k for k, r in enumerate(encounter.robots)}
     step_rows: list[dict] = []
     robot_rows: list[dict] = []
-    est: dict[tuple[str, str], list[tuple[float, np.ndarray, np.ndarray | None]]] = {}
+    est: dict[tuple[str, str], list[tuple[float, np.ndarray, np.ndarray | None, np.ndarray | None]]] = {}
     odo: dict[str, list[tuple[float, np.ndarray]]] = {r.robot_id: [] for r in encounter.robots}
     t0 = time.perf_counter()
     n_steps = 0
@@ -270,7 +275,7 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
                     row[f"t_{s}_s"] = float(rr.timings_s.get(s, 0.0)) if rr else float("nan")
                 step_rows.append(row)
                 if pr.T_cj_ci is not None and np.all(np.isfinite(pr.T_cj_ci)):
-                    est.setdefault((pr.ego, pr.other), []).append((pr.stamp_s, pr.T_cj_ci, T_gt))
+                    est.setdefault((pr.ego, pr.other), []).append((pr.stamp_s, pr.T_cj_ci, T_gt, pr.cov))
             n_steps += 1
             bar.update(1)
     finally:
@@ -282,9 +287,13 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
     atomic_write_text(enc_dir / "steps.csv", _csv_text(step_rows))
     atomic_write_text(enc_dir / "robots.csv", _csv_text(robot_rows))
     for (a, b), items in est.items():
-        stamps = np.array([s for s, _, _ in items])
-        atomic_write_text(enc_dir / "poses" / f"{a}__{b}.tum", format_tum(stamps, np.array([T for _, T, _ in items])))
-        with_gt = [(s, G) for s, _, G in items if G is not None]
+        stamps = np.array([s for s, _, _, _ in items])
+        poses = np.array([T for _, T, _, _ in items])
+        atomic_write_text(enc_dir / "poses" / f"{a}__{b}.tum", format_tum(stamps, poses))
+        if any(C is not None for _, _, _, C in items):  # methods with a covariance (cerpe-graph)
+            cov = np.array([np.full((6, 6), np.nan) if C is None else C for _, _, _, C in items])
+            atomic_write_text(enc_dir / "poses" / f"{a}__{b}.cov", format_tum_cov(stamps, poses, cov))
+        with_gt = [(s, G) for s, _, G, _ in items if G is not None]
         if with_gt:
             atomic_write_text(enc_dir / "poses" / f"{a}__{b}.gt.tum",
                               format_tum(np.array([s for s, _ in with_gt]), np.array([G for _, G in with_gt])))
@@ -403,7 +412,8 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("manifest", type=Path, help="dataset manifest (datasets_manifest/*.yaml)")
     p.add_argument("--method", required=True, choices=METHODS,
-                   help="cerpe | cerpe-wo-em (no propagation) | sift-ransac | aliked-lightglue "
+                   help="cerpe | cerpe-wo-em (no propagation) | cerpe-graph (ours: pose graph) | sift-ransac | "
+                        "aliked-lightglue "
                         "(SuperGlue stand-in) | nope, co-visnet (not available offline)")
     p.add_argument("--out", required=True, type=Path, help="run folder to write (resumed when it exists)")
     p.add_argument("--profile", default="offline",

@@ -1,0 +1,206 @@
+"""Calibrate the pose graph's noise models (``cerpe-graph``) on development data only.
+
+Usage::
+
+    cerpe dev --methods cerpe cerpe-wo-em cerpe-graph      # development runs (real dev sets, seed >= 1)
+    python scripts/dev_graph_calibrate.py [--runs build/dev/runs] [--grid] [--out build/dev/graph_calibration.json]
+
+1. Direct estimates (every ``dir_*`` of the runs, accepted or rejected) against ground truth:
+   per-axis rotation sigma = median rotation error / 1.5382 (the median of a 3-D isotropic
+   Gaussian's norm is 1.5382 sigma); translation across the line between the cameras:
+   per-axis sigma = a + b * distance from the Rayleigh median rule in distance bins; along
+   it: the factor of the median |error| / 0.6745 over that; samples more than 0.5 rad off are
+   left out (gross errors are the kernel's job, not the noise model's).
+2. Odometry increments of every robot against ground truth (synthetic sets and real sets
+   with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
+   single steps (least squares on squared errors, own-odometry failures left out), then the
+   ratio of the observed to the modelled RMS error over longer windows (drift correlated
+   over steps makes it > 1).
+3. With ``--grid``: replay the graph (:func:`cerpe.pipeline.graphdev.replay_run`) on every
+   ``cerpe-graph`` run with multipliers of both models and kernel widths, and print e_pos,
+   e_rot, success and the calibration ratio per set against CERPE and CERPE w/o EM.
+
+Refuses run folders of the paper-default suite (seed 0: test data).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from cerpe.algorithm.graph import GraphConfig  # noqa: E402
+from cerpe.pipeline.evaluate import frame_errors, load_run, summarise  # noqa: E402
+from cerpe.pipeline.graphdev import direct_samples, odometry_samples, replay_run  # noqa: E402
+
+MAXWELL_MEDIAN = 1.5382  # median of |x| for x ~ N(0, sigma^2 I_3), in sigmas
+
+
+def _sets(runs: Path) -> list[Path]:
+    out = []
+    for d in sorted(runs.iterdir()):
+        if not (d / "cerpe-graph" / "run.json").is_file():
+            continue
+        meta = json.loads((d / "cerpe-graph" / "run.json").read_text())
+        if "paper-default" in meta.get("manifest", "") or meta.get("setting", "").startswith("synthetic-"):
+            raise SystemExit(f"{d}: a paper-default run (test data); calibrate on development runs only")
+        out.append(d)
+    return out
+
+
+RAYLEIGH_MEDIAN = 1.1774  # median of |x| for x ~ N(0, sigma^2 I_2), in sigmas
+NORMAL_ABS_MEDIAN = 0.6745  # median of |x| for x ~ N(0, sigma^2)
+
+
+def fit_direct(sets: list[Path]) -> dict:
+    S = []
+    for d in sets:
+        s = direct_samples(load_run(d / "cerpe-graph").steps)
+        S.append(s.assign(set=d.name))
+    S = pd.concat(S, ignore_index=True)
+    good = S[S["rot_err_rad"] < 0.5]
+    rot = float(np.median(good["rot_err_rad"]) / MAXWELL_MEDIAN)
+    # across the line between the cameras: per-axis sigma = a + b * distance (medians in distance bins)
+    bins = np.unique(np.quantile(good["dist_m"], np.linspace(0, 1, 6)))
+    idx = np.clip(np.searchsorted(bins, good["dist_m"], side="right") - 1, 0, len(bins) - 2)
+    x = np.array([good["dist_m"][idx == b].median() for b in range(len(bins) - 1)])
+    y = np.array([good["perp_m"][idx == b].median() / RAYLEIGH_MEDIAN for b in range(len(bins) - 1)])
+    (a, b), *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), y, rcond=None)
+    a, b = float(max(a, 1e-3)), float(max(b, 0.0))
+    along = float(np.median(np.abs(good["along_m"]) / (a + b * good["dist_m"])) / NORMAL_ABS_MEDIAN)
+    per_set = S.groupby("set").agg(n=("rot_err_rad", "size"), rot_median=("rot_err_rad", "median"),
+                                   along_median=("along_m", lambda v: float(np.median(np.abs(v)))),
+                                   perp_median=("perp_m", "median"), dist_median=("dist_m", "median"),
+                                   gross_pct=("rot_err_rad", lambda v: 100 * float(np.mean(v >= 0.5))))
+    return {"direct_rot_rad": rot, "direct_trans_m": a, "direct_trans_rel": b,
+            "direct_along_factor": float(max(along, 1.0)), "n": int(len(S)), "n_used": int(len(good)),
+            "per_set": per_set.reset_index().to_dict("records"), "bins_m": x.tolist(), "sigma_perp_m": y.tolist()}
+
+
+def fit_odometry(sets: list[Path]) -> dict:
+    from cerpe.pipeline.run import load_manifest_setting
+
+    rows = []
+    for d in sets:
+        run = load_run(d / "cerpe-graph")
+        setting = load_manifest_setting(Path(run.meta["manifest"]))
+        for enc in setting.encounters:
+            R = run.robots[run.robots["encounter"] == enc.name]
+            for r in enc.robots:
+                if r.T_world_cam is None or not np.all(np.isfinite(r.T_world_cam)):
+                    continue
+                for s in odometry_samples(R[R["robot"] == r.robot_id], r.T_world_cam):
+                    rows.append({**s, "set": d.name})
+    O = pd.DataFrame(rows)
+    one = O[(O["window"] == 1) & ~O["failed"]]
+    # per-axis variances: |e|^2 / 3 = s0^2 + (s_m d)^2 + (s_rad a)^2 (non-negative least squares)
+    from scipy.optimize import nnls
+
+    A = np.stack([np.ones(len(one)), one["dist_m"] ** 2, one["angle_rad"] ** 2], 1)
+    cr, _ = nnls(A, one["rot_err_rad"].to_numpy() ** 2 / 3)
+    ct, _ = nnls(A[:, :2], one["trans_err_m"].to_numpy() ** 2 / 3)
+    fit = {"odo_rot_per_step": float(np.sqrt(cr[0])), "odo_rot_per_m": float(np.sqrt(cr[1])),
+           "odo_rot_per_rad": float(np.sqrt(cr[2])), "odo_trans_per_step": float(np.sqrt(ct[0])),
+           "odo_trans_per_m": float(np.sqrt(ct[1]))}
+    growth = []
+    for w, g in O[~O["failed"]].groupby("window"):
+        # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
+        var_r = w * fit["odo_rot_per_step"] ** 2 + ((fit["odo_rot_per_m"] * g["dist_m"]) ** 2
+                                                    + (fit["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
+        var_t = w * fit["odo_trans_per_step"] ** 2 + (fit["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
+        growth.append({"window": int(w), "n": int(len(g)),
+                       "rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
+                       "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t)))})
+    fails = O[(O["window"] == 1)]
+    return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
+
+
+def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float | None = None) -> GraphConfig:
+    f = {n: getattr(conf, n) * odo for n in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad",
+                                             "odo_trans_per_step", "odo_trans_per_m")}
+    f.update({n: getattr(conf, n) * direct for n in ("direct_rot_rad", "direct_trans_m", "direct_trans_rel")})
+    if along is not None:
+        f["direct_along_factor"] = along
+    return dataclasses.replace(conf, **f, kernel_k=k)
+
+
+def summary(steps: pd.DataFrame, every: int) -> dict:
+    f = frame_errors(steps, True, every).assign(g="x")
+    s = summarise(f, ["g"]).iloc[0]
+    out = {"e_pos_m": float(s["e_pos_m"]), "e_rot_rad": float(s["e_rot_rad"]), "success_pct": float(s["success_pct"])}
+    ok = f[f["success"]]
+    if "sigma_pos_m" in ok and np.isfinite(ok["sigma_pos_m"]).any():
+        out["pos_ratio"] = float(np.sqrt(np.nanmean(ok["e_pos_m"] ** 2) / np.nanmean(ok["sigma_pos_m"] ** 2)))
+    return out
+
+
+def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[float], ks: list[float],
+         alongs: list[float]) -> pd.DataFrame:
+    rows = []
+    ref = {}
+    for d in sets:
+        for m in ("cerpe", "cerpe-wo-em"):
+            if (d / m / "run.json").is_file():
+                r = load_run(d / m)
+                ref[(d.name, m)] = summary(r.steps, r.every)
+    for o, di, k, al in itertools.product(odo, direct, ks, alongs):
+        conf = scaled(base, o, di, k, al)
+        for d in sets:
+            run = load_run(d / "cerpe-graph")
+            s = summary(replay_run(d / "cerpe-graph", conf), run.every)
+            c, w = ref.get((d.name, "cerpe"), {}), ref.get((d.name, "cerpe-wo-em"), {})
+            bound = 0.7 * min(c.get("e_pos_m", np.nan), w.get("e_pos_m", np.nan))
+            rows.append({"odo_x": o, "direct_x": di, "kernel_k": k, "along": al, "set": d.name, **s,
+                         "cerpe_e_pos": c.get("e_pos_m"), "woem_e_pos": w.get("e_pos_m"), "bound_e_pos": bound,
+                         "cerpe_e_rot": c.get("e_rot_rad"), "cerpe_success": c.get("success_pct"),
+                         "pos_ok": bool(s["e_pos_m"] <= bound), "rot_ok": bool(s["e_rot_rad"] <= c.get("e_rot_rad", np.inf)),
+                         "succ_ok": bool(s["success_pct"] >= c.get("success_pct", 0))})
+    return pd.DataFrame(rows)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=Path, default=ROOT / "build" / "dev" / "runs")
+    p.add_argument("--grid", action="store_true", help="replay the graph with scaled noise models and kernels")
+    p.add_argument("--odo", type=float, nargs="+", default=[1.0, 2.0, 4.0])
+    p.add_argument("--direct", type=float, nargs="+", default=[1.0, 2.0])
+    p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0])
+    p.add_argument("--along", type=float, nargs="+", default=[1.0], help="direct_along_factor values")
+    p.add_argument("--kernel", default="cauchy", choices=("cauchy", "huber", "none"))
+    p.add_argument("--out", type=Path, default=None, help="write the fit (and grid) as JSON here")
+    args = p.parse_args()
+    sets = _sets(args.runs)
+    if not sets:
+        raise SystemExit(f"{args.runs}: no cerpe-graph development runs (run `cerpe dev --methods cerpe cerpe-wo-em "
+                         f"cerpe-graph` first)")
+    print("sets:", ", ".join(d.name for d in sets))
+    direct = fit_direct(sets)
+    print("direct estimates:", json.dumps({k: v for k, v in direct.items() if k != "per_set"}, indent=1))
+    print(pd.DataFrame(direct["per_set"]).to_string(index=False))
+    odo = fit_odometry(sets)
+    print("odometry:", json.dumps({k: v for k, v in odo.items() if k != "growth"}, indent=1))
+    print(pd.DataFrame(odo["growth"]).to_string(index=False))
+    result = {"direct": direct, "odometry": odo, "command": " ".join(sys.argv)}
+    if args.grid:
+        base = GraphConfig(**{k: v for k, v in {**direct, **odo}.items() if k in GraphConfig.__dataclass_fields__},
+                           kernel=args.kernel)
+        g = grid(sets, base, args.odo, args.direct, args.k, args.along)
+        with pd.option_context("display.width", 250, "display.max_columns", 30, "display.max_rows", 500):
+            print(g.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+        result["grid"] = g.to_dict("records")
+    if args.out:
+        args.out.write_text(json.dumps(result, indent=1, default=float))
+        print("written:", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

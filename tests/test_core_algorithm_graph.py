@@ -1,0 +1,275 @@
+"""The pose-graph back end (cerpe/algorithm/graph.py, ``cerpe-graph``): known answers, robustness,
+covariance behaviour, bad input, and the agent with ``backend="graph"`` next to the paper's CERPE."""
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+
+from cerpe.algorithm import DEGRADATIONS, CerpeConfig, GraphConfig, Team
+from cerpe.algorithm import graph as graph_mod
+from cerpe.algorithm.config import AlgorithmError
+from cerpe.algorithm.degradations import known
+from cerpe.algorithm.graph import DirectEstimate, GraphError, PairGraph, odometry_cov
+from cerpe.algorithm.graph_sim import simulate_pair
+from cerpe.geometry import (e_rot, make_se3, pose_cov_in_parent, pose_cov_sigmas, random_se3, se3_adjoint,
+                            so3_exp)
+from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
+
+
+def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozenset(), replace: dict | None = None):
+    """Run a PairGraph over a simulated stream; returns (graph, [GraphEstimate per step])."""
+    g = PairGraph(conf)
+    out = []
+    last_j = None
+    for t in range(len(stream.truth)):
+        if t not in skip_pose_j:
+            last_j = (t, stream.X_j[t])
+        if t in (replace or {}):  # None: this step's estimate never came
+            d = replace[t]
+        else:
+            d = DirectEstimate(t, stream.direct[t]) if t in stream.direct else None
+        out.append(g.step(t, stream.X_i[t], None if last_j is None else last_j[1], -1 if last_j is None else last_j[0],
+                          d))
+    return g, out
+
+
+def trace(cov: np.ndarray) -> float:
+    return float(np.trace(cov))
+
+
+# --------------------------------------------------------------------------- pure math
+def test_adjoint_is_gtsams_and_parent_covariance_matches_sampling():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        T = random_se3(rng)
+        np.testing.assert_allclose(se3_adjoint(T), gtsam.Pose3(T).AdjointMap(), atol=1e-12)
+    # a right-perturbation covariance seen in the parent frame (ROS order): Monte Carlo check
+    T = random_se3(rng, 3.0)
+    L = rng.normal(size=(6, 6)) * 0.01
+    C = L @ L.T + np.eye(6) * 1e-4
+    xi = rng.multivariate_normal(np.zeros(6), C, size=20000)
+    dt, dth = [], []
+    for x in xi:
+        P = T @ make_se3(so3_exp(x[:3]), x[3:])
+        dt.append(P[:3, 3] - T[:3, 3])
+        dth.append(T[:3, :3] @ x[:3])  # the rotation error about the parent's axes (first order)
+    emp = np.cov(np.hstack([dt, dth]).T)
+    np.testing.assert_allclose(pose_cov_in_parent(T, C), emp, atol=3e-5)
+    pos, rot = pose_cov_sigmas(C)
+    assert pos == pytest.approx(np.sqrt(np.trace(C[3:, 3:]))) and rot == pytest.approx(np.sqrt(np.trace(C[:3, :3])))
+
+
+def test_odometry_covariance_grows_with_steps_and_distance():
+    conf = GraphConfig()
+    D = make_se3(np.eye(3), [0.0, 0.0, 1.0])
+    assert trace(odometry_cov(conf, D, 1)) > trace(odometry_cov(conf, np.eye(4), 1)) > 0
+    assert trace(odometry_cov(conf, np.eye(4), 4)) == pytest.approx(4 * trace(odometry_cov(conf, np.eye(4), 1)))
+    assert trace(odometry_cov(conf, D, 1, lost_steps=1)) > trace(odometry_cov(conf, D, 1))
+
+
+@pytest.mark.parametrize("bad", [{"kernel": "tukey"}, {"window_nodes": 1}, {"direct_rot_rad": -1.0},
+                                 {"kernel_k": float("nan")}])
+def test_bad_graph_config_is_one_clear_error(bad):
+    with pytest.raises(GraphError, match=next(iter(bad))):
+        GraphConfig(**bad)
+    with pytest.raises((AlgorithmError, GraphError)):
+        CerpeConfig(backend="graph", graph=bad)
+    with pytest.raises(AlgorithmError, match="backend"):
+        CerpeConfig(backend="smoother")
+    with pytest.raises(AlgorithmError, match="unknown graph field"):
+        CerpeConfig(graph={"no_such": 1})
+
+
+# --------------------------------------------------------------------------- the issue's checks
+def test_exact_odometry_and_two_exact_anchors_reproduce_the_truth():
+    s = simulate_pair(seed=0, n_steps=40, direct_steps=[3, 20])
+    _, out = feed(s)
+    for t, r in enumerate(out):
+        if t < 3:
+            assert r.T_cj_ci is None and r.cov is None  # nothing before the first direct estimate
+            continue
+        np.testing.assert_allclose(r.T_cj_ci, s.truth[t], atol=1e-6)
+        assert r.measured == (t in (3, 20)) and r.node_step == (3 if t < 20 else 20) and not r.degradations
+
+
+def test_one_wrong_anchor_among_five_good_ones_is_down_weighted():
+    noise_rot, noise_trans = 0.01, 0.02
+    s = simulate_pair(seed=4, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[4, 8, 12, 16, 20, 24],
+                      direct_rot=noise_rot, direct_trans=noise_trans)
+    wrong = s.truth[16] @ make_se3(so3_exp(np.array([0.0, 0.5, 0.0])), np.zeros(3))
+    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0, direct_along_factor=1.0)
+    _, out = feed(s, conf, replace={16: DirectEstimate(16, wrong)})
+    for t in range(16, 40):  # from the wrong anchor on: within the good anchors' noise (3 sigma)
+        r = out[t]
+        assert float(e_rot(r.T_cj_ci, s.truth[t])) < 3 * noise_rot, t
+        assert np.linalg.norm(r.T_cj_ci[:3, 3] - s.truth[t][:3, 3]) < 3 * np.sqrt(3) * noise_trans, t
+    # the switch would have reported the wrong anchor itself at step 16
+    assert float(e_rot(wrong, s.truth[16])) > 0.45
+
+
+def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating():
+    s = simulate_pair(seed=1, n_steps=30, odo_rot=0.001, odo_trans=0.002, direct_steps=[2, 12, 13],
+                      direct_rot=0.01, direct_trans=0.02)
+    _, out = feed(s)
+    tr = [trace(r.cov) if r.cov is not None else np.nan for r in out]
+    assert all(tr[t + 1] > tr[t] for t in range(2, 11))  # propagation: grows every step
+    assert tr[12] < tr[11] and tr[13] < tr[12]  # each anchor: shrinks
+    assert all(tr[t + 1] > tr[t] for t in range(13, 29))
+    pos, rot = pose_cov_sigmas(out[12].cov)
+    assert 0 < pos < 1 and 0 < rot < 0.1
+
+
+def test_predicted_sigma_is_calibrated_when_the_noise_model_is_right():
+    conf = GraphConfig(odo_rot_per_step=0.002, odo_rot_per_m=0.0, odo_rot_per_rad=0.0, odo_trans_per_step=0.004,
+                       odo_trans_per_m=0.0, direct_rot_rad=0.02, direct_trans_m=0.05, direct_trans_rel=0.0,
+                       direct_along_factor=1.0,
+                       kernel="none")
+    e2, s2 = [], []
+    for seed in range(12):
+        s = simulate_pair(seed=seed, n_steps=40, odo_rot=0.002, odo_trans=0.004, direct_every=6,
+                          direct_rot=0.02, direct_trans=0.05)
+        _, out = feed(s, conf)
+        for t, r in enumerate(out):
+            if r.T_cj_ci is not None:
+                e2.append(np.sum((r.T_cj_ci[:3, 3] - s.truth[t][:3, 3]) ** 2))
+                s2.append(pose_cov_sigmas(r.cov)[0] ** 2)
+    ratio = np.sqrt(np.mean(e2) / np.mean(s2))
+    assert 0.7 < ratio < 1.4, ratio
+
+
+def test_the_window_bounds_the_graph():
+    s = simulate_pair(seed=2, n_steps=300, odo_rot=0.001, odo_trans=0.002, direct_every=1, direct_rot=0.01,
+                      direct_trans=0.02)
+    g, out = feed(s, GraphConfig(window_nodes=10))
+    assert g.n_nodes == 300 and not any(r.degradations for r in out)
+    kept = g._solver.smoother.calculateEstimate().keys()
+    assert len(kept) <= 12
+    assert float(e_rot(out[-1].T_cj_ci, s.truth[-1])) < 0.05
+
+
+# --------------------------------------------------------------------------- bad input
+def _good_then(bad: DirectEstimate | None, at: int = 10, **kw):
+    s = simulate_pair(seed=5, n_steps=16, odo_rot=0.001, odo_trans=0.002, direct_steps=[3, 6], direct_rot=0.01,
+                      direct_trans=0.02)
+    return s, feed(s, replace={at: bad}, **kw)
+
+
+@pytest.mark.parametrize("cov", [np.zeros((6, 6)), np.full((6, 6), np.nan), -np.eye(6), np.eye(5)])
+def test_degenerate_covariance_is_counted_and_the_estimate_kept(cov):
+    s, (g, out) = _good_then(None)
+    T = s.truth[10]
+    s2, (g2, out2) = _good_then(DirectEstimate(10, T, cov=cov))
+    assert out2[10].degradations == ["graph:degenerate-covariance"] and not out2[10].measured
+    np.testing.assert_allclose(out2[10].T_cj_ci, out[10].T_cj_ci)  # as if it had not come
+    np.testing.assert_allclose(out2[10].cov, out[10].cov)
+    assert known("graph:degenerate-covariance")
+
+
+def test_anchor_between_poses_the_graph_does_not_have_is_out_of_order():
+    s = simulate_pair(seed=6, n_steps=16, direct_steps=[3, 9])
+    # the other robot's pose of step 9 never arrived: its estimate relates poses the graph lacks
+    _, out = feed(s, skip_pose_j={9})
+    assert out[9].degradations == ["graph:out-of-order"] and out[9].node_step == 3
+    assert out[9].T_cj_ci is not None  # the last good estimate, propagated with the stale pose
+    # an estimate of an older step than the graph's newest node (messages out of order)
+    g, _ = feed(s)
+    late = g.step(16, s.X_i[15], s.X_j[15], 15, DirectEstimate(5, s.truth[5]))
+    assert late.degradations == ["graph:out-of-order"] and late.node_step == 9
+    # before any pose of the other robot: counted, nothing to report
+    first = PairGraph().step(0, np.eye(4), None, -1, DirectEstimate(0, np.eye(4)))
+    assert first.degradations == ["graph:out-of-order"] and first.T_cj_ci is None
+
+
+def test_solver_exception_keeps_the_last_good_estimate(monkeypatch):
+    s = simulate_pair(seed=7, n_steps=16, odo_rot=0.001, odo_trans=0.002, direct_steps=[3, 6, 10, 13],
+                      direct_rot=0.01, direct_trans=0.02)
+    _, ref = feed(s, replace={10: None})
+    g = PairGraph()
+    out = []
+    real_add = graph_mod._Solver.add
+    for t in range(16):
+        if t == 10:
+            monkeypatch.setattr(graph_mod._Solver, "add", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
+        if t == 11:
+            monkeypatch.setattr(graph_mod._Solver, "add", real_add)
+        d = DirectEstimate(t, s.direct[t]) if t in s.direct else None
+        out.append(g.step(t, s.X_i[t], s.X_j[t], t, d))
+    assert out[10].degradations == ["graph:solver-failed"] and out[10].node_step == 6
+    np.testing.assert_allclose(out[10].T_cj_ci, ref[10].T_cj_ci, atol=1e-9)
+    # the graph goes on from the last good node: the next estimate is taken in
+    assert out[13].measured and not out[13].degradations
+    assert float(e_rot(out[15].T_cj_ci, s.truth[15])) < 0.05
+
+
+def test_graph_that_does_not_converge_keeps_the_last_good_estimate():
+    s = simulate_pair(seed=8, n_steps=16, odo_rot=0.001, odo_trans=0.002, direct_steps=[3, 8], direct_rot=0.05,
+                      direct_trans=0.1)
+    conf = GraphConfig(max_iterations=1, converge_tol=1e-300, kernel="cauchy")
+    _, out = feed(s, conf)
+    assert out[3].measured  # a single prior converges at once
+    assert out[8].degradations == ["graph:not-converged"] and out[8].node_step == 3
+    np.testing.assert_allclose(out[8].T_cj_ci, feed(s, replace={8: None})[1][8].T_cj_ci, atol=1e-9)
+
+
+def test_graph_degradations_are_listed():
+    for name in graph_mod.GRAPH_DEGRADATIONS:
+        assert name in DEGRADATIONS
+
+
+# --------------------------------------------------------------------------- in the agent
+def _run(world, config):
+    team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1, trans_noise=0.02,
+                                                                      rot_noise_rad=0.005),
+                SensorDepthDouble(), config)
+    return list(team.run_encounter(world.to_encounter()))
+
+
+def test_agent_graph_backend_same_messages_and_pass_estimates_with_covariance():
+    world = make_world(3, 30, seed=2)
+    base = CerpeConfig(min_scale_pixels=20)
+    switch = _run(world, base)
+    graph = _run(world, dataclasses.replace(base, backend="graph"))
+    err: dict[str, list[float]] = {"graph": [], "switch": []}
+    for a, b in zip(switch, graph):
+        for ra, rb in zip(a.robots, b.robots):  # the same messages, bytes and odometry
+            assert ra.bytes_sent == rb.bytes_sent and ra.degradations == rb.degradations
+            np.testing.assert_array_equal(ra.T_odom_cam, rb.T_odom_cam)
+            assert rb.timings_s["graph"] > 0 and ra.timings_s.get("graph", 0.0) == 0.0
+        for pa, pb in zip(a.pairs, b.pairs):
+            assert (pa.gate_open, pa.gate_score, pa.bytes_pair, pa.anchor_verdict, pa.direct_via) == \
+                (pb.gate_open, pb.gate_score, pb.bytes_pair, pb.anchor_verdict, pb.direct_via)
+            if pa.T_direct is None:
+                assert pb.T_direct is None
+            else:
+                np.testing.assert_array_equal(pa.T_direct, pb.T_direct)
+            assert pa.cov is None and np.isnan(pa.as_row()["sigma_pos_m"])  # the paper's CERPE: no covariance
+            assert (pb.source == "none") == (pb.T_cj_ci is None) == (pb.cov is None)
+            if pb.source == "none":
+                assert pa.source == "none"  # nothing before the first direct estimate, as CERPE
+            else:
+                row = pb.as_row()
+                assert row["sigma_pos_m"] > 0 and row["sigma_rot_rad"] > 0
+                i, j = world.index(pb.ego), world.index(pb.other)
+                gt = world.gt_T_cj_ci(a.step, i, j)
+                err["graph"].append(float(e_rot(pb.T_cj_ci, gt)))
+            if pa.T_cj_ci is not None:
+                err["switch"].append(float(e_rot(pa.T_cj_ci, world.gt_T_cj_ci(a.step, world.index(pa.ego),
+                                                                             world.index(pa.other)))))
+    assert max(err["graph"]) < 0.2 and np.mean(err["graph"]) < 0.1 and len(err["graph"]) >= len(err["switch"])
+    # the graph estimates every step the switch estimates (success >= CERPE's)
+    assert sum(p.source != "none" for r in graph for p in r.pairs) >= sum(p.source != "none" for r in switch
+                                                                         for p in r.pairs)
+
+
+def test_paper_cerpe_ignores_the_graph_configuration():
+    world = make_world(2, 20, seed=3)
+    base = CerpeConfig(min_scale_pixels=20)
+    a = _run(world, base)
+    b = _run(world, dataclasses.replace(base, graph=GraphConfig(kernel="huber", direct_rot_rad=1.0)))
+    for ra, rb in zip(a, b):
+        for pa, pb in zip(ra.pairs, rb.pairs):
+            assert pa.as_row().keys() == pb.as_row().keys()
+            assert {k: v for k, v in pa.as_row().items() if v == v} == {k: v for k, v in pb.as_row().items() if v == v}
