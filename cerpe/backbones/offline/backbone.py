@@ -80,7 +80,8 @@ class OfflineGeometryBackbone:
         cross: cross-robot registration of collaborator views (``View.role ==
             "collaborator"``; :mod:`.cross`): ``enabled`` (False: collaborators join the
             joint reconstruction as any other view), ``matcher`` (the learned stage:
-            ``aliked``, ``xfeat`` or ``none``), ``min_inliers``, ``min_inlier_ratio``,
+            ``aliked``, ``xfeat`` or ``none``), ``min_inliers`` (learned stage),
+            ``min_inliers_mnn`` (mutual-NN stage), ``min_inlier_ratio``,
             ``pnp_px``, ``epipolar_px``, ``max_views`` (own views the learned stage
             tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
             ``feature_cache_size``, ``scale_match_px``.

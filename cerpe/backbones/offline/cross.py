@@ -12,9 +12,11 @@ views, never inside the own reconstruction:
 
 A cascade keeps the cost down: the XFeat mutual-NN matches the pass already has come
 first; the learned matcher (:class:`LearnedMatcher`) runs only when none of them reaches
-``min_inliers``, against the ``max_views`` own views with most mutual-NN matches. Only
-registrations with at least ``min_inliers`` verified inliers (and, for the essential
-matrix, an inlier ratio of ``min_inlier_ratio``) are reported, most inliers first.
+``min_inliers``, against the ``max_views`` own views with most mutual-NN matches. A
+registration needs ``min_inliers_mnn`` verified inliers from the mutual-NN stage (the
+evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from the
+learned one (and, for the essential matrix, an inlier ratio of ``min_inlier_ratio``); a
+learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ default_conf: dict[str, Any] = {
     "enabled": True,
     "matcher": "aliked",  # aliked: ALIKED + LightGlue; xfeat: LighterGlue over XFeat; none: cheap stage only
     "min_inliers": 50,
+    "min_inliers_mnn": 15,
     "min_inlier_ratio": 0.2,
     "pnp_px": 3.0,
     "epipolar_px": 1.0,
@@ -52,7 +55,7 @@ def check_conf(c: Mapping[str, Any]) -> None:
     """Refuse a ``cross`` sub-config that cannot work (one error naming the field)."""
     if c["matcher"] not in MATCHERS:
         raise OfflineBackboneError(f"offline backbone conf: cross.matcher {c['matcher']!r}; valid: {', '.join(MATCHERS)}")
-    for name in ("min_inliers", "max_views", "max_keypoints"):
+    for name in ("min_inliers", "min_inliers_mnn", "max_views", "max_keypoints"):
         if int(c[name]) < 1:
             raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be >= 1, got {c[name]}")
 
@@ -142,10 +145,16 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
     mode = "pnp" if targets else "essential"
     if not targets:
         targets = [s for s in own if not p.low_tex[s]]
+    # the essential matrix asks of the mutual-NN stage what the own image-only pass asks of a pair
+    need_mnn = int(c["min_inliers_mnn"]) if mode == "pnp" else max(int(c["min_inliers_mnn"]),
+                                                                    int(p.conf["min_inliers"]))
     best: dict[int, tuple[np.ndarray | None, int, int]] = {}
     for s in targets:
         m = p.m(s, k)
-        best[s] = _verify(p, mode, s, k, p.feats[s].keypoints[m[:, 0]], p.feats[k].keypoints[m[:, 1]], rec)
+        best[s] = _verify(p, mode, s, k, p.feats[s].keypoints[m[:, 0]], p.feats[k].keypoints[m[:, 1]], rec,
+                          need_mnn)
+        if best[s][1] < need_mnn:
+            best[s] = (None, best[s][1], best[s][2])
     if targets and max(n for _, n, _ in best.values()) < need and learned is not None \
             and c["matcher"] != "none":
         tl = time.perf_counter()
@@ -158,24 +167,24 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
             mm = lm.match(fs, fk)
             p.counts["cross-learned-pairs"] += 1
             res = _verify(p, mode, s, k, np.asarray(fs["keypoints"])[mm[:, 0]], np.asarray(fk["keypoints"])[mm[:, 1]],
-                          rec)
-            if res[1] > best[s][1]:
+                          rec, need)
+            if res[1] >= need and res[1] > best[s][1]:
                 best[s] = res
         p.timings["cross_learned"] = p.timings.get("cross_learned", 0.0) + time.perf_counter() - tl
-    out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None and n >= need]
+    out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None]
     out.sort(key=lambda r: (-r.inliers, r.via))
     if out:
         return out, ""
-    return [], "few-inliers" if any(m >= need for _, _, m in best.values()) else "few-matches"
+    return [], "few-inliers" if any(m >= need_mnn for _, _, m in best.values()) else "few-matches"
 
 
 def _verify(p: Pass, mode: str, s: int, k: int, uv_s: np.ndarray, uv_k: np.ndarray,
-            rec: Recon | None) -> tuple[np.ndarray | None, int, int]:
-    """``(T_s_k or None, verified inliers, matches)`` of matched pixels of views ``s`` and ``k``."""
+            rec: Recon | None, need: int) -> tuple[np.ndarray | None, int, int]:
+    """``(T_s_k or None, verified inliers, matches)`` of matched pixels of views ``s`` and ``k``
+    (None below ``need`` inliers)."""
     import poselib
 
     c = p.conf["cross"]
-    need = int(c["min_inliers"])
     n_match = len(uv_s)
     if mode == "essential":
         conf = {"min_matches": need, "epipolar_px": float(c["epipolar_px"]), "min_inliers": need,
