@@ -95,3 +95,18 @@ def test_bench_renders_the_default_suite_once_then_reuses_it(tmp_path, monkeypat
     before = png.stat().st_mtime_ns
     assert main(argv) == 0  # as after `make paper`: the suite is there
     assert png.stat().st_mtime_ns == before
+
+
+def test_printout_carries_the_cross_robot_registration_counters():
+    from cerpe.pipeline.bench import _stats, format_table
+
+    r = {"n_robots": 2, "team_step_ms": _stats([300.0]), "target_ms": 438.0, "xfeat_passes_per_robot_step": 1.0,
+         "peak_rss_mib": 1.0, "gate_open_ratio": 0.5, "stage_ms": {}, "robot_step_ms": _stats([150.0]),
+         "bytes_per_robot_step": {}, "accuracy": {"direct_rot_err_rad": _stats([]), "ego_per_robot": {}},
+         "cross": {"gated_pairs": 10, "cross-registered": 6, "cross-none": 4, "cross-learned": 3,
+                   "cross-learned-pairs": 7}}
+    text = format_table([r], {"dim": 8, "wire_bytes": {}})
+    assert ("cross-robot registration (all steps): 10 gated pairs, 6 collaborator views registered, 4 not; "
+            "learned matcher for 3 views (7 image pairs)") in text
+    r["cross"] = {"gated_pairs": 10}  # a backbone without the counters (VGGT): no line
+    assert "cross-robot" not in format_table([r], {"dim": 8, "wire_bytes": {}})

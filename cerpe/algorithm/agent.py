@@ -283,8 +283,8 @@ class RobotAgent:
     def joint_pass(self) -> BackboneOutput | None:
         """ONE backbone pass over ``[current] + keyframes (newest first) (+ previous frame) + collaborators``.
 
-        Kept views come with the memo the backbone gave them as current view. None
-        for a blank frame (no pass).
+        Kept views come with the memo the backbone gave them as current view, every view
+        with its role (``View.role``). None for a blank frame (no pass).
         """
         st = self._state()
         st.passed = True
@@ -295,7 +295,9 @@ class RobotAgent:
         # computed anyway (no keyframe yet: the scale needs it; track_previous: the next step does)
         if not kfs or self.config.track_previous:
             st.view = dataclasses.replace(st.view, depth_m=self._current_depth())
-        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo) for kf in kfs]
+        st.view = dataclasses.replace(st.view, role="current")
+        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo, role="keyframe")
+                             for kf in kfs]
         st.own_views = {0: (st.step, None)}
         st.own_views.update({1 + k: (kf.step, kf.T_odom_cam) for k, kf in enumerate(kfs)})
         prev = self.previous
@@ -303,10 +305,10 @@ class RobotAgent:
         if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
             st.prev_index = len(views)
             st.own_views[st.prev_index] = (prev.step, prev.T_odom_cam)
-            views.append(prev.view)
+            views.append(dataclasses.replace(prev.view, role="previous"))
         for other, v in st.collab_views.items():
             st.collab_index[other] = len(views)
-            views.append(v)
+            views.append(dataclasses.replace(v, role="collaborator"))
         t0 = time.perf_counter()
         out = self.backbone.infer(views)
         st.timings["backbone"] += time.perf_counter() - t0

@@ -14,6 +14,8 @@ renders it once and a clone after ``make paper`` renders nothing. It reports:
 * message bytes per robot per step by kind (``RobotRecord.bytes_sent``) and the
   descriptor frame size in fp32/fp16/int8;
 * peak resident memory of the process (``ru_maxrss``);
+* the backbone's cross-robot registration counters (offline backbone): gated pairs,
+  collaborator views registered, views and image pairs the learned matcher ran on;
 * the pose-graph back end of ``cerpe-graph`` (our extension): its update per robot-step
   (median, p90) over a ``--graph-seconds`` (60 s) encounter at 10 Hz per team size, each
   robot updating one graph per peer; fed a simulated stream (odometry and direct
@@ -207,7 +209,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
     robot_ms: list[float] = []
     bytes_kind: dict[str, list[int]] = {k: [] for k in ("descriptor", "pose", "request", "reply")}
     bytes_total: list[int] = []
-    gate_open = pairs = robot_steps = all_robot_steps = 0
+    gate_open = pairs = robot_steps = all_robot_steps = gated_all = 0
     rot_direct: list[float] = []
     gate_rows: list[dict[str, Any]] = []
     ego: dict[str, list[dict[str, Any]]] = {}
@@ -227,6 +229,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             res = team.step(imgs, ctxs)
             dt = (time.perf_counter() - t0) * 1000
             all_robot_steps += len(res.robots)
+            gated_all += sum(p.gate_open for p in res.pairs)
             for rec in res.robots:
                 X[rec.robot].append(rec.T_odom_cam)
             for p in res.pairs:
@@ -257,7 +260,14 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs, "rot_direct": rot_direct,
             "gate_rows": gate_rows,
             "ego": ego, "xfeat_passes": _n_encoded(plugins) - enc0, "robot_steps": robot_steps,
-            "all_robot_steps": all_robot_steps}
+            "all_robot_steps": all_robot_steps, "cross": _cross_counts(plugins, gated_all)}
+
+
+def _cross_counts(plugins: Any, gated: int) -> dict[str, int]:
+    """The backbone's cross-robot registration counters over a walk (all steps; the plug-ins are
+    fresh per walk) beside the gated pairs: the learned matcher should run on a part of those only."""
+    counts = getattr(plugins.backbone, "counts", None) or {}
+    return {"gated_pairs": int(gated), **{k: int(v) for k, v in counts.items() if k.startswith("cross-")}}
 
 
 def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
@@ -277,6 +287,7 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
         # XFeat network passes per robot-step (own image + received images): > 0 means the
         # encoder really ran, i.e. the run did not reuse features cached by an earlier one
         "xfeat_passes_per_robot_step": w["xfeat_passes"] / rs,
+        "cross": w["cross"],
         "target_ms": TARGET_MS.get(n_robots),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
@@ -410,6 +421,12 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
         lines.append(f"   {'bytes per robot-step':<24}{'median':>10}{'p90':>10}{'mean':>10}")
         for k, v in r["bytes_per_robot_step"].items():
             lines.append(f"   {k:<24}{v['median']:>10.0f}{v['p90']:>10.0f}{v['mean']:>10.0f}")
+        c = r.get("cross") or {}
+        if any(k != "gated_pairs" for k in c):
+            lines.append(f"   cross-robot registration (all steps): {c['gated_pairs']} gated pairs, "
+                         f"{c.get('cross-registered', 0)} collaborator views registered, "
+                         f"{c.get('cross-none', 0)} not; learned matcher for {c.get('cross-learned', 0)} views "
+                         f"({c.get('cross-learned-pairs', 0)} image pairs)")
         lines += _fmt_acc(r["accuracy"])
     lines.append(f"descriptor: {descriptor_info['dim']} values; frame bytes " +
                  ", ".join(f"{k} {v}" for k, v in descriptor_info["wire_bytes"].items()))

@@ -20,6 +20,7 @@ No state between calls: what a later pass needs about the current view goes out 
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import Counter
 from typing import Any, Sequence
@@ -29,9 +30,9 @@ import numpy as np
 from ...geometry import se3_inverse
 from ...config import merge_conf
 from ...protocols import BackboneOutput, View
-from ...scene import CameraIntrinsics
 from ..rgbd_align import default_conf as dense_default_conf
-from ..xfeat import XFeatEncoder, check_image, shared_encoder
+from ..xfeat import ImageInputError, XFeatEncoder, check_image, shared_encoder
+from . import cross as cross_mod
 from .context import OfflineBackboneError, Pass, Recon, check_memo
 from .matching import PairMatcher, pinhole_camera, reprojection_error, splat_depth
 from .reconstruction import bootstrap_depth, place_pnp
@@ -76,9 +77,21 @@ class OfflineGeometryBackbone:
         merge_max_rot_px, merge_max_dir_deg, merge_max_ratio_spread, merge_min_baseline_m:
             agreement the image-only views need to join a metric pass
             (:func:`.two_view.merge_image_only`).
+        cross: cross-robot registration of collaborator views (``View.role ==
+            "collaborator"``; :mod:`.cross`): ``enabled`` (False: collaborators join the
+            joint reconstruction as any other view; ``"without-depth"``, the default: on
+            for passes whose own views have no depth), ``matcher`` (the learned stage:
+            ``aliked``, ``xfeat`` or ``none``), ``min_inliers`` (learned stage),
+            ``min_inliers_mnn`` (mutual-NN stage), ``min_inlier_ratio``,
+            ``pnp_px``, ``epipolar_px``, ``max_views`` (own views the learned stage
+            tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
+            ``feature_cache_size``, ``scale_match_px``.
 
     ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
-    ``merged``, ``merge-refused:<why>``); statistics only, they change no result.
+    ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
+    ``cross-learned`` (collaborator views the learned stage ran for),
+    ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``,
+    ``cross-image-size-mismatch``); statistics only, they change no result.
     """
 
     default_conf: dict[str, Any] = {
@@ -120,40 +133,67 @@ class OfflineGeometryBackbone:
         "merge_max_dir_deg": 10.0,
         "merge_max_ratio_spread": 1.25,
         "merge_min_baseline_m": 0.05,
+        "cross": cross_mod.default_conf,
     }
 
-    def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
+    def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None,
+                 learned: Any = None) -> None:
+        """``learned``: the cross-robot learned matcher to use (default: a
+        :class:`.cross.LearnedMatcher` of ``conf["cross"]``, built on first use)."""
         self.conf = merge_conf(self.default_conf, conf, "offline backbone conf")
+        cross_mod.check_conf(self.conf["cross"])
         self.encoder = encoder or shared_encoder(self.conf["xfeat"])
         self.matcher = PairMatcher(self.conf["min_cossim"], self.conf["ratio"], int(self.conf["match_cache_size"]))
         self.counts: Counter[str] = Counter()
+        self._learned = learned
+
+    def learned(self) -> Any:
+        """The cross-robot learned matcher (loaded on first use)."""
+        if self._learned is None:
+            self._learned = cross_mod.LearnedMatcher(self.conf["cross"])
+        return self._learned
 
     def clear_caches(self) -> None:
-        """Forget cached matches (a cold start; features live in the encoder's cache)."""
+        """Forget cached matches and learned features (a cold start; XFeat features live in the encoder's cache)."""
         self.matcher.clear()
+        if self._learned is not None and callable(getattr(self._learned, "clear_cache", None)):
+            self._learned.clear_cache()
 
     def infer(self, views: Sequence[View]) -> BackboneOutput:
-        """One joint pass over ``[current] + keyframes + previous frame + collaborators``."""
+        """One joint pass over ``[current] + keyframes + previous frame + collaborators``.
+
+        With ``cross.enabled``, views whose role is ``"collaborator"`` stay out of the
+        own reconstruction and are registered against single own views
+        (``BackboneOutput.registrations``); a collaborator without intrinsics is left
+        unplaced (``no-intrinsics``) rather than refused, as is one whose image this backbone
+        refuses (``bad-image``) or whose size is not its intrinsics' (``image-size-mismatch``)."""
         S = len(views)
         if S == 0:
             raise OfflineBackboneError("offline backbone: no views given")
+        cross_on = self._cross_on(views)
+        bad = {s: why for s, v in enumerate(views) if s > 0 and v.role == "collaborator"
+               and cross_on and (why := self._bad_collaborator(v))}
+        if bad:
+            return self._infer_without(views, bad)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        intr: list[CameraIntrinsics] = []
+        is_collab = [cross_on and s > 0 and v.role == "collaborator"
+                     for s, v in enumerate(views)]
         for s, v in enumerate(views):
-            if v.intrinsics is None:
+            if v.intrinsics is None and not is_collab[s]:
                 raise OfflineBackboneError(
                     f"offline backbone: view {s} (key {v.key!r}) has no intrinsics; this backbone needs them")
             check_image(v.image, f"view {s} (key {v.key!r})", int(self.encoder.conf["min_size"]))
-            intr.append(v.intrinsics)
+        intr = [v.intrinsics for v in views]
         feats = [self.encoder.encode(v) for v in views]
         timings["encode"] = time.perf_counter() - t0
         memos = [None] + [check_memo(v, s, f) for s, (v, f) in enumerate(zip(views, feats)) if s > 0]
-        p = Pass(views=views, feats=feats, Ks=[i.K for i in intr], cams=[pinhole_camera(i) for i in intr],
+        p = Pass(views=views, feats=feats, Ks=[None if i is None else i.K for i in intr],
+                 cams=[None if i is None else pinhole_camera(i) for i in intr],
                  low_tex=[f.grey_std < self.conf["min_texture_std"] for f in feats], conf=self.conf,
                  matcher=self.matcher, memos=memos, timings=timings)
-        rec, reasons = self._solve(p)
-        self.counts.update(p.counts)
+        own = [s for s in range(S) if not is_collab[s]]
+        rec, reasons = self._solve_own(p, own)
         T = np.full((S, 4, 4), np.nan)
         valid = np.zeros(S, bool)
         valid[0] = True
@@ -163,13 +203,87 @@ class OfflineGeometryBackbone:
             for s, Ts in rec.T.items():
                 T[s] = Ts
                 valid[s] = True
+        collab = [s for s in range(S) if is_collab[s]]
+        regs, why = cross_mod.register_collaborators(p, rec, own, collab, self.learned)
+        cross_mod.place_collaborators(regs, T, valid)
+        for s in collab:
+            # registered only through views this pass did not place: the algorithm composes those itself
+            reasons[s] = "" if valid[s] else "via-unplaced" if s in regs else why.get(s, "no-reference")
+        self.counts.update(p.counts)
         depth, conf = _depth_maps(p, rec, valid)
         timings["total"] = time.perf_counter() - t0
         reference = rec.pair[1] if rec is not None and rec.metric and rec.pair[1] != 0 else None
+        # a pass that placed only view 0 is in metres when its registrations are (P3P on depth priors)
+        metric = rec.metric if rec is not None else bool(regs) and any(views[s].depth_m is not None for s in own)
         return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
                               intrinsics=list(intr), reasons=reasons, timings_s=timings,
-                              metric_unit=rec is not None and rec.metric, reference=reference,
-                              memos=[p.memo_out] + [None] * (S - 1))
+                              metric_unit=metric, reference=reference,
+                              memos=[p.memo_out] + [None] * (S - 1), registrations=regs,
+                              extra={"cross_learned_pairs": float(p.counts["cross-learned-pairs"])})
+
+    def _cross_on(self, views: Sequence[View]) -> bool:
+        """Whether this pass registers collaborators apart (``cross.enabled``; ``"without-depth"``:
+        when none of the robot's own views has depth)."""
+        on = self.conf["cross"]["enabled"]
+        if on == "without-depth":
+            return all(v.depth_m is None for v in views if v.role != "collaborator")
+        return bool(on)
+
+    def _bad_collaborator(self, v: View) -> str:
+        """Why a received view cannot be used at all (``""``: it can): an image this backbone
+        refuses (``bad-image``) or one of another size than its intrinsics (``image-size-mismatch``)."""
+        try:
+            check_image(v.image, f"view {v.key!r}", int(self.encoder.conf["min_size"]))
+        except ImageInputError:
+            return "bad-image"
+        i = v.intrinsics
+        if i is not None and tuple(v.image.shape[:2]) != (int(i.height), int(i.width)):
+            return "image-size-mismatch"
+        return ""
+
+    def _infer_without(self, views: Sequence[View], bad: dict[int, str]) -> BackboneOutput:
+        """The pass without the unusable collaborator views ``bad`` (index -> reason), which come
+        back unplaced with their reason (counted ``cross-<reason>``), the indices of the others kept."""
+        keep = [s for s in range(len(views)) if s not in bad]
+        new = {s: i for i, s in enumerate(keep)}
+        out = self.infer([views[s] for s in keep])
+        self.counts.update(f"cross-{why}" for why in bad.values())
+        S = len(views)
+        T = np.full((S, 4, 4), np.nan)
+        T[keep] = out.T_frame_cam
+        valid = np.zeros(S, bool)
+        valid[keep] = out.valid
+        def pick(xs: list, fill: Any) -> list:
+            return [xs[new[s]] if s in new else fill(views[s]) for s in range(S)]
+
+        def empty(v: View) -> np.ndarray:
+            shape = getattr(v.image, "shape", ())
+            return np.zeros(tuple(shape[:2]) if len(shape) >= 2 else (0, 0), np.float32)
+
+        regs = {keep[k]: [dataclasses.replace(r, via=keep[r.via]) for r in rs] for k, rs in out.registrations.items()}
+        return dataclasses.replace(
+            out, T_frame_cam=T, valid=valid, depth=pick(out.depth, empty), depth_conf=pick(out.depth_conf, empty),
+            intrinsics=pick(out.intrinsics, lambda v: v.intrinsics), reasons=[bad.get(s) or out.reasons[new[s]] for s in range(S)],
+            memos=pick(out.memos, lambda v: None) if out.memos else [], registrations=regs,
+            reference=None if out.reference is None else keep[out.reference])
+
+    def _solve_own(self, p: Pass, own: list[int]) -> tuple[Recon | None, list[str]]:
+        """:meth:`_solve` over the own views ``own`` (all views when there is no collaborator),
+        the reconstruction and reasons given with the indices of ``p``."""
+        S = len(p.views)
+        if len(own) == S:
+            return self._solve(p)
+        sub = p.subset(own)
+        rec, sub_reasons = self._solve(sub)
+        p.memo_out = sub.memo_out
+        reasons = [""] * S
+        for i, s in enumerate(own):
+            reasons[s] = sub_reasons[i]
+        if rec is not None:
+            rec = Recon(X=rec.X, T={own[i]: T for i, T in rec.T.items()},
+                        obs={own[i]: o for i, o in rec.obs.items()}, pair=(own[rec.pair[0]], own[rec.pair[1]]),
+                        metric=rec.metric)
+        return rec, reasons
 
     def _solve(self, p: Pass) -> tuple[Recon | None, list[str]]:
         """The reconstruction of this pass (None: nothing placed besides view 0) and reasons.

@@ -88,8 +88,8 @@ class Pass:
 
     views: Sequence[View]
     feats: list[XFeatFeatures]
-    Ks: list[np.ndarray]
-    cams: list[dict]
+    Ks: list[np.ndarray | None]  # None: a collaborator view without intrinsics (never registered)
+    cams: list[dict | None]
     low_tex: list[bool]
     conf: dict[str, Any]
     matcher: PairMatcher
@@ -101,6 +101,13 @@ class Pass:
     # events of this pass: "dense-refined", "dense-refused:<reason>", "merged", "merge-refused:<reason>"
     counts: Counter = field(default_factory=Counter)
     memo_out: dict[str, Any] | None = None  # the memo of view 0, once a depth prior placed it
+
+    def subset(self, idx: Sequence[int]) -> "Pass":
+        """A pass over views ``idx`` of this one (same matcher, timings and counters)."""
+        return Pass(views=[self.views[s] for s in idx], feats=[self.feats[s] for s in idx],
+                    Ks=[self.Ks[s] for s in idx], cams=[self.cams[s] for s in idx],
+                    low_tex=[self.low_tex[s] for s in idx], conf=self.conf, matcher=self.matcher,
+                    memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts)
 
     def m(self, a: int, b: int) -> np.ndarray:
         """``[M,2]`` keypoint index pairs between views ``a`` and ``b`` (empty for low texture)."""

@@ -1,0 +1,255 @@
+"""Cross-robot registration: each collaborator view against the robot's own views (issue 18, item 1).
+
+A collaborator view ``k`` (``View.role == "collaborator"``) is placed against single own
+views, never inside the own reconstruction:
+
+* with depth priors: against every own view that has one (current, previous frame,
+  keyframes) by P3P RANSAC on that view's keypoint depths -> ``T_via_k`` in metres;
+* without (an RGB-only robot, or a pass whose unit is not the metre): against every own
+  view by its essential matrix, the translation put in the pass's unit by the points the
+  pass triangulated in that view (unit length where it has none, counted ``cross-unscaled``:
+  its rotation and direction still hold).
+
+A cascade keeps the cost down: the XFeat mutual-NN matches the pass already has come
+first; the learned matcher (:class:`LearnedMatcher`) runs only when none of them reaches
+``min_inliers``, against the ``max_views`` own views with most mutual-NN matches. A
+registration needs ``min_inliers_mnn`` verified inliers from the mutual-NN stage (the
+evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from the
+learned one (and, for the essential matrix, an inlier ratio of ``min_inlier_ratio``); a
+learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ...geometry import se3_inverse
+from ...protocols import Registration
+from ..cache import LRUCache
+from .context import OfflineBackboneError, Pass, Recon
+from .matching import keypoint_depths, pixels_to_rays, pose_to_T
+from .two_view import relative_pose, triangulate_pair
+
+MATCHERS = ("aliked", "xfeat", "none")
+
+default_conf: dict[str, Any] = {
+    # True | False | "without-depth": on only for passes whose own views have no depth (RGB-only
+    # data, where the joint pass placed 0 of 14 views of dev-tum-fr3-office and this stage 6; on
+    # RGB-D it placed no more on development data and its learned stage cost several times the
+    # step: opt in with True)
+    "enabled": "without-depth",
+    "matcher": "aliked",  # aliked: ALIKED + LightGlue; xfeat: LighterGlue over XFeat; none: cheap stage only
+    "min_inliers": 50,
+    "min_inliers_mnn": 15,
+    "min_inlier_ratio": 0.2,
+    "pnp_px": 3.0,
+    "epipolar_px": 1.0,
+    "max_views": 3,
+    "max_keypoints": 1024,
+    "max_side_px": 512,
+    "filter_threshold": 0.1,
+    "feature_cache_size": 32,
+    "scale_match_px": 1.5,
+}
+
+
+def check_conf(c: Mapping[str, Any]) -> None:
+    """Refuse a ``cross`` sub-config that cannot work (one error naming the field)."""
+    if c["enabled"] not in (True, False, "without-depth"):
+        raise OfflineBackboneError(f"offline backbone conf: cross.enabled must be true, false or 'without-depth', "
+                                   f"got {c['enabled']!r}")
+    if c["matcher"] not in MATCHERS:
+        raise OfflineBackboneError(f"offline backbone conf: cross.matcher {c['matcher']!r}; valid: {', '.join(MATCHERS)}")
+    for name in ("min_inliers", "min_inliers_mnn", "max_views", "max_keypoints"):
+        if int(c[name]) < 1:
+            raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be >= 1, got {c[name]}")
+
+
+class LearnedMatcher:
+    """LightGlue over ALIKED (``matcher="aliked"``) or XFeat features (``"xfeat"``: LighterGlue).
+
+    ALIKED features are cached by the image's content key (the XFeat features'
+    fingerprint), so a keyframe is extracted once; XFeat features are the pass's own.
+    ``n_pairs`` / ``n_extracted`` count matched pairs and ALIKED extractions.
+    """
+
+    def __init__(self, conf: Mapping[str, Any]) -> None:
+        from ..lightglue import AlikedExtractor, shared_matcher
+
+        self.kind = conf["matcher"]
+        lg = {"filter_threshold": float(conf["filter_threshold"])}
+        if self.kind == "aliked":
+            self.extractor = AlikedExtractor({"max_keypoints": int(conf["max_keypoints"]),
+                                              "max_side_px": int(conf["max_side_px"])})
+            self.lightglue = shared_matcher({**lg, "features": "aliked"})
+        else:
+            self.extractor = None
+            self.lightglue = shared_matcher({**lg, "features": "xfeat", "max_keypoints": int(conf["max_keypoints"])})
+        self.cache: LRUCache[dict] = LRUCache(int(conf["feature_cache_size"]))
+        self.n_pairs = 0
+        self.n_extracted = 0
+
+    def clear_cache(self) -> None:
+        self.cache.clear()
+
+    def features(self, p: Pass, s: int) -> dict[str, Any]:
+        """The matcher's feature dict of view ``s`` of pass ``p``."""
+        from ..lightglue import xfeat_inputs
+
+        f = p.feats[s]
+        if self.extractor is None:
+            return xfeat_inputs(f, float(p.conf["min_texture_std"]))
+        out = self.cache.get(f.fingerprint) if f.fingerprint else None
+        if out is None:
+            out = self.extractor(p.views[s].image)
+            self.n_extracted += 1
+            if f.fingerprint:
+                self.cache.put(f.fingerprint, out)
+        return out
+
+    def match(self, f0: Mapping[str, Any], f1: Mapping[str, Any]) -> np.ndarray:
+        """``[M,2] int64`` matches between two feature dicts."""
+        self.n_pairs += 1
+        return self.lightglue({"image0": f0, "image1": f1})["matches"]
+
+
+def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], collab: Sequence[int],
+                           learned: Any) -> tuple[dict[int, list[Registration]], dict[int, str]]:
+    """Registrations of each collaborator view (index in ``p``) against the own views ``own``.
+
+    ``rec``: the own views' reconstruction (None: nothing placed but view 0); ``learned``:
+    a callable returning the :class:`LearnedMatcher` (built on first use) or None.
+    Returns ``{k: registrations, most inliers first}`` (only views with at least one)
+    and a reason per collaborator without one.
+    """
+    t0 = time.perf_counter()
+    regs: dict[int, list[Registration]] = {}
+    why: dict[int, str] = {}
+    for k in collab:
+        found, reason = _register(p, k, own, rec, learned)
+        if found:
+            regs[k] = found
+            p.counts["cross-registered"] += 1
+        else:
+            why[k] = reason
+            p.counts["cross-none"] += 1
+    p.timings["cross"] = p.timings.get("cross", 0.0) + time.perf_counter() - t0
+    return regs, why
+
+
+def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
+              learned: Any) -> tuple[list[Registration], str]:
+    c = p.conf["cross"]
+    need = int(c["min_inliers"])
+    if p.Ks[k] is None:
+        return [], "no-intrinsics"
+    if p.low_tex[k]:
+        return [], "low-texture"
+    metric = rec is None or rec.metric
+    targets = [s for s in own if metric and p.views[s].depth_m is not None and not p.low_tex[s]]
+    mode = "pnp" if targets else "essential"
+    if not targets:
+        targets = [s for s in own if not p.low_tex[s]]
+    # the essential matrix asks of the mutual-NN stage what the own image-only pass asks of a pair
+    need_mnn = int(c["min_inliers_mnn"]) if mode == "pnp" else max(int(c["min_inliers_mnn"]),
+                                                                    int(p.conf["min_inliers"]))
+    best: dict[int, tuple[np.ndarray | None, int, int]] = {}
+    for s in targets:
+        m = p.m(s, k)
+        best[s] = _verify(p, mode, s, k, p.feats[s].keypoints[m[:, 0]], p.feats[k].keypoints[m[:, 1]], rec,
+                          need_mnn)
+        if best[s][1] < need_mnn:
+            best[s] = (None, best[s][1], best[s][2])
+    if targets and max(n for _, n, _ in best.values()) < need and learned is not None \
+            and c["matcher"] != "none":
+        tl = time.perf_counter()
+        lm = learned()
+        order = sorted(targets, key=lambda s: -len(p.m(s, k)))[:int(c["max_views"])]
+        fk = lm.features(p, k)
+        p.counts["cross-learned"] += 1
+        for s in order:
+            fs = lm.features(p, s)
+            mm = lm.match(fs, fk)
+            p.counts["cross-learned-pairs"] += 1
+            res = _verify(p, mode, s, k, np.asarray(fs["keypoints"])[mm[:, 0]], np.asarray(fk["keypoints"])[mm[:, 1]],
+                          rec, need)
+            if res[1] >= need and res[1] > best[s][1]:
+                best[s] = res
+        p.timings["cross_learned"] = p.timings.get("cross_learned", 0.0) + time.perf_counter() - tl
+    out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None]
+    out.sort(key=lambda r: (-r.inliers, r.via))
+    if out:
+        return out, ""
+    return [], "few-inliers" if any(m >= need_mnn for _, _, m in best.values()) else "few-matches"
+
+
+def _verify(p: Pass, mode: str, s: int, k: int, uv_s: np.ndarray, uv_k: np.ndarray,
+            rec: Recon | None, need: int) -> tuple[np.ndarray | None, int, int]:
+    """``(T_s_k or None, verified inliers, matches)`` of matched pixels of views ``s`` and ``k``
+    (None below ``need`` inliers)."""
+    import poselib
+
+    c = p.conf["cross"]
+    n_match = len(uv_s)
+    if mode == "essential":
+        conf = {"min_matches": need, "epipolar_px": float(c["epipolar_px"]), "min_inliers": need,
+                "min_inlier_ratio": float(c["min_inlier_ratio"])}
+        T_k_s, inl, _ = relative_pose(conf, p.ransac(), uv_s, uv_k, p.cams[s], p.cams[k])
+        n = int(inl.sum())
+        if T_k_s is None:
+            return None, n, n_match
+        T_k_s = T_k_s.copy()
+        T_k_s[:3, 3] *= pass_unit(p, rec, s, k, uv_s[inl], uv_k[inl], T_k_s)
+        return se3_inverse(T_k_s), n, n_match
+    z = keypoint_depths(uv_s, p.views[s].depth_m, p.feats[s].image_hw, float(p.conf["depth_edge_tol"]))
+    ok = z > 0
+    if ok.sum() < need:
+        return None, 0, n_match
+    X = pixels_to_rays(uv_s[ok], p.Ks[s]) * z[ok, None]
+    pose, info = poselib.estimate_absolute_pose(uv_k[ok].astype(np.float64), X, p.cams[k],
+                                                p.ransac(max_reproj_error=float(c["pnp_px"])), {})
+    n = int(np.sum(info["inliers"]))
+    T_k_s = pose_to_T(pose.R, pose.t)
+    if n < need or not np.all(np.isfinite(T_k_s)):
+        return None, n, n_match
+    return se3_inverse(T_k_s), n, n_match
+
+
+def pass_unit(p: Pass, rec: Recon | None, s: int, k: int, uv_s: np.ndarray, uv_k: np.ndarray,
+              T_k_s: np.ndarray) -> float:
+    """Length, in the pass's unit, of the unit translation ``T_k_s`` (view ``s`` placed in ``rec``).
+
+    The registration's inliers of view ``s`` that lie within ``scale_match_px`` of a
+    keypoint with a point of ``rec`` are triangulated at unit baseline; the median ratio
+    of their depths in camera ``s`` gives the unit (as :func:`.two_view.two_view_with_scale`
+    does). 1 (counted ``cross-unscaled``) without a reconstruction or too few such points.
+    """
+    c = p.conf
+    if rec is not None and s in rec.obs and len(uv_s):
+        ids, kp = rec.obs[s]
+        T_s_f = se3_inverse(rec.T[s])
+        z_pt = (rec.X[ids] @ T_s_f[:3, :3].T + T_s_f[:3, 3])[:, 2]
+        d2 = np.sum((uv_s[:, None, :] - p.feats[s].keypoints[kp][None, :, :]) ** 2, axis=2)
+        near = np.argmin(d2, axis=1)
+        close = d2[np.arange(len(uv_s)), near] <= float(c["cross"]["scale_match_px"]) ** 2
+        X_unit, keep, _, _ = triangulate_pair(c, uv_s, uv_k, p.Ks[s], p.Ks[k], T_k_s)
+        sel = keep & close & (z_pt[near] > 0)
+        if sel.sum() >= int(c["min_scale_points"]):
+            unit = float(np.median(z_pt[near[sel]] / X_unit[sel, 2]))
+            if np.isfinite(unit) and unit > 0:
+                return unit
+    p.counts["cross-unscaled"] += 1
+    return 1.0
+
+
+def place_collaborators(regs: Mapping[int, Sequence[Registration]], T: np.ndarray, valid: np.ndarray) -> None:
+    """Each registered collaborator's pose in the pass frame through its best registration whose
+    view the pass placed: ``T[k] = T[via] @ T_via_k`` (in place; others stay invalid)."""
+    for k, rs in regs.items():
+        for r in rs:
+            if valid[r.via] and r.via != k:
+                T[k] = T[r.via] @ r.T_via_cam
+                valid[k] = True
+                break
