@@ -33,6 +33,8 @@ MAGIC = b"CE"
 VERSION = 2  # 1: raw float descriptors, image replies without codec or pose (decoded as another version)
 _HEADER = struct.Struct("<2sBBHI")
 _CRC = struct.Struct("<I")
+# image reply before its bytes: intrinsics 4f | pose_step i32 + pose 7d | codec u8 | length u32 (81 B)
+_REPLY_FIXED = struct.Struct("<4fi7dBI")
 HEADER_BYTES = _HEADER.size + _CRC.size  # 14
 
 DESCRIPTOR_DTYPES = {"fp32": 0, "fp16": 1, "int8": 2}
@@ -170,15 +172,15 @@ class ImageReply:
         if self.codec not in REPLY_CODECS:
             raise MessageError(f"image reply codec must be one of {list(REPLY_CODECS)}, got {self.codec!r}")
         if self.T_odom_cam is None or self.pose_step < 0:
-            pose = struct.pack("<i7d", -1, 0, 0, 0, 0, 0, 0, 1)
+            pose_step, pose = -1, (0, 0, 0, 0, 0, 0, 1)
         else:
             try:
                 t, q = se3_to_tq_xyzw(self.T_odom_cam)
             except GeometryError as exc:
                 raise MessageError(f"image reply pose: {exc}") from None
-            pose = struct.pack("<i7d", int(self.pose_step), *t, *q)
-        payload = (struct.pack("<4f", *self.intrinsics) + pose
-                   + struct.pack("<BI", REPLY_CODECS[self.codec], len(self.jpeg)) + self.jpeg)
+            pose_step, pose = int(self.pose_step), (*t, *q)
+        payload = _REPLY_FIXED.pack(*self.intrinsics, pose_step, *pose, REPLY_CODECS[self.codec],
+                                    len(self.jpeg)) + self.jpeg
         return _frame(self.TYPE, self.sender, self.step, payload)
 
     @staticmethod
@@ -271,15 +273,13 @@ def decode(frame: bytes) -> Message:
                 raise MessageError("image request has wrong length")
             return ImageRequest(sender, step, struct.unpack("<H", p)[0])
         if mtype == ImageReply.TYPE:
-            fx, fy, cx, cy = struct.unpack("<4f", p[:16])
-            pose_step, *v = struct.unpack("<i7d", p[16:76])
-            ccode, n = struct.unpack("<BI", p[76:81])
-            if len(p) != 81 + n:
+            fx, fy, cx, cy, pose_step, *v, ccode, n = _REPLY_FIXED.unpack(p[:_REPLY_FIXED.size])
+            if len(p) != _REPLY_FIXED.size + n:
                 raise MessageError("image reply length does not match its image size")
             if not np.all(np.isfinite(v)):
                 raise MessageError("image reply pose carries non-finite values")
             T = None if pose_step < 0 else se3_from_tq_xyzw(v[:3], v[3:])
-            return ImageReply(sender, step, bytes(p[81:]), (fx, fy, cx, cy),
+            return ImageReply(sender, step, bytes(p[_REPLY_FIXED.size:]), (fx, fy, cx, cy),
                               codec=_REPLY_CODES.get(ccode, f"unknown-{ccode}"),
                               pose_step=max(int(pose_step), -1), T_odom_cam=T)
     except (struct.error, ValueError, GeometryError) as exc:

@@ -33,8 +33,7 @@ from .evaluate import frame_errors, load_run, summarise
 
 log = logging.getLogger(__name__)
 
-# The Pareto settings: name -> CerpeConfig overrides (strict: unknown keys are errors). One line each;
-# the descriptor / reply codec keys of the compression work join here when they exist in CerpeConfig.
+# The Pareto settings: name -> CerpeConfig overrides (strict: unknown keys are errors). One line each.
 PAYS = {"mode": "pays"}  # thresholds: PolicyConfig's defaults (tuned on development data)
 PARETO_SETTINGS: dict[str, dict] = {
     "always": {"request_policy": {"mode": "always"}},
@@ -47,7 +46,6 @@ PARETO_LABELS: dict[str, str] = {
     "paper": "paper's protocol (gate, request every time)",
     "always": "always send (image to every peer, every step)",
     "pays": "ours: request when it pays",
-    "pays-int8": "ours + int8 descriptor",
     "pays-compressed": "ours + compressed messages (PCA int8 descriptor, WebP 75)",
     "pays-q60": "ours + JPEG 60",
     "aliked-lightglue": "per-frame ALIKED+LightGlue (images every step)",
