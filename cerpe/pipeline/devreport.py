@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import numpy as np
 import pandas as pd
 
 from .evaluate import Run, frame_errors, gate_quality, load_run, summarise
+from .textfmt import md_table, text_table
 
 WRONG_RAD = 0.3  # an estimate this far off in rotation is "wrong" (issue 18)
 CARRIED_MAX_STEPS = 3  # issue 18's target: no wrong estimate carried for more than this many steps
@@ -180,32 +181,21 @@ LEGEND = ("e_rot in rad; succ>covis: success over frames at or after the pair's 
           "tau, beside the old ordered label (overlap_gt >= 0.2 per direction) and its symmetric-score ceiling.")
 
 
-def _text_table(header: Sequence[str], rows: list[list[str]]) -> str:
-    w = [max(len(h), *(len(r[k]) for r in rows)) if rows else len(h) for k, h in enumerate(header)]
-    line = lambda cells: "  ".join(c.ljust(w[k]) if k < 2 else c.rjust(w[k]) for k, c in enumerate(cells))
-    return "\n".join([line(header), line(["-" * n for n in w])] + [line(r) for r in rows])
-
-
 def format_text(table: pd.DataFrame, gate: pd.DataFrame) -> str:
     """The report as fixed-width text (what ``cerpe dev`` prints)."""
-    out = [_text_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
+    out = [text_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
     if len(gate):
         out += ["", "descriptor gate (CERPE's pairs and steps):",
-                _text_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+                text_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
     return "\n".join(out + ["", LEGEND])
-
-
-def _md_table(header: Sequence[str], rows: list[list[str]]) -> str:
-    return "\n".join(["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-                     + ["| " + " | ".join(r) + " |" for r in rows])
 
 
 def format_markdown(table: pd.DataFrame, gate: pd.DataFrame, provenance: dict | None = None) -> str:
     """The report as Markdown (tables, legend, and the provenance as a JSON block)."""
-    out = ["# cerpe development report", "", _md_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
+    out = ["# cerpe development report", "", md_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
     if len(gate):
         out += ["", "Descriptor gate (CERPE's pairs and steps):", "",
-                _md_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+                md_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
     out += ["", LEGEND]
     if provenance:
         out += ["", "```json", json.dumps(provenance, indent=1, sort_keys=True, default=str), "```"]

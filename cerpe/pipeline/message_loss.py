@@ -30,6 +30,7 @@ from ..config import merge_conf
 from ..errors import CerpeError
 from ..transport import LossSpec
 from .evaluate import evaluate_runs, summarise
+from .textfmt import md_table
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +198,11 @@ def markdown(summary: pd.DataFrame) -> str:
             "success_after_covis_pct": "success after covis %", "e_rot_rad": "e_rot (rad)", "e_pos_m": "e_pos (m)",
             "success_after_covis_vs_lossless": "covis success / lossless", "e_rot_vs_lossless": "e_rot / lossless",
             "msg:lost": "lost / robot-step", "pose:bridged": "bridged / robot-step"}
-    from .devreport import _md_table
 
     t = summary[list(cols)]
     rows = [[str(r["method"]), f"{100 * r['loss']:.0f} %"] + [f"{float(r[k]):.3f}" for k in list(cols)[2:]]
             for _, r in t.iterrows()]
-    return _md_table(list(cols.values()), rows)
+    return md_table(list(cols.values()), rows)
 
 
 def for_context(ctx: Any, conf: dict | None = None, progress: bool = False) -> Path:
