@@ -111,19 +111,38 @@ def test_reply_whose_pose_message_is_lost_still_anchors():
             np.linalg.norm(lossless[t].T_cj_ci[:3, 3] - T_gt[:3, 3]) + 0.1
 
 
+def _lose_descriptors_and_a_request(steps: set[int], request_step: int):
+    """r0 never hears r1's descriptors of ``steps``; r0's image request of ``request_step`` is lost."""
+    return lambda s, r, m: (((s, r) == ("r1", "r0") and type(m).__name__ == "DescriptorMessage" and m.step in steps)
+                            or ((s, r) == ("r0", "r1") and type(m).__name__ == "ImageRequest"
+                                and m.step == request_step))
+
+
 def test_lost_descriptor_defers_the_gate_and_lost_reply_keeps_the_anchor():
     world = make_world(2, 14, seed=7, windows={(0, 1): [(2, 10)]})
-    # r0 never hears r1's descriptor at step 5; r0's image request of step 7 is lost
-    ch = _Drop(world.robot_ids, lambda s, r, m: ((s, r) == ("r1", "r0") and type(m).__name__ == "DescriptorMessage"
-                                                 and m.step == 5)
-               or ((s, r) == ("r0", "r1") and type(m).__name__ == "ImageRequest" and m.step == 7))
-    results = list(_team(world, ch).run_encounter(world.to_encounter()))
+    ch = _Drop(world.robot_ids, _lose_descriptors_and_a_request({5}, 7))
+    results = list(_team(world, ch, descriptor_max_age=0).run_encounter(world.to_encounter()))
     pairs = _pairs(results)
     degr = {res.step: [d for r in res.robots if r.robot == "r0" for d in r.degradations] for res in results}
     assert not pairs[5].gate_open and "descriptor-missing" in pairs[5].reason and "descriptor:missing" in degr[5]
     assert pairs[5].source == "propagated"  # the anchor of the steps before is carried
     assert pairs[7].gate_open and "msg:reply-missing" in degr[7] and pairs[7].source == "propagated"
     assert pairs[6].source == pairs[8].source == "direct"  # the gate works again the step after
+
+
+def test_a_lost_descriptor_is_replaced_by_the_previous_one_at_most_max_age_old():
+    world = make_world(2, 14, seed=7, windows={(0, 1): [(2, 12)]})
+    ch = _Drop(world.robot_ids, _lose_descriptors_and_a_request({5, 8, 9}, -1))
+    results = list(_team(world, ch).run_encounter(world.to_encounter()))  # descriptor_max_age=1 (default)
+    pairs = _pairs(results)
+    degr = {res.step: [d for r in res.robots if r.robot == "r0" for d in r.degradations] for res in results}
+    # step 5: step 4's descriptor opens the gate; the image of step 5 is requested and placed
+    assert pairs[5].gate_open and pairs[5].source == "direct"
+    assert "descriptor:missing" in degr[5] and "descriptor:stale-used" in degr[5]
+    # steps 8, 9 lost in a row: 8 uses step 7's; at 9 the last fresh one (7) is 2 steps old: closed
+    assert pairs[8].gate_open and "descriptor:stale-used" in degr[8]
+    assert not pairs[9].gate_open and "descriptor-missing" in pairs[9].reason
+    assert "descriptor:stale-used" not in degr[9] and pairs[9].source == "propagated"
 
 
 def test_a_lost_reply_is_asked_for_again_within_the_step():

@@ -60,6 +60,7 @@ class RobotAgent:
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
+        self.last_descriptors: dict[str, tuple[int, np.ndarray]] = {}  # peer -> (step, values) last scored fresh
         self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
         self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
         self.last_step: int | None = None
@@ -177,11 +178,14 @@ class RobotAgent:
             if fault:
                 self.degrade(f"descriptor:{fault}")
                 reason = f"descriptor-{fault}"
+        fresh = descriptor is not None
+        if not reason and descriptor is None:  # lost: the peer's last one if recent, else the gate waits
+            self.degrade("descriptor:missing")
+            descriptor = self._recent_descriptor(other, st.step)
+            if descriptor is None:
+                reason = "descriptor-missing"
         if reason:
             pass  # counted above
-        elif descriptor is None:  # lost: the gate for this pair waits for the next step's descriptor
-            reason = "descriptor-missing"
-            self.degrade("descriptor:missing")
         elif st.blank:
             reason = "own-descriptor-degenerate"
         else:
@@ -194,6 +198,8 @@ class RobotAgent:
                 reason = "other-descriptor-degenerate"
             else:
                 score = cosine(own, d)
+                if fresh:
+                    self.last_descriptors[other] = (st.step, d)
                 best = (score, -1)
                 for kf in self.memory.newest_first():
                     c = cosine(self._keyframe_values(kf), d)
@@ -205,6 +211,15 @@ class RobotAgent:
             st.gate_reason[other] = reason
         st.timings["gate"] += time.perf_counter() - t0
         return score
+
+    def _recent_descriptor(self, other: str, step: int) -> np.ndarray | None:
+        """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
+        ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""
+        last = self.last_descriptors.get(other)
+        if last is None or not 0 < step - last[0] <= self.config.descriptor_max_age:
+            return None
+        self.degrade("descriptor:stale-used")
+        return last[1]
 
     def gate_open(self, other: str) -> bool:
         """``score >= gate_tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes

@@ -62,6 +62,10 @@ class CerpeConfig:
             paper's), intrinsics scaled alike.
         request_retries: image requests sent again, within the step, to a peer whose reply
             did not come (request or reply lost; counted ``msg:request-retried``); 0: never.
+        descriptor_max_age: when a peer's descriptor of this step is lost, the gate scores
+            its last one received if at most this many steps old (counted
+            ``descriptor:stale-used``; co-visibility changes little in a step); 0: the
+            gate stays closed until the next one arrives. No effect without loss.
         min_scale_pixels: valid depth pixels a keyframe needs to vote in the scale.
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
@@ -132,6 +136,7 @@ class CerpeConfig:
     reply_quality: int | None = None
     reply_scale: float = 1.0
     request_retries: int = 1
+    descriptor_max_age: int = 1
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
@@ -180,8 +185,9 @@ class CerpeConfig:
             raise AlgorithmError(f"config: reply_quality must be in 0..100, got {self.reply_quality}")
         if not (np.isfinite(self.reply_scale) and 0.0 < self.reply_scale <= 1.0):
             raise AlgorithmError(f"config: reply_scale must be in (0, 1], got {self.reply_scale}")
-        if int(self.request_retries) < 0:
-            raise AlgorithmError(f"config: request_retries must be >= 0, got {self.request_retries}")
+        for name in ("request_retries", "descriptor_max_age"):
+            if int(getattr(self, name)) < 0:
+                raise AlgorithmError(f"config: {name} must be >= 0, got {getattr(self, name)}")
         if int(self.min_scale_pixels) < 1:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):

@@ -37,8 +37,11 @@ DEGRADATIONS: dict[str, str] = {
                     "that pose bridged (from the image reply's pose and earlier ones), corrected by the next",
     "pose:bridged-next": "an anchor stored with a bridged pose corrected by interpolation once a later pose came",
     "anchor:not-stored-pose-missing": "a direct estimate while no pose of the other was ever seen: not an anchor",
-    "descriptor:missing": "a peer's descriptor of this step did not arrive: the gate for that pair waits for the "
-                          "next step (closed now); the anchor is carried",
+    "descriptor:missing": "a peer's descriptor of this step did not arrive: the gate scores its last one if at most "
+                          "descriptor_max_age steps old, else it waits for the next step (closed now); the anchor "
+                          "is carried",
+    "descriptor:stale-used": "a lost descriptor replaced by the peer's previous one (at most descriptor_max_age "
+                             "steps old) in the gate",
     "msg:request-retried": "an image request sent again within the step because its reply did not come "
                            "(request_retries)",
     "msg:reply-missing": "the gate opened but no image reply arrived (request or reply lost): no direct estimate "

@@ -48,7 +48,7 @@ default_conf: dict[str, Any] = {
 }
 
 #: degradations the sweep reports per robot-step (what was lost, and what the robots did about it)
-COUNTED: tuple[str, ...] = ("msg:lost", "msg:garbled", "descriptor:missing", "msg:request-retried", "msg:reply-missing",
+COUNTED: tuple[str, ...] = ("msg:lost", "msg:garbled", "descriptor:missing", "descriptor:stale-used", "msg:request-retried", "msg:reply-missing",
                             "pose:stale",
                             "pose:bridged", "pose:bridged-next", "anchor:not-stored-pose-missing")
 # the check at 30 % loss: success after co-visibility >= 95 % of lossless, e_rot <= 1.2 x
