@@ -41,7 +41,7 @@ default_conf: dict[str, Any] = {
                                      # the same steps of the full lossless run
     "losses": [0.0, 0.1, 0.3, 0.5],  # drop probability of every frame, per receiver
     "garble": 0.0,                   # probability that a frame that arrives is corrupted
-    "loss_seeds": [1],               # one run per seed and loss > 0; the frames of all seeds pooled
+    "loss_seeds": [1, 2],            # one run per seed and loss > 0; the frames of all seeds pooled
     "methods": ["cerpe", "cerpe-wo-em"],
     "profile": "offline",            # backbone preset
     "seed": 0,                       # the runs' seed (as the lossless run's)
