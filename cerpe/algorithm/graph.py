@@ -76,6 +76,12 @@ class GraphConfig:
     verification left unverified or rejected are scaled by ``unverified_scale`` /
     ``rejected_scale`` (1: only the kernel judges them). ``kernel_k``: the kernel's width in
     standard deviations of the whitened error.
+
+    Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
+    minimum where it starts), so when a new direct estimate fails the chi-square gate
+    ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
+    vote: if more of them (and at least ``consensus_min_support``; 0 disables it) agree with the
+    new one than with the graph's estimate, the window is solved afresh from the new one.
     """
 
     # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
@@ -98,6 +104,8 @@ class GraphConfig:
     kernel: str = "cauchy"
     kernel_k: float = 3.0
     window_nodes: int = 20
+    consensus_min_support: int = 2
+    consensus_gate_chi2: float = 22.46
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -111,14 +119,14 @@ class GraphConfig:
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
         for name in ("direct_inliers_clip", "direct_along_factor", "unverified_scale", "rejected_scale", "kernel_k",
-                     "converge_tol",
+                     "converge_tol", "consensus_gate_chi2",
                      "relinearize_threshold"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise GraphError(f"graph config: {name} must be finite and > 0, got {v}")
         if self.kernel not in KERNELS:
             raise GraphError(f"graph config: kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
-        for name, low in (("window_nodes", 2), ("max_iterations", 1)):
+        for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0)):
             v = getattr(self, name)
             if int(v) != v or v < low:
                 raise GraphError(f"graph config: {name} must be an integer >= {low}, got {v}")
@@ -217,6 +225,33 @@ def _sym(C: np.ndarray) -> np.ndarray:
     return 0.5 * (C + C.T)
 
 
+def _log(T: np.ndarray) -> np.ndarray:
+    """``[rotation vector, translation]`` of a rigid transform (first order in the translation: a gate, not a solver)."""
+    R = T[:3, :3]
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    a = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if a < 1e-9:
+        return np.concatenate([0.5 * w, T[:3, 3]])
+    if np.pi - a < 1e-6:  # a half turn: the axis from the symmetric part
+        axis = np.sqrt(np.clip((np.diag(R) + 1.0) / 2.0, 0.0, None))
+        k = int(np.argmax(axis))
+        axis = (R[:, k] + np.eye(3)[k]) / np.linalg.norm(R[:, k] + np.eye(3)[k])
+        return np.concatenate([a * axis, T[:3, 3]])
+    return np.concatenate([a / (2.0 * np.sin(a)) * w, T[:3, 3]])
+
+
+@dataclass
+class _Node:
+    """A node of the window as the consensus check and a rebuild need it: its key, the offset its
+    direct estimate measured with its covariance, and the walk from the previous node."""
+
+    key: int
+    O_meas: np.ndarray
+    cov: np.ndarray
+    walk: np.ndarray
+
+
 class _Solver:
     """GTSAM's incremental fixed-lag smoother over the offset nodes (keys = node numbers)."""
 
@@ -251,6 +286,25 @@ class _Solver:
             graph.add(g.PriorFactorPose3(key, g.Pose3(prior[0]), noise))
         values.insert(key, g.Pose3(init))
         stamps.insert((key, float(key)))
+        return self._settle(graph, values, stamps, key)
+
+    def rebuild(self, nodes: list["_Node"], init: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """A fresh smoother over ``nodes`` (oldest first: robust priors, walks between them), every
+        node started at ``init``; returns the newest node's ``(estimate, marginal covariance, converged)``."""
+        g = self.gtsam
+        graph, values, stamps = g.NonlinearFactorGraph(), g.Values(), g.FixedLagSmootherKeyTimestampMap()
+        prev = None
+        for n in nodes:
+            if prev is not None:
+                graph.add(g.BetweenFactorPose3(prev, n.key, g.Pose3(), g.noiseModel.Gaussian.Covariance(n.walk)))
+            graph.add(g.PriorFactorPose3(n.key, g.Pose3(n.O_meas), self._robust(n.cov)))
+            values.insert(n.key, g.Pose3(init))
+            stamps.insert((n.key, float(n.key)))
+            prev = n.key
+        return self._settle(graph, values, stamps, nodes[-1].key)
+
+    def _settle(self, graph, values, stamps, key: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        g = self.gtsam
         self.smoother.update(graph, values, stamps)
         est = self.smoother.calculateEstimatePose3(key)
         converged = False
@@ -280,7 +334,9 @@ class PairGraph:
         self._O: np.ndarray | None = None  # newest node's estimate (re-centred frames)
         self._P: np.ndarray | None = None  # its marginal covariance
         self._solver: _Solver | None = None
+        self._nodes: list[_Node] = []  # the window's nodes (consensus check, rebuild)
         self.n_nodes = 0
+        self.n_reseeds = 0  # windows solved afresh from a new direct estimate (consensus)
 
     # ------------------------------------------------------------------ frames
     def _local(self, X: np.ndarray, which: int) -> np.ndarray:
@@ -317,6 +373,7 @@ class PairGraph:
     def _restart(self) -> None:
         """A fresh smoother holding only the last good node (Gaussian prior at its estimate and marginal)."""
         self._solver = None
+        self._nodes = []
         if self._O is None:
             return
         try:
@@ -372,10 +429,53 @@ class PairGraph:
             out.degradations.append("graph:solver-failed")
             self._recover(first)
             return
+        self._nodes = (self._nodes + [_Node(key, O_meas, cov_O, Q)])[-self.conf.window_nodes:]
+        if linked:
+            O, P = self._consensus(O, _sym(P))
         self._key, self._node_step, self._O, self._P = key, step, O, _sym(P)
         self._Q = np.zeros((6, 6))
         self.n_nodes += 1
         out.measured = True
+
+    def _support(self, O: np.ndarray) -> int:
+        """How many of the window's direct estimates agree with the offset ``O`` at the newest node
+        (chi-square gate on each one's covariance plus the walk from it to the newest node)."""
+        n, walk = 0, np.zeros((6, 6))
+        O_inv = _inv(O)
+        for node in reversed(self._nodes):
+            r = _log(O_inv @ node.O_meas)
+            try:
+                d2 = float(r @ np.linalg.solve(node.cov + walk, r))
+            except np.linalg.LinAlgError:
+                d2 = np.inf
+            n += d2 <= self.conf.consensus_gate_chi2
+            walk = walk + node.walk
+        return n
+
+    def _consensus(self, O: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The window solved afresh from the newest direct estimate when more estimates agree with
+        it than with the graph's estimate ``O`` (which a robust kernel started there would keep)."""
+        need = self.conf.consensus_min_support
+        new = self._nodes[-1]
+        if need <= 0 or len(self._nodes) < need:
+            return O, P
+        r = _log(_inv(O) @ new.O_meas)
+        if float(r @ np.linalg.solve(new.cov + P, r)) <= self.conf.consensus_gate_chi2:
+            return O, P
+        s_new = self._support(new.O_meas)
+        if s_new < need or s_new <= self._support(O):
+            return O, P
+        try:
+            solver = _Solver(self.conf)
+            O2, P2, converged = solver.rebuild(self._nodes, new.O_meas)
+        except Exception as exc:  # noqa: BLE001 -- GTSAM raises plain RuntimeErrors; keep the incremental result
+            log.debug("graph consensus rebuild failed: %s", exc)
+            return O, P
+        if not (converged and np.all(np.isfinite(O2)) and usable_cov(_sym(P2))):
+            return O, P
+        self._solver = solver
+        self.n_reseeds += 1
+        return O2, _sym(P2)
 
     def _recover(self, first: bool) -> None:
         if self._O is None:  # nothing good yet: forget the frames too, the next estimate starts afresh
