@@ -80,8 +80,9 @@ class GraphConfig:
     Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
     minimum where it starts), so when a new direct estimate fails the chi-square gate
     ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
-    vote: if more of them (and at least ``consensus_min_support``; 0 disables it) agree with the
-    new one than with the graph's estimate, the window is solved afresh from the new one.
+    vote: if ``consensus_ratio`` times as many of them (and at least ``consensus_min_support``; 0
+    disables it) agree with the new one as with the graph's estimate, the window is solved afresh
+    from the new one.
     """
 
     # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
@@ -106,6 +107,7 @@ class GraphConfig:
     window_nodes: int = 20
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
+    consensus_ratio: float = 1.5
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -119,7 +121,7 @@ class GraphConfig:
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
         for name in ("direct_inliers_clip", "direct_along_factor", "unverified_scale", "rejected_scale", "kernel_k",
-                     "converge_tol", "consensus_gate_chi2",
+                     "converge_tol", "consensus_gate_chi2", "consensus_ratio",
                      "relinearize_threshold"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -453,8 +455,8 @@ class PairGraph:
         return n
 
     def _consensus(self, O: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The window solved afresh from the newest direct estimate when more estimates agree with
-        it than with the graph's estimate ``O`` (which a robust kernel started there would keep)."""
+        """The window solved afresh from the newest direct estimate when clearly more estimates agree
+        with it than with the graph's estimate ``O`` (which a robust kernel started there would keep)."""
         need = self.conf.consensus_min_support
         new = self._nodes[-1]
         if need <= 0 or len(self._nodes) < need:
@@ -463,7 +465,7 @@ class PairGraph:
         if float(r @ np.linalg.solve(new.cov + P, r)) <= self.conf.consensus_gate_chi2:
             return O, P
         s_new = self._support(new.O_meas)
-        if s_new < need or s_new <= self._support(O):
+        if s_new < need or s_new < self.conf.consensus_ratio * max(self._support(O), 1):
             return O, P
         try:
             solver = _Solver(self.conf)
