@@ -43,6 +43,8 @@ from ..geometry import rotation_angle, se3_adjoint
 log = logging.getLogger(__name__)
 
 KERNELS: tuple[str, ...] = ("cauchy", "huber", "none")
+# anchor verification's verdicts that do not confirm an estimate (anything else, also "" for none, does)
+UNCONFIRMED: frozenset[str] = frozenset({"unverified", "rejected"})
 GRAPH_DEGRADATIONS: dict[str, str] = {
     "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
                                    "positive definite: the estimate is not added to the pair's graph",
@@ -66,7 +68,10 @@ class GraphConfig:
     Odometry: one increment of ``n`` steps, ``d`` metres and ``a`` radians gets standard
     deviations ``sqrt(n s0^2 + (s_m d)^2 / n + (s_rad a)^2 / n)`` per axis (rotation:
     ``odo_rot_per_step``, ``odo_rot_per_m``, ``odo_rot_per_rad``; translation likewise), plus
-    ``odo_lost_*`` per step whose own odometry failed (``X`` kept for want of an estimate).
+    ``odo_lost_*`` per step whose own odometry failed (``X`` kept for want of an estimate). An
+    increment turning more than ``odo_jump_rad`` per step (0: never) is an odometry failure, not a
+    motion: its standard deviations grow by its own angle and distance (plus ``odo_lost_trans``),
+    so the graph lets the offset jump with it and the next direct estimates re-anchor it.
     Direct estimates: rotation ``direct_rot_rad``, translation ``direct_trans_m +
     direct_trans_rel |t|`` across the line between the cameras (``|t|`` their distance) and
     ``direct_along_factor`` times that along it (metric depth errors move the other camera
@@ -77,12 +82,16 @@ class GraphConfig:
     ``rejected_scale`` (1: only the kernel judges them). ``kernel_k``: the kernel's width in
     standard deviations of the whitened error.
 
+    Until anchor verification has confirmed one of its direct estimates (verdict not in
+    :data:`UNCONFIRMED`), the graph reports nothing more than ``max_unverified_steps`` steps after
+    its newest direct estimate, as the switch does with an unverified candidate (the same default).
+
     Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
     minimum where it starts), so when a new direct estimate fails the chi-square gate
     ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
     vote: if ``consensus_ratio`` times as many of them (and at least ``consensus_min_support``; 0
-    disables it) agree with the new one as with the graph's estimate, the window is solved afresh
-    from the new one.
+    disables it) agree with the new one as with the graph's estimate (those agreeing with both do
+    not vote), the window is solved afresh from the new one.
     """
 
     # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
@@ -94,6 +103,7 @@ class GraphConfig:
     odo_trans_per_m: float = 0.17
     odo_lost_rot: float = 0.05
     odo_lost_trans: float = 0.15
+    odo_jump_rad: float = 1.0
     direct_rot_rad: float = 0.004
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
@@ -108,6 +118,7 @@ class GraphConfig:
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
     consensus_ratio: float = 1.5
+    max_unverified_steps: int = 3
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -115,7 +126,7 @@ class GraphConfig:
 
     def __post_init__(self) -> None:
         for name in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad", "odo_trans_per_step",
-                     "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "direct_rot_rad", "direct_trans_m",
+                     "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "odo_jump_rad", "direct_rot_rad", "direct_trans_m",
                      "direct_trans_rel", "direct_inliers_ref", "min_sigma"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -128,7 +139,8 @@ class GraphConfig:
                 raise GraphError(f"graph config: {name} must be finite and > 0, got {v}")
         if self.kernel not in KERNELS:
             raise GraphError(f"graph config: kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
-        for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0)):
+        for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0),
+                          ("max_unverified_steps", 0)):
             v = getattr(self, name)
             if int(v) != v or v < low:
                 raise GraphError(f"graph config: {name} must be an integer >= {low}, got {v}")
@@ -153,14 +165,16 @@ class DirectEstimate:
 @dataclass
 class GraphEstimate:
     """What the graph says at one step: ``T_cj_ci`` and its ``[6,6]`` covariance (None before the
-    first node), the step of its newest node, whether this step's direct estimate became one,
-    and the degradations of this step (names of :data:`GRAPH_DEGRADATIONS`)."""
+    first node, and once an unconfirmed graph expired: ``expired``), the step of its newest node,
+    whether this step's direct estimate became one, and the degradations of this step (names of
+    :data:`GRAPH_DEGRADATIONS`)."""
 
     T_cj_ci: np.ndarray | None = None
     cov: np.ndarray | None = None
     node_step: int = -1
     measured: bool = False
     degradations: list[str] = field(default_factory=list)
+    expired: bool = False
 
 
 def _diag(rot_sigma: float, trans_sigma: float) -> np.ndarray:
@@ -176,6 +190,9 @@ def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_s
     var_t = n * conf.odo_trans_per_step**2 + (conf.odo_trans_per_m * d) ** 2 / n
     var_r += lost_steps * conf.odo_lost_rot**2
     var_t += lost_steps * conf.odo_lost_trans**2
+    if conf.odo_jump_rad > 0 and a > conf.odo_jump_rad * n:  # not a motion, a failure: the walk may jump by it
+        var_r += a**2
+        var_t += (d + conf.odo_lost_trans) ** 2
     return np.diag([var_r] * 3 + [var_t] * 3)
 
 
@@ -339,6 +356,8 @@ class PairGraph:
         self._nodes: list[_Node] = []  # the window's nodes (consensus check, rebuild)
         self.n_nodes = 0
         self.n_reseeds = 0  # windows solved afresh from a new direct estimate (consensus)
+        self.confirmed = False  # a node's direct estimate was confirmed by anchor verification
+        self._direct_step = -1  # the newest step with a direct estimate (a node or not)
 
     # ------------------------------------------------------------------ frames
     def _local(self, X: np.ndarray, which: int) -> np.ndarray:
@@ -432,6 +451,7 @@ class PairGraph:
             self._recover(first)
             return
         self._nodes = (self._nodes + [_Node(key, O_meas, cov_O, Q)])[-self.conf.window_nodes:]
+        self.confirmed = self.confirmed or direct.verdict not in UNCONFIRMED
         if linked:
             O, P = self._consensus(O, _sym(P))
         self._key, self._node_step, self._O, self._P = key, step, O, _sym(P)
@@ -439,24 +459,25 @@ class PairGraph:
         self.n_nodes += 1
         out.measured = True
 
-    def _support(self, O: np.ndarray) -> int:
-        """How many of the window's direct estimates agree with the offset ``O`` at the newest node
-        (chi-square gate on each one's covariance plus the walk from it to the newest node)."""
-        n, walk = 0, np.zeros((6, 6))
+    def _agree(self, O: np.ndarray) -> np.ndarray:
+        """Which of the window's direct estimates (newest first) agree with the offset ``O`` at the newest
+        node: chi-square gate on each one's covariance plus the walk from it to the newest node."""
+        nodes = self._nodes
+        out, walk = np.zeros(len(nodes), dtype=bool), np.zeros((6, 6))
         O_inv = _inv(O)
-        for node in reversed(self._nodes):
+        for k, node in enumerate(reversed(nodes)):
             r = _log(O_inv @ node.O_meas)
             try:
-                d2 = float(r @ np.linalg.solve(node.cov + walk, r))
+                out[k] = float(r @ np.linalg.solve(node.cov + walk, r)) <= self.conf.consensus_gate_chi2
             except np.linalg.LinAlgError:
-                d2 = np.inf
-            n += d2 <= self.conf.consensus_gate_chi2
+                pass
             walk = walk + node.walk
-        return n
+        return out
 
     def _consensus(self, O: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The window solved afresh from the newest direct estimate when clearly more estimates agree
-        with it than with the graph's estimate ``O`` (which a robust kernel started there would keep)."""
+        with it than with the graph's estimate ``O`` (which a robust kernel started there would keep).
+        Estimates that agree with both (e.g. behind an odometry jump) do not vote."""
         need = self.conf.consensus_min_support
         new = self._nodes[-1]
         if need <= 0 or len(self._nodes) < need:
@@ -464,8 +485,9 @@ class PairGraph:
         r = _log(_inv(O) @ new.O_meas)
         if float(r @ np.linalg.solve(new.cov + P, r)) <= self.conf.consensus_gate_chi2:
             return O, P
-        s_new = self._support(new.O_meas)
-        if s_new < need or s_new < self.conf.consensus_ratio * max(self._support(O), 1):
+        a_new, a_cur = self._agree(new.O_meas), self._agree(O)
+        s_new, s_cur = int(np.sum(a_new & ~a_cur)), int(np.sum(a_cur & ~a_new))
+        if s_new < need or s_new < self.conf.consensus_ratio * max(s_cur, 1):
             return O, P
         try:
             solver = _Solver(self.conf)
@@ -508,11 +530,16 @@ class PairGraph:
         if X_j is not None:
             self._walk_j(int(X_j_step), X_j)
         if direct is not None:
+            self._direct_step = int(step)
             self._measure(step, direct, out)
         if self._O is None or self._last_j is None:
             return out
         Xi, Xj = self._local(self._last_i[1], 0), self._local(self._last_j[1], 1)
         T = _inv(Xj) @ self._O @ Xi
+        out.node_step = self._node_step
+        if not self.confirmed and step - self._direct_step > self.conf.max_unverified_steps:
+            out.expired = True  # as the switch: an unverified estimate is propagated a few steps only
+            return out
         A = se3_adjoint(_inv(Xi))
-        out.T_cj_ci, out.cov, out.node_step = T, _sym(A @ (self._P + self._Q) @ A.T), self._node_step
+        out.T_cj_ci, out.cov = T, _sym(A @ (self._P + self._Q) @ A.T)
         return out
