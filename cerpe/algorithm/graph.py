@@ -260,6 +260,19 @@ def _log(T: np.ndarray) -> np.ndarray:
     return np.concatenate([a / (2.0 * np.sin(a)) * w, T[:3, 3]])
 
 
+def _log_batch(T: np.ndarray) -> np.ndarray:
+    """:func:`_log` of ``[n,4,4]`` transforms, ``[n,6]``."""
+    R = T[:, :3, :3]
+    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    a = np.arccos(c)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    f = np.where(a < 1e-9, 0.5, a / (2.0 * np.sin(np.where(a < 1e-9, 1.0, a))))
+    out = np.concatenate([f[:, None] * w, T[:, :3, 3]], axis=1)
+    for k in np.flatnonzero(np.pi - a < 1e-6):  # half turns: the axis from the symmetric part
+        out[k] = _log(T[k])
+    return out
+
+
 @dataclass
 class _Node:
     """A node of the window as the consensus check and a rebuild need it: its key, the offset its
@@ -462,17 +475,16 @@ class PairGraph:
     def _agree(self, O: np.ndarray) -> np.ndarray:
         """Which of the window's direct estimates (newest first) agree with the offset ``O`` at the newest
         node: chi-square gate on each one's covariance plus the walk from it to the newest node."""
-        nodes = self._nodes
-        out, walk = np.zeros(len(nodes), dtype=bool), np.zeros((6, 6))
-        O_inv = _inv(O)
-        for k, node in enumerate(reversed(nodes)):
-            r = _log(O_inv @ node.O_meas)
-            try:
-                out[k] = float(r @ np.linalg.solve(node.cov + walk, r)) <= self.conf.consensus_gate_chi2
-            except np.linalg.LinAlgError:
-                pass
-            walk = walk + node.walk
-        return out
+        nodes = self._nodes[::-1]
+        M = np.einsum("ij,njk->nik", _inv(O), np.stack([n.O_meas for n in nodes]))
+        walks = np.stack([np.zeros((6, 6))] + [n.walk for n in nodes[:-1]]).cumsum(axis=0)
+        C = np.stack([n.cov for n in nodes]) + walks
+        r = _log_batch(M)
+        try:
+            d2 = np.einsum("ni,ni->n", r, np.linalg.solve(C, r[..., None])[..., 0])
+        except np.linalg.LinAlgError:
+            return np.zeros(len(nodes), dtype=bool)
+        return d2 <= self.conf.consensus_gate_chi2
 
     def _consensus(self, O: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The window solved afresh from the newest direct estimate when clearly more estimates agree
