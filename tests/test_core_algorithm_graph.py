@@ -167,6 +167,7 @@ def test_an_odometry_jump_opens_the_walk_and_the_next_direct_estimate_re_anchors
 
 @pytest.mark.parametrize("verdicts,reported", [(("unverified", "unverified"), [*range(3, 7), *range(10, 14)]),
                                                 (("unverified", "rejected"), [*range(3, 7), *range(10, 14)]),
+                                                (("unverified", "pending"), [*range(3, 7), *range(10, 14)]),
                                                 (("unverified", "verified"), [*range(3, 7), *range(10, 40)]),
                                                 (("", ""), range(3, 40))])
 def test_an_unconfirmed_graph_is_propagated_as_long_as_the_switch_would(verdicts, reported):

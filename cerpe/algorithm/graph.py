@@ -43,8 +43,9 @@ from ..geometry import rotation_angle, se3_adjoint
 log = logging.getLogger(__name__)
 
 KERNELS: tuple[str, ...] = ("cauchy", "huber", "none")
-# anchor verification's verdicts that do not confirm an estimate (anything else, also "" for none, does)
-UNCONFIRMED: frozenset[str] = frozenset({"unverified", "rejected"})
+# verdicts that confirm a direct estimate: anchor verification's, "unchecked" (verification off, the paper)
+# and "" (no verdict given); any other (unverified, rejected, or a verdict added later) does not
+CONFIRMED: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked", ""})
 GRAPH_DEGRADATIONS: dict[str, str] = {
     "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
                                    "positive definite: the estimate is not added to the pair's graph",
@@ -82,8 +83,8 @@ class GraphConfig:
     ``rejected_scale`` (1: only the kernel judges them). ``kernel_k``: the kernel's width in
     standard deviations of the whitened error.
 
-    Until anchor verification has confirmed one of its direct estimates (verdict not in
-    :data:`UNCONFIRMED`), the graph reports nothing more than ``max_unverified_steps`` steps after
+    Until anchor verification has confirmed one of its direct estimates (verdict in
+    :data:`CONFIRMED`), the graph reports nothing more than ``max_unverified_steps`` steps after
     its newest direct estimate, as the switch does with an unverified candidate (the same default).
 
     Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
@@ -464,7 +465,7 @@ class PairGraph:
             self._recover(first)
             return
         self._nodes = (self._nodes + [_Node(key, O_meas, cov_O, Q)])[-self.conf.window_nodes:]
-        self.confirmed = self.confirmed or direct.verdict not in UNCONFIRMED
+        self.confirmed = self.confirmed or direct.verdict in CONFIRMED
         if linked:
             O, P = self._consensus(O, _sym(P))
         self._key, self._node_step, self._O, self._P = key, step, O, _sym(P)
