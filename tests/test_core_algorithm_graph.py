@@ -10,6 +10,7 @@ import pytest
 
 from cerpe.algorithm import DEGRADATIONS, CerpeConfig, GraphConfig, Team
 from cerpe.algorithm import graph as graph_mod
+from cerpe.algorithm.anchors import AnchorConfig
 from cerpe.algorithm.config import AlgorithmError
 from cerpe.algorithm.degradations import known
 from cerpe.algorithm.graph import DirectEstimate, GraphError, PairGraph, odometry_cov
@@ -108,6 +109,77 @@ def test_one_wrong_anchor_among_five_good_ones_is_down_weighted():
         assert np.linalg.norm(r.T_cj_ci[:3, 3] - s.truth[t][:3, 3]) < 3 * np.sqrt(3) * noise_trans, t
     # the switch would have reported the wrong anchor itself at step 16
     assert float(e_rot(wrong, s.truth[16])) > 0.45
+
+
+def _five_good_and(replace: dict, consensus: int):
+    noise_rot, noise_trans = 0.01, 0.02
+    s = simulate_pair(seed=4, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[4, 8, 12, 16, 20, 24],
+                      direct_rot=noise_rot, direct_trans=noise_trans)
+    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0,
+                       direct_along_factor=1.0, consensus_min_support=consensus)
+    g, out = feed(s, conf, replace={t: DirectEstimate(t, f(s, t)) for t, f in replace.items()})
+    return s, g, [float(e_rot(r.T_cj_ci, s.truth[t])) if r.T_cj_ci is not None else np.nan for t, r in enumerate(out)]
+
+
+def _turned(s, t: int) -> np.ndarray:
+    """The truth with the offset between the odometry frames turned by 0.5 rad: wrong estimates made
+    this way agree with each other through both odometries (as a consistently aliased match would)."""
+    O = s.X_j[t] @ s.truth[t] @ np.linalg.inv(s.X_i[t])
+    return np.linalg.inv(s.X_j[t]) @ O @ make_se3(so3_exp(np.array([0.0, 0.5, 0.0])), np.array([0.5, 0.0, 0.0])) @ s.X_i[t]
+
+
+def test_a_wrong_first_anchor_is_left_once_the_window_agrees_on_another():
+    # dev indoor seed 1 (e01 r1->r2): the first direct estimate was 0.15 rad off and the Cauchy-weighted
+    # graph, started at it, kept it through four better ones; the consensus re-seeds from the new majority
+    _, g, err = _five_good_and({4: _turned}, consensus=0)
+    assert g.n_reseeds == 0 and min(err[4:]) > 0.4  # the robust kernel alone stays where it started
+    _, g, err = _five_good_and({4: _turned}, consensus=2)
+    assert g.n_reseeds == 1 and err[8] > 0.4  # one good estimate against one wrong: no majority yet
+    assert max(err[12:]) < 3 * 0.01  # from the second good one on: within the good anchors' noise
+
+
+def test_a_run_of_consistent_wrong_anchors_against_an_established_one_is_not_followed():
+    # two wrong estimates that agree with each other (0.5 rad off the same way) after four good ones
+    s, g, err = _five_good_and({20: _turned, 24: _turned}, consensus=2)
+    assert g.n_reseeds == 0 and max(err[4:]) < 3 * 0.01
+    # three of them against three good ones: still no majority; four against two would be followed
+    s, g, err = _five_good_and({16: _turned, 20: _turned, 24: _turned}, consensus=2)
+    assert g.n_reseeds == 0 and max(err[4:]) < 3 * 0.01
+    s, g, err = _five_good_and({12: _turned, 16: _turned, 20: _turned, 24: _turned}, consensus=2)
+    assert g.n_reseeds == 1 and min(err[20:]) > 0.4
+
+
+def test_an_odometry_jump_opens_the_walk_and_the_next_direct_estimate_re_anchors():
+    # dev indoor seed 2001 (e01): robot r2's odometry turned 1.7 rad in one step that it never made; the
+    # graph carried the offset of before the jump through eight good direct estimates after it
+    s = simulate_pair(seed=6, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[2, 4, 6, 8, 10, 24, 26, 28],
+                      direct_rot=0.01, direct_trans=0.02)
+    J = make_se3(so3_exp(np.array([0.0, 1.7, 0.0])), np.array([0.3, 0.0, 0.2]))
+    s.X_j[15:] = s.X_j[15:] @ J  # the other robot's odometry from step 15 on (the truth and the estimates stay)
+    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0)
+    _, out = feed(s, GraphConfig(**base, odo_jump_rad=0.0, consensus_min_support=0))
+    assert float(e_rot(out[24].T_cj_ci, s.truth[24])) > 1.0  # the chain holds the offset of before the jump
+    _, out = feed(s, GraphConfig(**base))
+    assert pose_cov_sigmas(out[20].cov)[1] > 1.0  # after the jump: the predicted rotation sigma says so
+    for t in range(24, 40):  # the first direct estimate after it re-anchors the graph
+        assert float(e_rot(out[t].T_cj_ci, s.truth[t])) < 3 * 0.01, t
+
+
+@pytest.mark.parametrize("verdicts,reported", [(("unverified", "unverified"), [*range(3, 7), *range(10, 14)]),
+                                                (("unverified", "rejected"), [*range(3, 7), *range(10, 14)]),
+                                                (("unverified", "pending"), [*range(3, 7), *range(10, 14)]),
+                                                (("unverified", "verified"), [*range(3, 7), *range(10, 40)]),
+                                                (("", ""), range(3, 40))])
+def test_an_unconfirmed_graph_is_propagated_as_long_as_the_switch_would(verdicts, reported):
+    # dev cad seed 2002 (l3 r2->r0): two unverified half-turn-wrong estimates propagated for 33 steps
+    # (the switch lets an unverified candidate go after max_unverified_steps=3)
+    s = simulate_pair(seed=1, n_steps=40, odo_rot=0.001, odo_trans=0.002, direct_steps=[3, 10], direct_rot=0.01,
+                      direct_trans=0.02)
+    _, out = feed(s, replace={3: DirectEstimate(3, s.direct[3], verdict=verdicts[0]),
+                              10: DirectEstimate(10, s.direct[10], verdict=verdicts[1])})
+    assert [t for t, r in enumerate(out) if r.T_cj_ci is not None] == list(reported)
+    assert all(out[t].expired == (t >= 3 and t not in reported) for t in range(40))
+    assert GraphConfig().max_unverified_steps == AnchorConfig().max_unverified_steps
 
 
 def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating():

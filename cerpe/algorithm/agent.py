@@ -530,6 +530,8 @@ class RobotAgent:
         reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
                            and not r.startswith("direct-rejected"))
         if res.T_cj_ci is None:
+            if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
+                return "none", None, "; ".join(r for r in (reason, "unverified-expired") if r), res.node_step, None
             return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
         return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
 

@@ -43,6 +43,9 @@ from ..geometry import rotation_angle, se3_adjoint
 log = logging.getLogger(__name__)
 
 KERNELS: tuple[str, ...] = ("cauchy", "huber", "none")
+# verdicts that confirm a direct estimate: anchor verification's, "unchecked" (verification off, the paper)
+# and "" (no verdict given); any other (unverified, rejected, or a verdict added later) does not
+CONFIRMED: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked", ""})
 GRAPH_DEGRADATIONS: dict[str, str] = {
     "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
                                    "positive definite: the estimate is not added to the pair's graph",
@@ -66,7 +69,10 @@ class GraphConfig:
     Odometry: one increment of ``n`` steps, ``d`` metres and ``a`` radians gets standard
     deviations ``sqrt(n s0^2 + (s_m d)^2 / n + (s_rad a)^2 / n)`` per axis (rotation:
     ``odo_rot_per_step``, ``odo_rot_per_m``, ``odo_rot_per_rad``; translation likewise), plus
-    ``odo_lost_*`` per step whose own odometry failed (``X`` kept for want of an estimate).
+    ``odo_lost_*`` per step whose own odometry failed (``X`` kept for want of an estimate). An
+    increment turning more than ``odo_jump_rad`` per step (0: never) is an odometry failure, not a
+    motion: its standard deviations grow by its own angle and distance (plus ``odo_lost_trans``),
+    so the graph lets the offset jump with it and the next direct estimates re-anchor it.
     Direct estimates: rotation ``direct_rot_rad``, translation ``direct_trans_m +
     direct_trans_rel |t|`` across the line between the cameras (``|t|`` their distance) and
     ``direct_along_factor`` times that along it (metric depth errors move the other camera
@@ -76,6 +82,17 @@ class GraphConfig:
     verification left unverified or rejected are scaled by ``unverified_scale`` /
     ``rejected_scale`` (1: only the kernel judges them). ``kernel_k``: the kernel's width in
     standard deviations of the whitened error.
+
+    Until anchor verification has confirmed one of its direct estimates (verdict in
+    :data:`CONFIRMED`), the graph reports nothing more than ``max_unverified_steps`` steps after
+    its newest direct estimate, as the switch does with an unverified candidate (the same default).
+
+    Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
+    minimum where it starts), so when a new direct estimate fails the chi-square gate
+    ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
+    vote: if ``consensus_ratio`` times as many of them (and at least ``consensus_min_support``; 0
+    disables it) agree with the new one as with the graph's estimate (those agreeing with both do
+    not vote), the window is solved afresh from the new one.
     """
 
     # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
@@ -87,6 +104,7 @@ class GraphConfig:
     odo_trans_per_m: float = 0.17
     odo_lost_rot: float = 0.05
     odo_lost_trans: float = 0.15
+    odo_jump_rad: float = 1.0
     direct_rot_rad: float = 0.004
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
@@ -98,6 +116,10 @@ class GraphConfig:
     kernel: str = "cauchy"
     kernel_k: float = 3.0
     window_nodes: int = 20
+    consensus_min_support: int = 2
+    consensus_gate_chi2: float = 22.46
+    consensus_ratio: float = 1.5
+    max_unverified_steps: int = 3
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -105,20 +127,21 @@ class GraphConfig:
 
     def __post_init__(self) -> None:
         for name in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad", "odo_trans_per_step",
-                     "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "direct_rot_rad", "direct_trans_m",
+                     "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "odo_jump_rad", "direct_rot_rad", "direct_trans_m",
                      "direct_trans_rel", "direct_inliers_ref", "min_sigma"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
         for name in ("direct_inliers_clip", "direct_along_factor", "unverified_scale", "rejected_scale", "kernel_k",
-                     "converge_tol",
+                     "converge_tol", "consensus_gate_chi2", "consensus_ratio",
                      "relinearize_threshold"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise GraphError(f"graph config: {name} must be finite and > 0, got {v}")
         if self.kernel not in KERNELS:
             raise GraphError(f"graph config: kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
-        for name, low in (("window_nodes", 2), ("max_iterations", 1)):
+        for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0),
+                          ("max_unverified_steps", 0)):
             v = getattr(self, name)
             if int(v) != v or v < low:
                 raise GraphError(f"graph config: {name} must be an integer >= {low}, got {v}")
@@ -143,14 +166,16 @@ class DirectEstimate:
 @dataclass
 class GraphEstimate:
     """What the graph says at one step: ``T_cj_ci`` and its ``[6,6]`` covariance (None before the
-    first node), the step of its newest node, whether this step's direct estimate became one,
-    and the degradations of this step (names of :data:`GRAPH_DEGRADATIONS`)."""
+    first node, and once an unconfirmed graph expired: ``expired``), the step of its newest node,
+    whether this step's direct estimate became one, and the degradations of this step (names of
+    :data:`GRAPH_DEGRADATIONS`)."""
 
     T_cj_ci: np.ndarray | None = None
     cov: np.ndarray | None = None
     node_step: int = -1
     measured: bool = False
     degradations: list[str] = field(default_factory=list)
+    expired: bool = False
 
 
 def _diag(rot_sigma: float, trans_sigma: float) -> np.ndarray:
@@ -166,6 +191,9 @@ def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_s
     var_t = n * conf.odo_trans_per_step**2 + (conf.odo_trans_per_m * d) ** 2 / n
     var_r += lost_steps * conf.odo_lost_rot**2
     var_t += lost_steps * conf.odo_lost_trans**2
+    if conf.odo_jump_rad > 0 and a > conf.odo_jump_rad * n:  # not a motion, a failure: the walk may jump by it
+        var_r += a**2
+        var_t += (d + conf.odo_lost_trans) ** 2
     return np.diag([var_r] * 3 + [var_t] * 3)
 
 
@@ -217,6 +245,46 @@ def _sym(C: np.ndarray) -> np.ndarray:
     return 0.5 * (C + C.T)
 
 
+def _log(T: np.ndarray) -> np.ndarray:
+    """``[rotation vector, translation]`` of a rigid transform (first order in the translation: a gate, not a solver)."""
+    R = T[:3, :3]
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    a = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if a < 1e-9:
+        return np.concatenate([0.5 * w, T[:3, 3]])
+    if np.pi - a < 1e-6:  # a half turn: the axis from the symmetric part
+        axis = np.sqrt(np.clip((np.diag(R) + 1.0) / 2.0, 0.0, None))
+        k = int(np.argmax(axis))
+        axis = (R[:, k] + np.eye(3)[k]) / np.linalg.norm(R[:, k] + np.eye(3)[k])
+        return np.concatenate([a * axis, T[:3, 3]])
+    return np.concatenate([a / (2.0 * np.sin(a)) * w, T[:3, 3]])
+
+
+def _log_batch(T: np.ndarray) -> np.ndarray:
+    """:func:`_log` of ``[n,4,4]`` transforms, ``[n,6]``."""
+    R = T[:, :3, :3]
+    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    a = np.arccos(c)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    f = np.where(a < 1e-9, 0.5, a / (2.0 * np.sin(np.where(a < 1e-9, 1.0, a))))
+    out = np.concatenate([f[:, None] * w, T[:, :3, 3]], axis=1)
+    for k in np.flatnonzero(np.pi - a < 1e-6):  # half turns: the axis from the symmetric part
+        out[k] = _log(T[k])
+    return out
+
+
+@dataclass
+class _Node:
+    """A node of the window as the consensus check and a rebuild need it: its key, the offset its
+    direct estimate measured with its covariance, and the walk from the previous node."""
+
+    key: int
+    O_meas: np.ndarray
+    cov: np.ndarray
+    walk: np.ndarray
+
+
 class _Solver:
     """GTSAM's incremental fixed-lag smoother over the offset nodes (keys = node numbers)."""
 
@@ -251,6 +319,25 @@ class _Solver:
             graph.add(g.PriorFactorPose3(key, g.Pose3(prior[0]), noise))
         values.insert(key, g.Pose3(init))
         stamps.insert((key, float(key)))
+        return self._settle(graph, values, stamps, key)
+
+    def rebuild(self, nodes: list["_Node"], init: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """A fresh smoother over ``nodes`` (oldest first: robust priors, walks between them), every
+        node started at ``init``; returns the newest node's ``(estimate, marginal covariance, converged)``."""
+        g = self.gtsam
+        graph, values, stamps = g.NonlinearFactorGraph(), g.Values(), g.FixedLagSmootherKeyTimestampMap()
+        prev = None
+        for n in nodes:
+            if prev is not None:
+                graph.add(g.BetweenFactorPose3(prev, n.key, g.Pose3(), g.noiseModel.Gaussian.Covariance(n.walk)))
+            graph.add(g.PriorFactorPose3(n.key, g.Pose3(n.O_meas), self._robust(n.cov)))
+            values.insert(n.key, g.Pose3(init))
+            stamps.insert((n.key, float(n.key)))
+            prev = n.key
+        return self._settle(graph, values, stamps, nodes[-1].key)
+
+    def _settle(self, graph, values, stamps, key: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        g = self.gtsam
         self.smoother.update(graph, values, stamps)
         est = self.smoother.calculateEstimatePose3(key)
         converged = False
@@ -280,7 +367,11 @@ class PairGraph:
         self._O: np.ndarray | None = None  # newest node's estimate (re-centred frames)
         self._P: np.ndarray | None = None  # its marginal covariance
         self._solver: _Solver | None = None
+        self._nodes: list[_Node] = []  # the window's nodes (consensus check, rebuild)
         self.n_nodes = 0
+        self.n_reseeds = 0  # windows solved afresh from a new direct estimate (consensus)
+        self.confirmed = False  # a node's direct estimate was confirmed by anchor verification
+        self._direct_step = -1  # the newest step with a direct estimate (a node or not)
 
     # ------------------------------------------------------------------ frames
     def _local(self, X: np.ndarray, which: int) -> np.ndarray:
@@ -317,6 +408,7 @@ class PairGraph:
     def _restart(self) -> None:
         """A fresh smoother holding only the last good node (Gaussian prior at its estimate and marginal)."""
         self._solver = None
+        self._nodes = []
         if self._O is None:
             return
         try:
@@ -372,10 +464,55 @@ class PairGraph:
             out.degradations.append("graph:solver-failed")
             self._recover(first)
             return
+        self._nodes = (self._nodes + [_Node(key, O_meas, cov_O, Q)])[-self.conf.window_nodes:]
+        self.confirmed = self.confirmed or direct.verdict in CONFIRMED
+        if linked:
+            O, P = self._consensus(O, _sym(P))
         self._key, self._node_step, self._O, self._P = key, step, O, _sym(P)
         self._Q = np.zeros((6, 6))
         self.n_nodes += 1
         out.measured = True
+
+    def _agree(self, O: np.ndarray) -> np.ndarray:
+        """Which of the window's direct estimates (newest first) agree with the offset ``O`` at the newest
+        node: chi-square gate on each one's covariance plus the walk from it to the newest node."""
+        nodes = self._nodes[::-1]
+        M = np.einsum("ij,njk->nik", _inv(O), np.stack([n.O_meas for n in nodes]))
+        walks = np.stack([np.zeros((6, 6))] + [n.walk for n in nodes[:-1]]).cumsum(axis=0)
+        C = np.stack([n.cov for n in nodes]) + walks
+        r = _log_batch(M)
+        try:
+            d2 = np.einsum("ni,ni->n", r, np.linalg.solve(C, r[..., None])[..., 0])
+        except np.linalg.LinAlgError:
+            return np.zeros(len(nodes), dtype=bool)
+        return d2 <= self.conf.consensus_gate_chi2
+
+    def _consensus(self, O: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The window solved afresh from the newest direct estimate when clearly more estimates agree
+        with it than with the graph's estimate ``O`` (which a robust kernel started there would keep).
+        Estimates that agree with both (e.g. behind an odometry jump) do not vote."""
+        need = self.conf.consensus_min_support
+        new = self._nodes[-1]
+        if need <= 0 or len(self._nodes) < need:
+            return O, P
+        r = _log(_inv(O) @ new.O_meas)
+        if float(r @ np.linalg.solve(new.cov + P, r)) <= self.conf.consensus_gate_chi2:
+            return O, P
+        a_new, a_cur = self._agree(new.O_meas), self._agree(O)
+        s_new, s_cur = int(np.sum(a_new & ~a_cur)), int(np.sum(a_cur & ~a_new))
+        if s_new < need or s_new < self.conf.consensus_ratio * max(s_cur, 1):
+            return O, P
+        try:
+            solver = _Solver(self.conf)
+            O2, P2, converged = solver.rebuild(self._nodes, new.O_meas)
+        except Exception as exc:  # noqa: BLE001 -- GTSAM raises plain RuntimeErrors; keep the incremental result
+            log.debug("graph consensus rebuild failed: %s", exc)
+            return O, P
+        if not (converged and np.all(np.isfinite(O2)) and usable_cov(_sym(P2))):
+            return O, P
+        self._solver = solver
+        self.n_reseeds += 1
+        return O2, _sym(P2)
 
     def _recover(self, first: bool) -> None:
         if self._O is None:  # nothing good yet: forget the frames too, the next estimate starts afresh
@@ -406,11 +543,16 @@ class PairGraph:
         if X_j is not None:
             self._walk_j(int(X_j_step), X_j)
         if direct is not None:
+            self._direct_step = int(step)
             self._measure(step, direct, out)
         if self._O is None or self._last_j is None:
             return out
         Xi, Xj = self._local(self._last_i[1], 0), self._local(self._last_j[1], 1)
         T = _inv(Xj) @ self._O @ Xi
+        out.node_step = self._node_step
+        if not self.confirmed and step - self._direct_step > self.conf.max_unverified_steps:
+            out.expired = True  # as the switch: an unverified estimate is propagated a few steps only
+            return out
         A = se3_adjoint(_inv(Xi))
-        out.T_cj_ci, out.cov, out.node_step = T, _sym(A @ (self._P + self._Q) @ A.T), self._node_step
+        out.T_cj_ci, out.cov = T, _sym(A @ (self._P + self._Q) @ A.T)
         return out
