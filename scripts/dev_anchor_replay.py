@@ -49,9 +49,13 @@ def _poses(df: pd.DataFrame, prefix: str) -> np.ndarray:
 
 
 def load(run: Path):
-    """Yield ``(encounter, ego, other, table)`` with per-step direct T, gt T, both odometries and odometers."""
-    conf = json.loads((run / "run.json").read_text())
-    metric = not conf.get("config", conf).get("cerpe", {}).get("unit_scale_without_depth", False)
+    """Yield ``(encounter, ego, other, rows, metric)`` with per-step direct T, gt T, both odometries and odometers.
+
+    The direct estimate is ``dir_*`` (recorded whatever verification said of it) where the run has
+    those columns, else ``est_*`` of the rows whose source is ``direct`` (runs with ``verify_anchors=False``).
+    """
+    meta = json.loads((run / "run.json").read_text())
+    metric = bool(meta.get("metric_scale", True))
     for enc in sorted(p for p in run.iterdir() if (p / "DONE.json").exists()):
         steps = pd.read_csv(enc / "steps.csv")
         robots = pd.read_csv(enc / "robots.csv").sort_values("step")
@@ -61,14 +65,22 @@ def load(run: Path):
             X[rid] = dict(zip(g["step"], P))
             d = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))]
             odo[rid] = dict(zip(g["step"], d))
+        has_dir = "dir_tx" in steps.columns
         for (ego, other), g in steps.groupby(["ego", "other"]):
             g = g.sort_values("step")
             rows = []
-            for (_, r), T, G in zip(g.iterrows(), _poses(g, "est"), _poses(g, "gt")):
+            D = _poses(g, "dir" if has_dir else "est")
+            for (_, r), T, G in zip(g.iterrows(), D, _poses(g, "gt")):
                 t = int(r["step"])
-                direct = r["source"] == "direct" and not str(r.get("reason", "")).startswith("anchor-not-stored")
+                if str(r.get("reason", "")).startswith("anchor-not-stored"):
+                    direct = False
+                elif has_dir:
+                    direct = bool(np.all(np.isfinite(T)))
+                else:
+                    direct = r["source"] == "direct"
                 rows.append(dict(step=t, direct=direct, T=T if direct else None, gt=G, X_i=X[ego][t],
-                                 X_j=X[other][t], odo_i=odo[ego][t], odo_j=odo[other][t]))
+                                 X_j=X[other][t], odo_i=odo[ego][t], odo_j=odo[other][t],
+                                 inliers=int(r.get("direct_inliers", -1)), index=r.name))
             yield enc.name, ego, other, rows, metric
 
 
@@ -78,6 +90,61 @@ def err(T, G) -> float:
 
 def anchor(r, metric) -> Anchor:
     return Anchor(r["step"], r["T"], r["X_i"], r["X_j"], r["odo_i"], r["odo_j"], metric)
+
+
+def _cols(prefix: str, T) -> list[float]:
+    from cerpe.geometry import se3_to_tq_xyzw
+
+    if T is None or not np.all(np.isfinite(T)):
+        return [np.nan] * 7
+    t, q = se3_to_tq_xyzw(T)
+    return [*t, *q]
+
+
+def replay_pair(rows, metric: bool, cfg: CerpeConfig):
+    """Yield ``(row, verdict, reported T or None, its anchor step or -1, source)`` per step of one
+    ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``."""
+    pa = PairAnchors(cfg.anchor_config())
+    for r in rows:
+        t, rep, verdict, src_step, source = r["step"], None, "", -1, "none"
+        if r["direct"]:
+            est = anchor(r, metric)
+            if cfg.verify_anchors:
+                verdict = pa.offer(est).verdict
+            else:
+                pa.anchor, verdict = est, "unchecked"
+            if verdict != "rejected" and (verdict != "unverified" or cfg.report_unverified):
+                rep, src_step, source = r["T"], t, "direct"
+        if rep is None:
+            a, _ = pa.carried(t)
+            if a is not None:
+                rep, src_step, source = a.propagated(r["X_i"], r["X_j"]), a.step, "propagated"
+        yield r, verdict, rep, src_step, source
+
+
+def replay_report(run_path: Path, cfg: CerpeConfig, name: str | None = None) -> tuple[dict, pd.DataFrame]:
+    """The dev report's row (:func:`cerpe.pipeline.devreport.method_row`) of ``run_path`` with its
+    anchors replayed under ``cfg`` (switch back end, ``request_policy`` gate: the gate and the passes
+    do not depend on the anchors, so only the verdicts and what is reported change; second
+    registrations of one step are not recorded, so they verify nothing here). Also the replayed rows."""
+    from cerpe.pipeline.devreport import method_row
+    from cerpe.pipeline.evaluate import load_run
+
+    run = load_run(run_path, allow_partial=True)
+    steps = run.steps.copy()
+    est_cols = [f"est_{n}" for n in POSE]
+    for enc, ego, other, rows, metric in load(run_path):
+        sel = steps.index[(steps.encounter.astype(str) == enc) & (steps.ego == ego) & (steps.other == other)]
+        by_step = dict(zip(steps.loc[sel, "step"].astype(int), sel))
+        for r, verdict, rep, src_step, source in replay_pair(rows, metric, cfg):
+            i = by_step[r["step"]]
+            steps.loc[i, est_cols] = _cols("est", rep)
+            steps.loc[i, ["source", "anchor_step", "anchor_verdict"]] = [source, src_step, verdict]
+    run.steps = steps
+    row = method_row(run, name)
+    row["anchors_rejected"] = int((steps["anchor_verdict"] == "rejected").sum())  # not the recorded degradations
+    row["anchors_replaced"] = int((steps["anchor_verdict"] == "replaced").sum())
+    return row, steps
 
 
 def pair_table(runs, max_gap: int) -> pd.DataFrame:
@@ -103,22 +170,9 @@ def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
     out = []
     for run in runs:
         for enc, ego, other, rows, metric in load(run):
-            pa = PairAnchors(cfg.anchor_config())
             carried_from: dict[int, int] = {}
-            for r in rows:
-                t, rep, verdict, src_step = r["step"], None, "", -1
-                if r["direct"]:
-                    est = anchor(r, metric)
-                    if cfg.verify_anchors:
-                        verdict = pa.offer(est).verdict
-                    else:
-                        pa.anchor, verdict = est, "unchecked"
-                    if verdict != "rejected":
-                        rep, src_step = r["T"], t
-                if rep is None:
-                    a, _ = pa.carried(t)
-                    if a is not None:
-                        rep, src_step = a.propagated(r["X_i"], r["X_j"]), a.step
+            for r, verdict, rep, src_step, _ in replay_pair(rows, metric, cfg):
+                t = r["step"]
                 e = err(rep, r["gt"])
                 ep = float(np.linalg.norm(rep[:3, 3] - r["gt"][:3, 3])) if rep is not None else np.nan
                 if src_step >= 0 and src_step != t and e > WRONG:

@@ -184,3 +184,16 @@ def test_verify_support_asks_for_that_many_agreeing_candidates():
     pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
     e = p.est(9)
     assert pa.offer(e, [Anchor(9, e.T_cj_ci @ rot(0.01), e.X_i, e.X_j)]).verdict == "verified"
+
+
+def test_without_report_unverified_nothing_unverified_is_carried():
+    import dataclasses
+
+    p = Pair(13)
+    pa = PairAnchors(dataclasses.replace(CONF, report_unverified=False))
+    assert pa.offer(p.est(5)).verdict == "unverified"
+    assert pa.carried(5) == (None, False) and pa.carried(6) == (None, False)
+    check = pa.offer(p.est(6, rot(0.02)))  # verify_support = 1: agrees with step 5
+    assert check.verdict == "verified" and check.against == 5
+    a, verified = pa.carried(7)
+    assert a is not None and a.step == 6 and verified

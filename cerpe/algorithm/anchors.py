@@ -15,7 +15,8 @@ anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps
 steps agree with the newest of them, the newest replaces it (persistent
 disagreement: the anchor was the wrong one). Before any anchor is
 verified, the newest unverified estimate may be propagated for at most
-``max_unverified_steps`` steps.
+``max_unverified_steps`` steps, and only with ``report_unverified`` (without it,
+nothing is reported before an estimate is verified).
 
 Pure numpy + :mod:`cerpe.geometry`; no robot, link or record here. A pose-graph
 back end can sit beside it (it would consume the same :class:`Anchor` stream).
@@ -46,7 +47,8 @@ class AnchorConfig:
     step through different own views (two registrations) agree within
     ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
     without such a second registration, ``verify_support`` earlier candidates must
-    agree with an estimate to verify it.
+    agree with an estimate to verify it. ``report_unverified``: whether an estimate
+    nothing has verified yet is reported (and carried, see :meth:`PairAnchors.carried`).
     """
 
     rot_tol_rad: float = 0.15
@@ -60,6 +62,7 @@ class AnchorConfig:
     agree_rot_rad: float = 0.15
     agree_trans_m: float = 0.3
     verify_support: int = 2
+    report_unverified: bool = True
 
 
 @dataclass
@@ -187,11 +190,12 @@ class PairAnchors:
     def carried(self, step: int) -> tuple[Anchor | None, bool]:
         """What a step without an accepted direct estimate propagates: ``(anchor, verified)``.
 
-        The verified anchor when there is one; else the newest unverified candidate
-        while it is at most ``max_unverified_steps`` old; else None.
+        The verified anchor when there is one; else, with ``report_unverified``, the
+        newest unverified candidate while it is at most ``max_unverified_steps`` old;
+        else None.
         """
         if self.anchor is not None:
             return self.anchor, True
-        if self.candidates and step - self.candidates[-1].step <= self.conf.max_unverified_steps:
+        if self.conf.report_unverified and self.candidates and step - self.candidates[-1].step <= self.conf.max_unverified_steps:
             return self.candidates[-1], False
         return None, False

@@ -95,7 +95,11 @@ class CerpeConfig:
             ``anchor_candidate_steps`` steps agree with the newest of them (it included),
             the newest replaces the anchor.
         max_unverified_steps: before any anchor is verified, an unverified estimate is
-            reported at its step and propagated for at most this many steps.
+            reported at its step and propagated for at most this many steps (only with
+            ``report_unverified``).
+        report_unverified: whether a direct estimate that nothing has verified yet (no
+            anchor, no agreeing second estimate) is reported; False holds it (source
+            ``none``, reason ``unverified-held``) until something agrees with it.
         anchor_candidate_steps: how many steps an unverified estimate (or a rejected
             one) stays available to verify a later one.
         anchor_verify_support: without an anchor and without a second registration, how
@@ -150,6 +154,7 @@ class CerpeConfig:
     registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
     anchor_verify_support: int = 2
+    report_unverified: bool = True
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
     request_policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -235,7 +240,8 @@ class CerpeConfig:
                             candidate_steps=int(self.anchor_candidate_steps),
                             agree_rot_rad=self.registration_agree_rot_rad,
                             agree_trans_m=self.registration_agree_trans_m,
-                            verify_support=int(self.anchor_verify_support))
+                            verify_support=int(self.anchor_verify_support),
+                            report_unverified=bool(self.report_unverified))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
