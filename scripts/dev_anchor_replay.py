@@ -115,18 +115,25 @@ def replay_pair(rows, metric: bool, cfg: CerpeConfig):
                 pa.anchor, verdict = est, "unchecked"
             if verdict != "rejected" and (verdict != "unverified" or cfg.report_unverified):
                 rep, src_step, source = r["T"], t, "direct"
-        if rep is None:
+        if rep is None and cfg.propagate:
             a, _ = pa.carried(t)
             if a is not None:
                 rep, src_step, source = a.propagated(r["X_i"], r["X_j"]), a.step, "propagated"
         yield r, verdict, rep, src_step, source
 
 
+def run_config(run_path: Path, **overrides) -> CerpeConfig:
+    """The run's own ``CerpeConfig`` (``run.json``), with ``overrides``."""
+    conf = json.loads((run_path / "run.json").read_text())["config"]["method_config"]["cerpe"]
+    return dataclasses.replace(CerpeConfig(**conf), **overrides)
+
+
 def replay_report(run_path: Path, cfg: CerpeConfig, name: str | None = None) -> tuple[dict, pd.DataFrame]:
     """The dev report's row (:func:`cerpe.pipeline.devreport.method_row`) of ``run_path`` with its
-    anchors replayed under ``cfg`` (switch back end, ``request_policy`` gate: the gate and the passes
-    do not depend on the anchors, so only the verdicts and what is reported change; second
-    registrations of one step are not recorded, so they verify nothing here). Also the replayed rows."""
+    anchors replayed under ``cfg`` (e.g. :func:`run_config`; switch back end, ``request_policy`` gate:
+    the gate and the passes do not depend on the anchors, so only the verdicts and what is reported
+    change; second registrations of one step are not recorded, so they verify nothing here). Also
+    the replayed rows."""
     from cerpe.pipeline.devreport import method_row
     from cerpe.pipeline.evaluate import load_run
 

@@ -197,3 +197,31 @@ def test_without_report_unverified_nothing_unverified_is_carried():
     assert check.verdict == "verified" and check.against == 5
     a, verified = pa.carried(7)
     assert a is not None and a.step == 6 and verified
+
+
+def test_verify_fraction_asks_most_recent_candidates_to_agree():
+    """Two estimates that disagree with everything (0.5 rad either way), then right ones: with
+    ``verify_fraction`` 0.6 a right estimate is verified only once the agreeing candidates are at
+    least 60 % of those of the last ``candidate_steps`` steps; with 0, by the first agreeing one."""
+    import dataclasses
+
+    p = Pair(14)
+    plan = [(2, rot(0.5)), (3, rot(-0.5)), (4, None), (5, None), (6, None), (7, None)]
+    for fraction, want in ((0.6, ["unverified"] * 5 + ["verified"]),
+                           (0.0, ["unverified"] * 3 + ["verified", "accepted", "accepted"])):
+        pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=fraction))
+        assert [pa.offer(p.est(t, e)).verdict for t, e in plan] == want, fraction
+    pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=0.6))
+    checks = [pa.offer(p.est(t, e)) for t, e in plan]
+    assert checks[-1].against == 6 and pa.anchor.step == 7  # 3 of 5 candidates (4, 5, 6) agree
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
+def test_config_refuses_a_verify_fraction_outside_0_1(value):
+    from cerpe.algorithm import CerpeConfig
+    from cerpe.algorithm.config import AlgorithmError
+
+    with pytest.raises(AlgorithmError, match="anchor_verify_fraction must be in"):
+        CerpeConfig(anchor_verify_fraction=value)
+    assert CerpeConfig(anchor_verify_fraction=0.5, report_unverified=False).anchor_config() == AnchorConfig(
+        verify_fraction=0.5, report_unverified=False)

@@ -8,7 +8,7 @@ starts from) only when something independent agrees with it:
   distance both robots travelled since (odometry drifts);
 * with no anchor yet: a second estimate of the same step through another own
   view (two registrations that agree), or ``verify_support`` recent unverified
-  candidates propagated to this step.
+  candidates propagated to this step, at least ``verify_fraction`` of them.
 
 An estimate that disagrees with the anchor is *rejected* (the pair keeps the
 anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
@@ -47,7 +47,9 @@ class AnchorConfig:
     step through different own views (two registrations) agree within
     ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
     without such a second registration, ``verify_support`` earlier candidates must
-    agree with an estimate to verify it. ``report_unverified``: whether an estimate
+    agree with an estimate to verify it, and at least ``verify_fraction`` of the
+    candidates of the last ``candidate_steps`` steps (estimates that keep disagreeing
+    with each other verify nothing). ``report_unverified``: whether an estimate
     nothing has verified yet is reported (and carried, see :meth:`PairAnchors.carried`).
     """
 
@@ -62,6 +64,7 @@ class AnchorConfig:
     agree_rot_rad: float = 0.15
     agree_trans_m: float = 0.3
     verify_support: int = 2
+    verify_fraction: float = 0.0
     report_unverified: bool = True
 
 
@@ -160,7 +163,8 @@ class PairAnchors:
         self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]
         checks = [(c, *consistent(self.conf, c, est)) for c in reversed(self.candidates)]  # newest first
         support = [x for x in checks if x[1]]
-        if support and len(support) >= self.conf.verify_support:
+        if support and len(support) >= self.conf.verify_support and \
+                len(support) >= self.conf.verify_fraction * len(checks):
             c, _, rot, trans = support[0]
             self._set(est)
             return Check("verified", c.step, rot, trans)

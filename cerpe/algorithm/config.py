@@ -105,6 +105,9 @@ class CerpeConfig:
         anchor_verify_support: without an anchor and without a second registration, how
             many earlier unverified estimates (of the last ``anchor_candidate_steps``
             steps) must agree with a direct estimate to verify it.
+        anchor_verify_fraction: and at least this fraction of those recent unverified
+            estimates (0: any number; estimates that keep disagreeing with each other
+            verify nothing).
         registration_agree_rot_rad, registration_agree_trans_m: two registrations of
             one step through different own views agree (and verify each other) within
             these (the translation tolerance grows by ``anchor_trans_rel`` per metre
@@ -154,6 +157,7 @@ class CerpeConfig:
     registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
     anchor_verify_support: int = 2
+    anchor_verify_fraction: float = 0.0
     report_unverified: bool = True
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
@@ -197,6 +201,8 @@ class CerpeConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise AlgorithmError(f"config: {name} must be finite and >= 0, got {v}")
+        if not (np.isfinite(self.anchor_verify_fraction) and 0.0 <= self.anchor_verify_fraction <= 1.0):
+            raise AlgorithmError(f"config: anchor_verify_fraction must be in [0, 1], got {self.anchor_verify_fraction}")
         for name in ("anchor_replace_after", "anchor_verify_support", "max_unverified_steps",
                      "anchor_candidate_steps"):
             v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
@@ -241,6 +247,7 @@ class CerpeConfig:
                             agree_rot_rad=self.registration_agree_rot_rad,
                             agree_trans_m=self.registration_agree_trans_m,
                             verify_support=int(self.anchor_verify_support),
+                            verify_fraction=float(self.anchor_verify_fraction),
                             report_unverified=bool(self.report_unverified))
 
     def as_dict(self) -> dict:
