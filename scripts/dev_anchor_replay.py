@@ -107,6 +107,8 @@ def replay_pair(rows, metric: bool, cfg: CerpeConfig):
     pa = PairAnchors(cfg.anchor_config())
     for r in rows:
         t, rep, verdict, src_step, source = r["step"], None, "", -1, "none"
+        if cfg.verify_anchors:
+            pa.track(t, r["X_i"], r["X_j"])
         if r["direct"]:
             est = anchor(r, metric)
             if cfg.verify_anchors:

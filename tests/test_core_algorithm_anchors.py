@@ -16,7 +16,7 @@ from cerpe.geometry import make_se3, paper_T_ij, random_se3, so3_exp
 
 CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
                     replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
-                    agree_trans_m=0.1, verify_support=1)
+                    agree_trans_m=0.1, verify_support=1, verify_fraction=0.0, max_odo_rot_step=0.0)
 
 
 class Pair:

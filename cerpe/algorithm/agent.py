@@ -523,6 +523,8 @@ class RobotAgent:
         fresh = pose is not None and pose[0] == st.step
         pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
         info = st.pair_info.setdefault(other, PairInfo())
+        if fresh and self.config.verify_anchors and pair.track(st.step, self.X, pose[1]):
+            self.degrade("anchor:odometry-jump")
         if st.requested.get(other, self.gate_open(other)):
             ests, reason = self._direct_estimates(st, other)
             if ests:

@@ -51,6 +51,8 @@ class AnchorConfig:
     candidates of the last ``candidate_steps`` steps (estimates that keep disagreeing
     with each other verify nothing). ``report_unverified``: whether an estimate
     nothing has verified yet is reported (and carried, see :meth:`PairAnchors.carried`).
+    ``max_odo_rot_step`` (> 0): when either robot's odometry turns by more than this
+    per step, the pair forgets its anchor and candidates (see :meth:`PairAnchors.track`).
     """
 
     rot_tol_rad: float = 0.15
@@ -58,14 +60,15 @@ class AnchorConfig:
     rot_drift_per_step: float = 0.005
     trans_drift_frac: float = 0.1
     trans_rel: float = 0.2
-    replace_after: int = 3
-    max_unverified_steps: int = 3
+    replace_after: int = 5
+    max_unverified_steps: int = 2
     candidate_steps: int = 10
     agree_rot_rad: float = 0.15
     agree_trans_m: float = 0.3
     verify_support: int = 2
-    verify_fraction: float = 0.0
+    verify_fraction: float = 0.5
     report_unverified: bool = True
+    max_odo_rot_step: float = 1.0
 
 
 @dataclass
@@ -143,6 +146,29 @@ class PairAnchors:
     anchor: Anchor | None = None
     candidates: list[Anchor] = field(default_factory=list)
     challengers: list[Anchor] = field(default_factory=list)
+    last_poses: tuple[int, np.ndarray, np.ndarray] | None = None
+
+    def track(self, step: int, X_i: np.ndarray, X_j: np.ndarray) -> float:
+        """Feed both robots' odometry poses ``T_odom_cam`` of ``step``; returns 0, or the rotation
+        per step (rad) of the odometry jump that made the pair forget its anchor and candidates.
+
+        Propagation moves an anchor by both odometries; when one turns by more than
+        ``max_odo_rot_step`` per step since the last poses fed, that odometry failed
+        (a lost track), and everything the pair kept would be carried through the
+        failure. Off when ``max_odo_rot_step`` is 0.
+        """
+        last, self.last_poses = self.last_poses, (step, X_i.copy(), X_j.copy())
+        if self.conf.max_odo_rot_step <= 0 or last is None or step <= last[0]:
+            return 0.0
+        turn = max(float(rotation_angle(se3_inverse(A)[:3, :3] @ B[:3, :3])) for A, B in ((last[1], X_i),
+                                                                                        (last[2], X_j)))
+        per_step = turn / (step - last[0])
+        if per_step <= self.conf.max_odo_rot_step or (self.anchor is None and not self.candidates):
+            return 0.0
+        self.anchor = None
+        self.candidates.clear()
+        self.challengers.clear()
+        return per_step
 
     def offer(self, est: Anchor, others: Sequence[Anchor] = ()) -> Check:
         """Judge a direct estimate; ``others``: estimates of the same step through other own views.

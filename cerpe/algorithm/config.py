@@ -97,6 +97,10 @@ class CerpeConfig:
         max_unverified_steps: before any anchor is verified, an unverified estimate is
             reported at its step and propagated for at most this many steps (only with
             ``report_unverified``).
+        anchor_max_odo_rot_step: when either robot's odometry turns by more than this
+            (radians per step) between two steps, the pair forgets its anchor and
+            candidates (a lost track would carry them wrong; counted
+            ``anchor:odometry-jump``); 0 turns the check off.
         report_unverified: whether a direct estimate that nothing has verified yet (no
             anchor, no agreeing second estimate) is reported; False holds it (source
             ``none``, reason ``unverified-held``) until something agrees with it.
@@ -151,13 +155,14 @@ class CerpeConfig:
     anchor_rot_drift_per_step: float = 0.005
     anchor_trans_drift_frac: float = 0.1
     anchor_trans_rel: float = 0.2
-    anchor_replace_after: int = 3
-    max_unverified_steps: int = 3
+    anchor_replace_after: int = 5
+    max_unverified_steps: int = 2
     anchor_candidate_steps: int = 10
     registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
     anchor_verify_support: int = 2
-    anchor_verify_fraction: float = 0.0
+    anchor_verify_fraction: float = 0.5
+    anchor_max_odo_rot_step: float = 1.0
     report_unverified: bool = True
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
@@ -197,7 +202,7 @@ class CerpeConfig:
             raise AlgorithmError(f"config: min_image_std must be finite and >= 0, got {self.min_image_std}")
         for name in ("anchor_rot_tol_rad", "anchor_trans_tol_m", "anchor_rot_drift_per_step",
                      "anchor_trans_drift_frac", "anchor_trans_rel", "registration_agree_rot_rad",
-                     "registration_agree_trans_m"):
+                     "registration_agree_trans_m", "anchor_max_odo_rot_step"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise AlgorithmError(f"config: {name} must be finite and >= 0, got {v}")
@@ -248,6 +253,7 @@ class CerpeConfig:
                             agree_trans_m=self.registration_agree_trans_m,
                             verify_support=int(self.anchor_verify_support),
                             verify_fraction=float(self.anchor_verify_fraction),
+                            max_odo_rot_step=float(self.anchor_max_odo_rot_step),
                             report_unverified=bool(self.report_unverified))
 
     def as_dict(self) -> dict:
