@@ -12,7 +12,7 @@ from cerpe.algorithm.anchors import (
     disagreement,
     tolerance,
 )
-from cerpe.geometry import make_se3, paper_T_ij, random_se3, so3_exp
+from cerpe.geometry import make_se3, paper_T_ij, random_se3, rotation_angle, so3_exp
 
 CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
                     replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
@@ -225,3 +225,27 @@ def test_config_refuses_a_verify_fraction_outside_0_1(value):
         CerpeConfig(anchor_verify_fraction=value)
     assert CerpeConfig(anchor_verify_fraction=0.5, report_unverified=False).anchor_config() == AnchorConfig(
         verify_fraction=0.5, report_unverified=False)
+
+
+def test_an_odometry_jump_makes_the_pair_forget_its_anchor_and_candidates():
+    import dataclasses
+
+    p = Pair(15)
+    conf = dataclasses.replace(CONF, max_odo_rot_step=1.0)
+    pa = PairAnchors(conf, anchor=p.est(0))
+    pa.offer(p.est(1))
+    for t in range(2, 6):  # smooth odometry (about 0.1 rad per step): nothing forgotten
+        assert pa.track(t, p.X("i", t), p.X("j", t)) == 0.0
+    assert pa.anchor.step == 1
+    jumped = p.X("j", 6) @ rot(1.5)  # j's track lost at step 6: turned 1.5 rad in one step
+    turn = pa.track(6, p.X("i", 6), jumped)
+    assert turn == pytest.approx(float(rotation_angle((np.linalg.inv(p.X("j", 5)) @ jumped)[:3, :3])))
+    assert turn > 1.0 and pa.anchor is None and not pa.candidates and not pa.challengers
+    assert pa.carried(6) == (None, False)
+    # over a gap the turn counts per step; the check is off with max_odo_rot_step 0
+    pa = PairAnchors(conf, anchor=p.est(0))
+    pa.track(0, p.X("i", 0), p.X("j", 0))
+    assert pa.track(3, p.X("i", 0) @ rot(1.5), p.X("j", 0)) == 0.0 and pa.anchor is not None
+    pa = PairAnchors(CONF, anchor=p.est(0))
+    pa.track(5, p.X("i", 5), p.X("j", 5))
+    assert pa.track(6, p.X("i", 6), jumped) == 0.0 and pa.anchor is not None
