@@ -1,7 +1,8 @@
 """DEVELOPMENT tool: how far apart are right and wrong direct estimates, and what would verification do?
 
-Reads CERPE run folders made WITHOUT anchor verification (``verify_anchors=False``,
-or code before it existed), where every direct estimate was recorded, and prints:
+Reads CERPE run folders where every direct estimate was recorded (the ``dir_*`` columns
+of ``steps.csv``, whatever verification said; or, in runs without them, ``est_*`` of
+runs made with ``verify_anchors=False``) and prints:
 
 1. ``pairs``: for every direct estimate and every earlier one of the same ordered
    pair at most ``--max-gap`` steps before, the disagreement of the new one with the
@@ -13,11 +14,16 @@ or code before it existed), where every direct estimate was recorded, and prints
    do not depend on it), what each step would report, and: estimates reported,
    their mean / median e_rot, success, rejections, and the longest a > 0.3 rad
    wrong estimate is carried by propagation.
+3. ``report``: the development report's row (``cerpe dev``'s figures) of each run
+   replayed under its own ``run.json`` configuration with the ``--set`` changes
+   (exact for the switch back end with the ``gate`` request policy, except that
+   second registrations of one step are not recorded and so verify nothing).
 
 Usage (tolerances as ``CerpeConfig`` names)::
 
     python scripts/dev_anchor_replay.py --record MANIFEST RUN   # cerpe run with verify_anchors=False
     python scripts/dev_anchor_replay.py RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
+    python scripts/dev_anchor_replay.py build/dev/runs/*/cerpe --what report --set report_unverified=false
 
 Development data only (synthetic seeds other than 0, ``../shared/data``).
 """
@@ -212,7 +218,7 @@ def main() -> None:
     ap.add_argument("--record", action="store_true", help="RUNS = MANIFEST OUT: write a run to replay")
     ap.add_argument("--max-gap", type=int, default=10)
     ap.add_argument("--set", nargs="*", default=[], help="CerpeConfig field=value")
-    ap.add_argument("--what", choices=["pairs", "replay", "both"], default="both")
+    ap.add_argument("--what", choices=["pairs", "replay", "both", "report"], default="both")
     a = ap.parse_args()
     if a.record:
         return record(*a.runs)
@@ -220,8 +226,13 @@ def main() -> None:
         old = getattr(CerpeConfig(), k)
         return v.lower() in ("1", "true", "yes") if isinstance(old, bool) else type(old)(v)
 
-    cfg = dataclasses.replace(CerpeConfig(), **{k: value(k, v) for k, v in (s.split("=") for s in a.set)})
+    changes = {k: value(k, v) for k, v in (s.split("=") for s in a.set)}
+    cfg = dataclasses.replace(CerpeConfig(), **changes)
     pd.set_option("display.width", 200)
+    if a.what == "report":
+        rows = [replay_report(run, run_config(run, **changes), run.parent.name)[0] for run in a.runs]
+        print(pd.DataFrame(rows).round(3).to_string())
+        return None
     if a.what in ("pairs", "both"):
         P = pair_table(a.runs, a.max_gap)
         P["cls"] = np.where((P.err_a < RIGHT) & (P.err_b < RIGHT), "right",
