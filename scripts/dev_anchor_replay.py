@@ -1,7 +1,8 @@
 """DEVELOPMENT tool: how far apart are right and wrong direct estimates, and what would verification do?
 
-Reads CERPE run folders made WITHOUT anchor verification (``verify_anchors=False``,
-or code before it existed), where every direct estimate was recorded, and prints:
+Reads CERPE run folders where every direct estimate was recorded (the ``dir_*`` columns
+of ``steps.csv``, whatever verification said; or, in runs without them, ``est_*`` of
+runs made with ``verify_anchors=False``) and prints:
 
 1. ``pairs``: for every direct estimate and every earlier one of the same ordered
    pair at most ``--max-gap`` steps before, the disagreement of the new one with the
@@ -13,11 +14,16 @@ or code before it existed), where every direct estimate was recorded, and prints
    do not depend on it), what each step would report, and: estimates reported,
    their mean / median e_rot, success, rejections, and the longest a > 0.3 rad
    wrong estimate is carried by propagation.
+3. ``report``: the development report's row (``cerpe dev``'s figures) of each run
+   replayed under its own ``run.json`` configuration with the ``--set`` changes
+   (exact for the switch back end with the ``gate`` request policy, except that
+   second registrations of one step are not recorded and so verify nothing).
 
 Usage (tolerances as ``CerpeConfig`` names)::
 
     python scripts/dev_anchor_replay.py --record MANIFEST RUN   # cerpe run with verify_anchors=False
     python scripts/dev_anchor_replay.py RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
+    python scripts/dev_anchor_replay.py build/dev/runs/*/cerpe --what report --set report_unverified=false
 
 Development data only (synthetic seeds other than 0, ``../shared/data``).
 """
@@ -49,9 +55,13 @@ def _poses(df: pd.DataFrame, prefix: str) -> np.ndarray:
 
 
 def load(run: Path):
-    """Yield ``(encounter, ego, other, table)`` with per-step direct T, gt T, both odometries and odometers."""
-    conf = json.loads((run / "run.json").read_text())
-    metric = not conf.get("config", conf).get("cerpe", {}).get("unit_scale_without_depth", False)
+    """Yield ``(encounter, ego, other, rows, metric)`` with per-step direct T, gt T, both odometries and odometers.
+
+    The direct estimate is ``dir_*`` (recorded whatever verification said of it) where the run has
+    those columns, else ``est_*`` of the rows whose source is ``direct`` (runs with ``verify_anchors=False``).
+    """
+    meta = json.loads((run / "run.json").read_text())
+    metric = bool(meta.get("metric_scale", True))
     for enc in sorted(p for p in run.iterdir() if (p / "DONE.json").exists()):
         steps = pd.read_csv(enc / "steps.csv")
         robots = pd.read_csv(enc / "robots.csv").sort_values("step")
@@ -61,14 +71,22 @@ def load(run: Path):
             X[rid] = dict(zip(g["step"], P))
             d = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))]
             odo[rid] = dict(zip(g["step"], d))
+        has_dir = "dir_tx" in steps.columns
         for (ego, other), g in steps.groupby(["ego", "other"]):
             g = g.sort_values("step")
             rows = []
-            for (_, r), T, G in zip(g.iterrows(), _poses(g, "est"), _poses(g, "gt")):
+            D = _poses(g, "dir" if has_dir else "est")
+            for (_, r), T, G in zip(g.iterrows(), D, _poses(g, "gt")):
                 t = int(r["step"])
-                direct = r["source"] == "direct" and not str(r.get("reason", "")).startswith("anchor-not-stored")
+                if str(r.get("reason", "")).startswith("anchor-not-stored"):
+                    direct = False
+                elif has_dir:
+                    direct = bool(np.all(np.isfinite(T)))
+                else:
+                    direct = r["source"] == "direct"
                 rows.append(dict(step=t, direct=direct, T=T if direct else None, gt=G, X_i=X[ego][t],
-                                 X_j=X[other][t], odo_i=odo[ego][t], odo_j=odo[other][t]))
+                                 X_j=X[other][t], odo_i=odo[ego][t], odo_j=odo[other][t],
+                                 inliers=int(r.get("direct_inliers", -1)), index=r.name))
             yield enc.name, ego, other, rows, metric
 
 
@@ -78,6 +96,70 @@ def err(T, G) -> float:
 
 def anchor(r, metric) -> Anchor:
     return Anchor(r["step"], r["T"], r["X_i"], r["X_j"], r["odo_i"], r["odo_j"], metric)
+
+
+def _cols(prefix: str, T) -> list[float]:
+    from cerpe.geometry import se3_to_tq_xyzw
+
+    if T is None or not np.all(np.isfinite(T)):
+        return [np.nan] * 7
+    t, q = se3_to_tq_xyzw(T)
+    return [*t, *q]
+
+
+def replay_pair(rows, metric: bool, cfg: CerpeConfig):
+    """Yield ``(row, verdict, reported T or None, its anchor step or -1, source)`` per step of one
+    ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``."""
+    pa = PairAnchors(cfg.anchor_config())
+    for r in rows:
+        t, rep, verdict, src_step, source = r["step"], None, "", -1, "none"
+        if cfg.verify_anchors:
+            pa.track(t, r["X_i"], r["X_j"])
+        if r["direct"]:
+            est = anchor(r, metric)
+            if cfg.verify_anchors:
+                verdict = pa.offer(est).verdict
+            else:
+                pa.anchor, verdict = est, "unchecked"
+            if verdict != "rejected" and (verdict != "unverified" or cfg.report_unverified):
+                rep, src_step, source = r["T"], t, "direct"
+        if rep is None and cfg.propagate:
+            a, _ = pa.carried(t)
+            if a is not None:
+                rep, src_step, source = a.propagated(r["X_i"], r["X_j"]), a.step, "propagated"
+        yield r, verdict, rep, src_step, source
+
+
+def run_config(run_path: Path, **overrides) -> CerpeConfig:
+    """The run's own ``CerpeConfig`` (``run.json``), with ``overrides``."""
+    conf = json.loads((run_path / "run.json").read_text())["config"]["method_config"]["cerpe"]
+    return dataclasses.replace(CerpeConfig(**conf), **overrides)
+
+
+def replay_report(run_path: Path, cfg: CerpeConfig, name: str | None = None) -> tuple[dict, pd.DataFrame]:
+    """The dev report's row (:func:`cerpe.pipeline.devreport.method_row`) of ``run_path`` with its
+    anchors replayed under ``cfg`` (e.g. :func:`run_config`; switch back end, ``request_policy`` gate:
+    the gate and the passes do not depend on the anchors, so only the verdicts and what is reported
+    change; second registrations of one step are not recorded, so they verify nothing here). Also
+    the replayed rows."""
+    from cerpe.pipeline.devreport import method_row
+    from cerpe.pipeline.evaluate import load_run
+
+    run = load_run(run_path, allow_partial=True)
+    steps = run.steps.copy()
+    est_cols = [f"est_{n}" for n in POSE]
+    for enc, ego, other, rows, metric in load(run_path):
+        sel = steps.index[(steps.encounter.astype(str) == enc) & (steps.ego == ego) & (steps.other == other)]
+        by_step = dict(zip(steps.loc[sel, "step"].astype(int), sel))
+        for r, verdict, rep, src_step, source in replay_pair(rows, metric, cfg):
+            i = by_step[r["step"]]
+            steps.loc[i, est_cols] = _cols("est", rep)
+            steps.loc[i, ["source", "anchor_step", "anchor_verdict"]] = [source, src_step, verdict]
+    run.steps = steps
+    row = method_row(run, name)
+    row["anchors_rejected"] = int((steps["anchor_verdict"] == "rejected").sum())  # not the recorded degradations
+    row["anchors_replaced"] = int((steps["anchor_verdict"] == "replaced").sum())
+    return row, steps
 
 
 def pair_table(runs, max_gap: int) -> pd.DataFrame:
@@ -103,22 +185,9 @@ def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
     out = []
     for run in runs:
         for enc, ego, other, rows, metric in load(run):
-            pa = PairAnchors(cfg.anchor_config())
             carried_from: dict[int, int] = {}
-            for r in rows:
-                t, rep, verdict, src_step = r["step"], None, "", -1
-                if r["direct"]:
-                    est = anchor(r, metric)
-                    if cfg.verify_anchors:
-                        verdict = pa.offer(est).verdict
-                    else:
-                        pa.anchor, verdict = est, "unchecked"
-                    if verdict != "rejected":
-                        rep, src_step = r["T"], t
-                if rep is None:
-                    a, _ = pa.carried(t)
-                    if a is not None:
-                        rep, src_step = a.propagated(r["X_i"], r["X_j"]), a.step
+            for r, verdict, rep, src_step, _ in replay_pair(rows, metric, cfg):
+                t = r["step"]
                 e = err(rep, r["gt"])
                 ep = float(np.linalg.norm(rep[:3, 3] - r["gt"][:3, 3])) if rep is not None else np.nan
                 if src_step >= 0 and src_step != t and e > WRONG:
@@ -149,7 +218,7 @@ def main() -> None:
     ap.add_argument("--record", action="store_true", help="RUNS = MANIFEST OUT: write a run to replay")
     ap.add_argument("--max-gap", type=int, default=10)
     ap.add_argument("--set", nargs="*", default=[], help="CerpeConfig field=value")
-    ap.add_argument("--what", choices=["pairs", "replay", "both"], default="both")
+    ap.add_argument("--what", choices=["pairs", "replay", "both", "report"], default="both")
     a = ap.parse_args()
     if a.record:
         return record(*a.runs)
@@ -157,8 +226,13 @@ def main() -> None:
         old = getattr(CerpeConfig(), k)
         return v.lower() in ("1", "true", "yes") if isinstance(old, bool) else type(old)(v)
 
-    cfg = dataclasses.replace(CerpeConfig(), **{k: value(k, v) for k, v in (s.split("=") for s in a.set)})
+    changes = {k: value(k, v) for k, v in (s.split("=") for s in a.set)}
+    cfg = dataclasses.replace(CerpeConfig(), **changes)
     pd.set_option("display.width", 200)
+    if a.what == "report":
+        rows = [replay_report(run, run_config(run, **changes), run.parent.name)[0] for run in a.runs]
+        print(pd.DataFrame(rows).round(3).to_string())
+        return None
     if a.what in ("pairs", "both"):
         P = pair_table(a.runs, a.max_gap)
         P["cls"] = np.where((P.err_a < RIGHT) & (P.err_b < RIGHT), "right",

@@ -12,11 +12,11 @@ from cerpe.algorithm.anchors import (
     disagreement,
     tolerance,
 )
-from cerpe.geometry import make_se3, paper_T_ij, random_se3, so3_exp
+from cerpe.geometry import make_se3, paper_T_ij, random_se3, rotation_angle, so3_exp
 
 CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
                     replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
-                    agree_trans_m=0.1, verify_support=1)
+                    agree_trans_m=0.1, verify_support=1, verify_fraction=0.0, max_odo_rot_step=0.0)
 
 
 class Pair:
@@ -184,3 +184,68 @@ def test_verify_support_asks_for_that_many_agreeing_candidates():
     pa = PairAnchors(dataclasses.replace(CONF, verify_support=2))
     e = p.est(9)
     assert pa.offer(e, [Anchor(9, e.T_cj_ci @ rot(0.01), e.X_i, e.X_j)]).verdict == "verified"
+
+
+def test_without_report_unverified_nothing_unverified_is_carried():
+    import dataclasses
+
+    p = Pair(13)
+    pa = PairAnchors(dataclasses.replace(CONF, report_unverified=False))
+    assert pa.offer(p.est(5)).verdict == "unverified"
+    assert pa.carried(5) == (None, False) and pa.carried(6) == (None, False)
+    check = pa.offer(p.est(6, rot(0.02)))  # verify_support = 1: agrees with step 5
+    assert check.verdict == "verified" and check.against == 5
+    a, verified = pa.carried(7)
+    assert a is not None and a.step == 6 and verified
+
+
+def test_verify_fraction_asks_most_recent_candidates_to_agree():
+    """Two estimates that disagree with everything (0.5 rad either way), then right ones: with
+    ``verify_fraction`` 0.6 a right estimate is verified only once the agreeing candidates are at
+    least 60 % of those of the last ``candidate_steps`` steps; with 0, by the first agreeing one."""
+    import dataclasses
+
+    p = Pair(14)
+    plan = [(2, rot(0.5)), (3, rot(-0.5)), (4, None), (5, None), (6, None), (7, None)]
+    for fraction, want in ((0.6, ["unverified"] * 5 + ["verified"]),
+                           (0.0, ["unverified"] * 3 + ["verified", "accepted", "accepted"])):
+        pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=fraction))
+        assert [pa.offer(p.est(t, e)).verdict for t, e in plan] == want, fraction
+    pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=0.6))
+    checks = [pa.offer(p.est(t, e)) for t, e in plan]
+    assert checks[-1].against == 6 and pa.anchor.step == 7  # 3 of 5 candidates (4, 5, 6) agree
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
+def test_config_refuses_a_verify_fraction_outside_0_1(value):
+    from cerpe.algorithm import CerpeConfig
+    from cerpe.algorithm.config import AlgorithmError
+
+    with pytest.raises(AlgorithmError, match="anchor_verify_fraction must be in"):
+        CerpeConfig(anchor_verify_fraction=value)
+    assert CerpeConfig(anchor_verify_fraction=0.5, report_unverified=False).anchor_config() == AnchorConfig(
+        verify_fraction=0.5, report_unverified=False)
+
+
+def test_an_odometry_jump_makes_the_pair_forget_its_anchor_and_candidates():
+    import dataclasses
+
+    p = Pair(15)
+    conf = dataclasses.replace(CONF, max_odo_rot_step=1.0)
+    pa = PairAnchors(conf, anchor=p.est(0))
+    pa.offer(p.est(1))
+    for t in range(2, 6):  # smooth odometry (about 0.1 rad per step): nothing forgotten
+        assert pa.track(t, p.X("i", t), p.X("j", t)) == 0.0
+    assert pa.anchor.step == 1
+    jumped = p.X("j", 6) @ rot(1.5)  # j's track lost at step 6: turned 1.5 rad in one step
+    turn = pa.track(6, p.X("i", 6), jumped)
+    assert turn == pytest.approx(float(rotation_angle((np.linalg.inv(p.X("j", 5)) @ jumped)[:3, :3])))
+    assert turn > 1.0 and pa.anchor is None and not pa.candidates and not pa.challengers
+    assert pa.carried(6) == (None, False)
+    # over a gap the turn counts per step; the check is off with max_odo_rot_step 0
+    pa = PairAnchors(conf, anchor=p.est(0))
+    pa.track(0, p.X("i", 0), p.X("j", 0))
+    assert pa.track(3, p.X("i", 0) @ rot(1.5), p.X("j", 0)) == 0.0 and pa.anchor is not None
+    pa = PairAnchors(CONF, anchor=p.est(0))
+    pa.track(5, p.X("i", 5), p.X("j", 5))
+    assert pa.track(6, p.X("i", 6), jumped) == 0.0 and pa.anchor is not None

@@ -120,6 +120,51 @@ def test_unverified_estimate_is_not_carried_beyond_max_unverified_steps():
             assert all(P[t].reason == "no-anchor" for t in range(5))
 
 
+def test_unverified_estimates_are_held_without_report_unverified():
+    """``report_unverified=False``: an estimate nothing agrees with yet is not reported nor carried;
+    the first verified one is, and from then on the pair is as with reporting (a wrong estimate
+    injected after the anchor is still rejected and counted)."""
+    world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
+    wrong = {("r1", 27, "jpeg")}
+    config = dataclasses.replace(CFG, report_unverified=False)
+    _, results = run(world, config, perturb=lambda cur, via, key: turned(0.5) if key in wrong else None)
+    P = pair(results, "r0", "r1")
+    assert [P[t].anchor_verdict for t in range(5, 10)] == ["unverified"] * 2 + ["verified"] + ["accepted"] * 2
+    for t in (5, 6):
+        assert (P[t].source, P[t].reason, P[t].anchor_step) == ("none", "unverified-held", -1)
+        assert P[t].T_cj_ci is None and P[t].T_direct is not None  # judged, recorded, not reported
+    assert P[7].source == "direct" and P[7].reason == "" and max(gt_error(world, P[7])) < 1e-5
+    assert P[27].anchor_verdict == "rejected" and P[27].source == "propagated"
+    assert degradations(results, "r0")["anchor:inconsistent"] == 1
+    # a lone estimate (one step of overlap) is never reported: nothing agrees with it
+    world = make_world(2, 16, seed=2, windows={(0, 1): [(5, 6)]})
+    _, results = run(world, config)
+    P = pair(results, "r0", "r1")
+    assert (P[5].source, P[5].reason, P[5].anchor_verdict) == ("none", "unverified-held", "unverified")
+    assert all((P[t].source, P[t].reason) == ("none", "unverified-held") for t in range(6, 16))
+    assert all(P[t].reason == "no-anchor" for t in range(5))
+
+
+def test_an_odometry_jump_drops_the_anchor_instead_of_carrying_it_wrong():
+    """r1's pass places its own frame of step 15 turned by 1.5 rad (a lost track): its odometry jumps.
+    Both pairs forget their (right) anchors there and count it, report nothing until the next window
+    verifies a new one; with the check off the anchor is carried 1.5 rad wrong until replaced."""
+    world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
+    jump = lambda cur, via, key: turned(1.5) if key == ("r1", 15) and cur == key else None
+    _, results = run(world, perturb=jump)  # anchor_max_odo_rot_step = 1.0 (the default)
+    for ego, other in (("r0", "r1"), ("r1", "r0")):
+        P = pair(results, ego, other)
+        assert P[14].source == "propagated" and max(gt_error(world, P[14])) < 1e-5
+        assert all((P[t].source, P[t].reason) == ("none", "no-anchor") for t in range(15, 25))
+        assert [P[t].anchor_verdict for t in range(25, 30)] == ["unverified"] * 2 + ["verified"] + ["accepted"] * 2
+        assert all(max(gt_error(world, P[t])) < 1e-5 for t in range(25, 40))
+        assert degradations(results, ego)["anchor:odometry-jump"] == 1
+    _, results = run(world, dataclasses.replace(CFG, anchor_max_odo_rot_step=0.0), perturb=jump)
+    P = pair(results, "r0", "r1")
+    assert all(P[t].source == "propagated" and gt_error(world, P[t])[0] > 1.4 for t in range(15, 29))
+    assert P[29].anchor_verdict == "replaced" and degradations(results, "r0")["anchor:odometry-jump"] == 0
+
+
 def test_two_registrations_that_agree_verify_at_once():
     world = make_world(2, 14, seed=3)
     register = lambda own, col: 100 if own[1] == col[1] else 40

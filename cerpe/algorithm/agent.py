@@ -30,7 +30,7 @@ from .state import PairInfo, Previous, StepState
 log = logging.getLogger(__name__)
 
 # reasons that describe the switch's anchors only (the graph keeps every direct estimate)
-_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired"})
+_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held"})
 
 
 class RobotAgent:
@@ -540,6 +540,8 @@ class RobotAgent:
         fresh = pose is not None and pose[0] == st.step
         pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
         info = st.pair_info.setdefault(other, PairInfo())
+        if fresh and self.config.verify_anchors and pair.track(st.step, self.X, pose[1]):
+            self.degrade("anchor:odometry-jump")
         if st.requested.get(other, self.gate_open(other)):
             ests, reason = self._direct_estimates(st, other)
             if ests:
@@ -567,6 +569,8 @@ class RobotAgent:
                 info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
                 if check.verdict == "replaced":
                     self.degrade("anchor:replaced")
+                if check.verdict == "unverified" and not self.config.report_unverified:
+                    return "none", None, "unverified-held", -1  # nothing agrees with it yet
                 if check.verdict != "rejected":
                     return "direct", T, "unverified" if check.verdict == "unverified" else "", st.step
                 self.degrade("anchor:inconsistent")
@@ -580,7 +584,8 @@ class RobotAgent:
             return "none", None, reason, -1
         anchor, verified = pair.carried(st.step)
         if anchor is None:
-            why = "unverified-expired" if pair.candidates else "no-anchor"
+            why = ("no-anchor" if not pair.candidates else
+                   "unverified-expired" if self.config.report_unverified else "unverified-held")
             return "none", None, "; ".join(r for r in (reason, why) if r), -1
         if pose is None:
             return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1

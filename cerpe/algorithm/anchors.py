@@ -8,14 +8,15 @@ starts from) only when something independent agrees with it:
   distance both robots travelled since (odometry drifts);
 * with no anchor yet: a second estimate of the same step through another own
   view (two registrations that agree), or ``verify_support`` recent unverified
-  candidates propagated to this step.
+  candidates propagated to this step, at least ``verify_fraction`` of them.
 
 An estimate that disagrees with the anchor is *rejected* (the pair keeps the
 anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
 steps agree with the newest of them, the newest replaces it (persistent
 disagreement: the anchor was the wrong one). Before any anchor is
 verified, the newest unverified estimate may be propagated for at most
-``max_unverified_steps`` steps.
+``max_unverified_steps`` steps, and only with ``report_unverified`` (without it,
+nothing is reported before an estimate is verified).
 
 Pure numpy + :mod:`cerpe.geometry`; no robot, link or record here. A pose-graph
 back end can sit beside it (it would consume the same :class:`Anchor` stream).
@@ -46,7 +47,12 @@ class AnchorConfig:
     step through different own views (two registrations) agree within
     ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
     without such a second registration, ``verify_support`` earlier candidates must
-    agree with an estimate to verify it.
+    agree with an estimate to verify it, and at least ``verify_fraction`` of the
+    candidates of the last ``candidate_steps`` steps (estimates that keep disagreeing
+    with each other verify nothing). ``report_unverified``: whether an estimate
+    nothing has verified yet is reported (and carried, see :meth:`PairAnchors.carried`).
+    ``max_odo_rot_step`` (> 0): when either robot's odometry turns by more than this
+    per step, the pair forgets its anchor and candidates (see :meth:`PairAnchors.track`).
     """
 
     rot_tol_rad: float = 0.15
@@ -54,12 +60,15 @@ class AnchorConfig:
     rot_drift_per_step: float = 0.005
     trans_drift_frac: float = 0.1
     trans_rel: float = 0.2
-    replace_after: int = 3
-    max_unverified_steps: int = 3
+    replace_after: int = 5
+    max_unverified_steps: int = 2
     candidate_steps: int = 10
     agree_rot_rad: float = 0.15
     agree_trans_m: float = 0.3
     verify_support: int = 2
+    verify_fraction: float = 0.5
+    report_unverified: bool = True
+    max_odo_rot_step: float = 1.0
 
 
 @dataclass
@@ -137,6 +146,29 @@ class PairAnchors:
     anchor: Anchor | None = None
     candidates: list[Anchor] = field(default_factory=list)
     challengers: list[Anchor] = field(default_factory=list)
+    last_poses: tuple[int, np.ndarray, np.ndarray] | None = None
+
+    def track(self, step: int, X_i: np.ndarray, X_j: np.ndarray) -> float:
+        """Feed both robots' odometry poses ``T_odom_cam`` of ``step``; returns 0, or the rotation
+        per step (rad) of the odometry jump that made the pair forget its anchor and candidates.
+
+        Propagation moves an anchor by both odometries; when one turns by more than
+        ``max_odo_rot_step`` per step since the last poses fed, that odometry failed
+        (a lost track), and everything the pair kept would be carried through the
+        failure. Off when ``max_odo_rot_step`` is 0.
+        """
+        last, self.last_poses = self.last_poses, (step, X_i.copy(), X_j.copy())
+        if self.conf.max_odo_rot_step <= 0 or last is None or step <= last[0]:
+            return 0.0
+        turn = max(float(rotation_angle(se3_inverse(A)[:3, :3] @ B[:3, :3])) for A, B in ((last[1], X_i),
+                                                                                        (last[2], X_j)))
+        per_step = turn / (step - last[0])
+        if per_step <= self.conf.max_odo_rot_step or (self.anchor is None and not self.candidates):
+            return 0.0
+        self.anchor = None
+        self.candidates.clear()
+        self.challengers.clear()
+        return per_step
 
     def offer(self, est: Anchor, others: Sequence[Anchor] = ()) -> Check:
         """Judge a direct estimate; ``others``: estimates of the same step through other own views.
@@ -157,7 +189,8 @@ class PairAnchors:
         self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]
         checks = [(c, *consistent(self.conf, c, est)) for c in reversed(self.candidates)]  # newest first
         support = [x for x in checks if x[1]]
-        if support and len(support) >= self.conf.verify_support:
+        if support and len(support) >= self.conf.verify_support and \
+                len(support) >= self.conf.verify_fraction * len(checks):
             c, _, rot, trans = support[0]
             self._set(est)
             return Check("verified", c.step, rot, trans)
@@ -187,11 +220,12 @@ class PairAnchors:
     def carried(self, step: int) -> tuple[Anchor | None, bool]:
         """What a step without an accepted direct estimate propagates: ``(anchor, verified)``.
 
-        The verified anchor when there is one; else the newest unverified candidate
-        while it is at most ``max_unverified_steps`` old; else None.
+        The verified anchor when there is one; else, with ``report_unverified``, the
+        newest unverified candidate while it is at most ``max_unverified_steps`` old;
+        else None.
         """
         if self.anchor is not None:
             return self.anchor, True
-        if self.candidates and step - self.candidates[-1].step <= self.conf.max_unverified_steps:
+        if self.conf.report_unverified and self.candidates and step - self.candidates[-1].step <= self.conf.max_unverified_steps:
             return self.candidates[-1], False
         return None, False

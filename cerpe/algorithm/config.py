@@ -99,12 +99,23 @@ class CerpeConfig:
             ``anchor_candidate_steps`` steps agree with the newest of them (it included),
             the newest replaces the anchor.
         max_unverified_steps: before any anchor is verified, an unverified estimate is
-            reported at its step and propagated for at most this many steps.
+            reported at its step and propagated for at most this many steps (only with
+            ``report_unverified``).
+        anchor_max_odo_rot_step: when either robot's odometry turns by more than this
+            (radians per step) between two steps, the pair forgets its anchor and
+            candidates (a lost track would carry them wrong; counted
+            ``anchor:odometry-jump``); 0 turns the check off.
+        report_unverified: whether a direct estimate that nothing has verified yet (no
+            anchor, no agreeing second estimate) is reported; False holds it (source
+            ``none``, reason ``unverified-held``) until something agrees with it.
         anchor_candidate_steps: how many steps an unverified estimate (or a rejected
             one) stays available to verify a later one.
         anchor_verify_support: without an anchor and without a second registration, how
             many earlier unverified estimates (of the last ``anchor_candidate_steps``
             steps) must agree with a direct estimate to verify it.
+        anchor_verify_fraction: and at least this fraction of those recent unverified
+            estimates (0: any number; estimates that keep disagreeing with each other
+            verify nothing).
         registration_agree_rot_rad, registration_agree_trans_m: two registrations of
             one step through different own views agree (and verify each other) within
             these (the translation tolerance grows by ``anchor_trans_rel`` per metre
@@ -149,12 +160,15 @@ class CerpeConfig:
     anchor_rot_drift_per_step: float = 0.005
     anchor_trans_drift_frac: float = 0.1
     anchor_trans_rel: float = 0.2
-    anchor_replace_after: int = 3
-    max_unverified_steps: int = 3
+    anchor_replace_after: int = 5
+    max_unverified_steps: int = 2
     anchor_candidate_steps: int = 10
     registration_agree_rot_rad: float = 0.15
     registration_agree_trans_m: float = 0.3
     anchor_verify_support: int = 2
+    anchor_verify_fraction: float = 0.5
+    anchor_max_odo_rot_step: float = 1.0
+    report_unverified: bool = True
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
     request_policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -194,10 +208,12 @@ class CerpeConfig:
             raise AlgorithmError(f"config: min_image_std must be finite and >= 0, got {self.min_image_std}")
         for name in ("anchor_rot_tol_rad", "anchor_trans_tol_m", "anchor_rot_drift_per_step",
                      "anchor_trans_drift_frac", "anchor_trans_rel", "registration_agree_rot_rad",
-                     "registration_agree_trans_m"):
+                     "registration_agree_trans_m", "anchor_max_odo_rot_step"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise AlgorithmError(f"config: {name} must be finite and >= 0, got {v}")
+        if not (np.isfinite(self.anchor_verify_fraction) and 0.0 <= self.anchor_verify_fraction <= 1.0):
+            raise AlgorithmError(f"config: anchor_verify_fraction must be in [0, 1], got {self.anchor_verify_fraction}")
         for name in ("anchor_replace_after", "anchor_verify_support", "max_unverified_steps",
                      "anchor_candidate_steps"):
             v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
@@ -241,7 +257,10 @@ class CerpeConfig:
                             candidate_steps=int(self.anchor_candidate_steps),
                             agree_rot_rad=self.registration_agree_rot_rad,
                             agree_trans_m=self.registration_agree_trans_m,
-                            verify_support=int(self.anchor_verify_support))
+                            verify_support=int(self.anchor_verify_support),
+                            verify_fraction=float(self.anchor_verify_fraction),
+                            max_odo_rot_step=float(self.anchor_max_odo_rot_step),
+                            report_unverified=bool(self.report_unverified))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -50,6 +50,8 @@ DEGRADATIONS: dict[str, str] = {
                            "not an anchor; the anchor's propagation is reported instead",
     "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "
                        "the anchor",
+    "anchor:odometry-jump": "one robot's odometry turned by more than anchor_max_odo_rot_step in one step (a lost "
+                            "track): the pair forgot its anchor and candidates rather than carry them through it",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
     "msg:garbled": "a frame that does not decode",
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",
