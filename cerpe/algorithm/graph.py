@@ -119,7 +119,7 @@ class GraphConfig:
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
     consensus_ratio: float = 1.5
-    max_unverified_steps: int = 3
+    max_unverified_steps: int = 2
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
