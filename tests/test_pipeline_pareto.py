@@ -67,6 +67,12 @@ def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, 
     c = pareto.check(t, "pays")
     assert c["bytes_vs_always"] == pytest.approx(200 / 1100) and c["e_rot_vs_paper"] == pytest.approx(1.1, abs=1e-4)
     assert c["success_vs_paper"] == pytest.approx(1.0)
+    parts = pareto.breakdown(runs).set_index("scheme")
+    assert parts.loc["pays", "descriptor"] == 100 and parts.loc["pays", "reply"] == REPLY["pays"]
+    assert parts.loc["pays", "pose"] == 0 and parts.loc["pays", "requests"] == 2 * 6  # every pair row has bytes
+    assert parts.loc["pays", "placed"] == pytest.approx(4 / 6)  # the fake places nothing before step 2
+    assert parts.loc["pays", "n_direct"] == 2 * 4 and parts.loc["pays", "n_propagated"] == 0
+    assert parts.loc["pays", "e_rot_direct_rad"] == pytest.approx(0.11, abs=1e-6)
     md = pareto.format_markdown(t)
     assert md.count("\n") == 2 + 3 and "ours: request when it pays" in md
     out = plotting.save_figure(plotting.pareto_figure(t), tmp_path / "fig" / "pareto")

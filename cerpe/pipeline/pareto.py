@@ -200,6 +200,35 @@ def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
     return t.drop(columns="_o").reset_index(drop=True)
 
 
+def breakdown(runs: Sequence[SchemeRun]) -> pd.DataFrame:
+    """Where a scheme's bytes go and where its e_rot comes from, one row per (setting, scheme).
+
+    Columns: bytes per robot per step by message kind (``descriptor``, ``pose``, ``request``,
+    ``reply``: the run's ``bytes_<kind>``), ``requests`` (pair rows with image bytes),
+    ``reply_bytes`` (mean bytes of one request + reply), ``placed`` (fraction of requests
+    that gave this step's estimate directly), and over the evaluated successful frames:
+    ``n_direct`` / ``e_rot_direct_rad``, ``n_propagated`` / ``e_rot_propagated_rad`` and
+    ``anchor_age`` (mean steps since the anchor of a propagated estimate).
+    """
+    rows = []
+    for r in runs:
+        frames, steps, robots = _loaded(r)
+        req = steps[steps["bytes_pair"] > 0] if "bytes_pair" in steps else steps.iloc[:0]
+        ok = frames[frames["success"]]
+        row: dict[str, Any] = {"setting": r.setting, "scheme": r.scheme}
+        for kind in ("descriptor", "pose", "request", "reply"):
+            row[kind] = float(robots[f"bytes_{kind}"].mean()) if f"bytes_{kind}" in robots else 0.0
+        row.update(requests=len(req), reply_bytes=float(req["bytes_pair"].mean()) if len(req) else float("nan"),
+                   placed=float((req["source"] == "direct").mean()) if len(req) else float("nan"))
+        for src in ("direct", "propagated"):
+            g = ok[ok["source"] == src]
+            row[f"n_{src}"], row[f"e_rot_{src}_rad"] = len(g), float(g["e_rot_rad"].mean()) if len(g) else float("nan")
+        prop = ok[ok["source"] == "propagated"]
+        row["anchor_age"] = float((prop["step"] - prop["anchor_step"]).mean()) if len(prop) else float("nan")
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def format_markdown(table: pd.DataFrame, setting: str = "all") -> str:
     """The rows of one setting as a Markdown table (what the issue's check reads)."""
     t = table[table["setting"] == setting]
