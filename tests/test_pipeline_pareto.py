@@ -90,3 +90,26 @@ def test_overrides_reach_the_cerpe_config_strictly():
         rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides={"request_policy": {"modus": "pays"}})
     with pytest.raises(rp.RunError, match="cerpe methods only"):
         rp.prepare_method("sift-ransac", "offline", 0, overrides={"jpeg_quality": 60})
+
+
+@pytest.mark.parametrize("name", list(pareto.PARETO_SETTINGS))
+def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
+    from cerpe.algorithm import CerpeConfig
+
+    overrides = pareto.PARETO_SETTINGS[name]
+    conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides=overrides)
+    cfg = CerpeConfig(**overrides)
+    assert CerpeConfig(**cfg.as_dict()) == cfg  # the run records as_dict(): it rebuilds the same config
+    for key, value in overrides.items():
+        got = conf["cerpe"][key]
+        assert (all(got[k] == v for k, v in value.items()) if isinstance(value, dict) else got == value), key
+
+
+def test_lean_preset_backs_off_over_the_compressed_messages():
+    from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN
+    from cerpe.algorithm import CerpeConfig
+
+    cfg = CerpeConfig(**LEAN)
+    assert cfg.request_policy.mode == "pays" and cfg.request_policy.miss_limit == 3
+    assert cfg.request_policy.miss_backoff_steps == 3
+    assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items())
