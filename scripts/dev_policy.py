@@ -18,6 +18,7 @@ import fnmatch
 import sys
 from pathlib import Path
 
+from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN, LEAN_POLICY
 from cerpe.atomicio import atomic_write_text
 from cerpe.pipeline import dev, pareto
 
@@ -31,6 +32,20 @@ GRID: dict[str, dict] = {
                                       "max_steps": 15}},
     "pays-loose": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.1, "max_sigma_pos_m": 0.6,
                                       "max_steps": 60}},
+    "pays-compressed": {"request_policy": {"mode": "pays"}, **COMPRESSED_MESSAGES},
+    "pc-s75": {"request_policy": {"mode": "pays"}, **COMPRESSED_MESSAGES, "reply_scale": 0.75},
+    "pc-s50": {"request_policy": {"mode": "pays"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
+    "pc-q50": {"request_policy": {"mode": "pays"}, **COMPRESSED_MESSAGES, "reply_quality": 50},
+    "gate-compressed": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES},
+    "pays-int8": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8"},
+    "pays-webp": {"request_policy": {"mode": "pays"}, "reply_codec": "webp", "reply_quality": 75},
+    "pi-j75": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 75},
+    "pi-j50": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 50},
+    "lean": LEAN,
+    "pi-backoff": {"request_policy": LEAN_POLICY, "descriptor_codec": "pca-int8"},
+    "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
+    "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
+                                        "max_steps": 10}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
 }
 
 
@@ -39,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[1])
     p.add_argument("--out", type=Path, default=ROOT / "build" / "dev")
     p.add_argument("--sets", nargs="+", default=None, metavar="PATTERN")
-    p.add_argument("--schemes", nargs="+", default=list(GRID), choices=list(GRID))
+    p.add_argument("--schemes", nargs="+", default=["paper", "always", "pays", "pays-compressed", "lean"],
+                   choices=list(GRID), help="GRID entries to run (each a CERPE run per set; cached)")
     args = p.parse_args(argv)
     entries = [s for s in dev.real_sets(ROOT / "datasets_manifest") if s.status == "ok"]
     from cerpe.synth import SUITES
@@ -55,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     table = pareto.pareto_table(runs)
     md = "".join(f"\n### {s}\n\n{pareto.format_markdown(table, s)}" for s in table["setting"].unique())
     checks = []
-    for scheme in (k for k in args.schemes if k.startswith("pays")):
+    for scheme in (k for k in args.schemes if k not in ("paper", "always")):
         for s in table["setting"].unique():
             try:
                 c = pareto.check(table, scheme, s)
@@ -64,7 +80,9 @@ def main(argv: list[str] | None = None) -> int:
             checks.append(f"{scheme:12s} {s:32s} bytes/always {c['bytes_vs_always']:.3f}  image bytes/paper "
                           f"{c['image_bytes_vs_paper']:.3f}  e_rot/paper {c['e_rot_vs_paper']:.3f}  "
                           f"success/paper {c['success_vs_paper']:.3f}")
-    text = md + "\n```\n" + "\n".join(checks) + "\n```\n"
+    parts = pareto.breakdown(runs)
+    text = (md + "\n```\n" + "\n".join(checks) + "\n```\n\nwhere the bytes go (per robot per step) and where e_rot "
+            "comes from:\n\n```\n" + parts.to_string(index=False, float_format=lambda v: f"{v:.4g}") + "\n```\n")
     print(text)
     atomic_write_text(args.out / "policy.csv", table.to_csv(index=False, float_format="%.6g"))
     atomic_write_text(args.out / "policy.md", f"# request policy on development data\n\nsets: "

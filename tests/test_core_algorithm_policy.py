@@ -109,3 +109,49 @@ def test_graph_backend_reads_the_graphs_sigma_instead_of_the_propagation_model()
     # and a threshold below the graph's sigma asks again
     _, _, H = _run({"mode": "pays", "max_sigma_rot_rad": 1e-9}, backend="graph")
     assert not H[8].request_skipped and H[8].bytes_pair > 0
+
+
+def test_backoff_rule_known_answers():
+    conf = PolicyConfig(mode="pays", miss_limit=3, miss_backoff_steps=3)
+    missed = PairView(anchored=False, misses=3, steps_since_ask=1)
+    assert decide(conf, True, missed) == (False, "backoff")
+    assert decide(conf, True, dataclasses.replace(missed, steps_since_ask=2)) == (False, "backoff")
+    assert decide(conf, True, dataclasses.replace(missed, steps_since_ask=3)) == (True, "no-anchor")
+    assert decide(conf, True, dataclasses.replace(missed, misses=2)) == (True, "no-anchor")
+    # an anchored pair whose anchor is old backs off alike; a fresh one needs no request anyway
+    assert decide(conf, True, dataclasses.replace(FRESH, steps_since=40, misses=5, steps_since_ask=1)) == \
+        (False, "backoff")
+    assert decide(conf, True, dataclasses.replace(FRESH, steps_since=40, misses=5, steps_since_ask=4)) == \
+        (True, "stale")
+    # off by default and in the paper's mode; "always" asks whatever
+    assert decide(PAYS, True, missed) == (True, "no-anchor")
+    assert decide(dataclasses.replace(conf, mode="gate"), True, missed) == (True, "gate")
+    assert decide(dataclasses.replace(conf, mode="always"), False, missed) == (True, "always")
+    with pytest.raises(PolicyError, match="miss_limit"):
+        PolicyConfig(miss_limit=-1)
+    with pytest.raises(PolicyError, match="miss_backoff_steps"):
+        PolicyConfig(miss_backoff_steps=True)
+
+
+def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
+    world = make_world(2, 40, seed=1)
+    early = lambda current, key: len(key) == 3 and key[1] < 5  # a collaborator's image places from step 5 on
+
+    def run(policy):
+        cfg = CerpeConfig(min_scale_pixels=20, request_policy=policy, tau=-1.0)  # the gate opens at every step
+        team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1, invalid=early),
+                    SensorDepthDouble(), cfg)
+        return {res.step: next(p for p in res.pairs if p.ego == "r0" and p.other == "r1")
+                for res in team.run_encounter(world.to_encounter())}
+
+    P = run({"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3})
+    B = run({"mode": "pays"})
+    assert all(P[t].gate_open for t in P)
+    # nothing places before step 5: three requests that place nothing, then one every third step
+    asked = [t for t in range(10) if P[t].bytes_pair > 0]
+    assert asked[:4] == [0, 1, 2, 5] and all(P[t].request_skipped for t in (3, 4))
+    assert all(B[t].bytes_pair > 0 for t in range(8))  # without back-off: every step until verified
+    # the image of step 5 places: the pair asks at every step again until its anchor is verified
+    assert P[5].source == "direct" and [P[t].anchor_verdict for t in (5, 6, 7)] == ["unverified", "unverified",
+                                                                                   "verified"]
+    assert sum(p.bytes_pair > 0 for p in P.values()) < sum(p.bytes_pair > 0 for p in B.values())

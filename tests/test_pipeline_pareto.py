@@ -67,6 +67,12 @@ def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, 
     c = pareto.check(t, "pays")
     assert c["bytes_vs_always"] == pytest.approx(200 / 1100) and c["e_rot_vs_paper"] == pytest.approx(1.1, abs=1e-4)
     assert c["success_vs_paper"] == pytest.approx(1.0)
+    parts = pareto.breakdown(runs).set_index("scheme")
+    assert parts.loc["pays", "descriptor"] == 100 and parts.loc["pays", "reply"] == REPLY["pays"]
+    assert parts.loc["pays", "pose"] == 0 and parts.loc["pays", "requests"] == 2 * 6  # every pair row has bytes
+    assert parts.loc["pays", "placed"] == pytest.approx(4 / 6)  # the fake places nothing before step 2
+    assert parts.loc["pays", "n_direct"] == 2 * 4 and parts.loc["pays", "n_propagated"] == 0
+    assert parts.loc["pays", "e_rot_direct_rad"] == pytest.approx(0.11, abs=1e-6)
     md = pareto.format_markdown(t)
     assert md.count("\n") == 2 + 3 and "ours: request when it pays" in md
     out = plotting.save_figure(plotting.pareto_figure(t), tmp_path / "fig" / "pareto")
@@ -84,3 +90,26 @@ def test_overrides_reach_the_cerpe_config_strictly():
         rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides={"request_policy": {"modus": "pays"}})
     with pytest.raises(rp.RunError, match="cerpe methods only"):
         rp.prepare_method("sift-ransac", "offline", 0, overrides={"jpeg_quality": 60})
+
+
+@pytest.mark.parametrize("name", list(pareto.PARETO_SETTINGS))
+def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
+    from cerpe.algorithm import CerpeConfig
+
+    overrides = pareto.PARETO_SETTINGS[name]
+    conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides=overrides)
+    cfg = CerpeConfig(**overrides)
+    assert CerpeConfig(**cfg.as_dict()) == cfg  # the run records as_dict(): it rebuilds the same config
+    for key, value in overrides.items():
+        got = conf["cerpe"][key]
+        assert (all(got[k] == v for k, v in value.items()) if isinstance(value, dict) else got == value), key
+
+
+def test_lean_preset_backs_off_over_the_compressed_messages():
+    from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN
+    from cerpe.algorithm import CerpeConfig
+
+    cfg = CerpeConfig(**LEAN)
+    assert cfg.request_policy.mode == "pays" and cfg.request_policy.miss_limit == 3
+    assert cfg.request_policy.miss_backoff_steps == 3
+    assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items())

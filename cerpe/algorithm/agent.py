@@ -59,6 +59,7 @@ class RobotAgent:
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
+        self.asks: dict[str, tuple[int, int]] = {}  # request policy: peer -> (last step asked, misses in a row)
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
         self.last_descriptors: dict[str, tuple[int, np.ndarray]] = {}  # peer -> (step, values) last scored fresh
         self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
@@ -247,14 +248,16 @@ class RobotAgent:
         """What the request policy reads about a pair before this step's pass (anchors, odometers of
         the previous step, the graph's last sigma)."""
         pair = self.pairs.get(other)
+        last, misses = self.asks.get(other, (-(1 << 30), 0))
+        tries = {"misses": misses, "steps_since_ask": step - last}
         if pair is None or pair.anchor is None:
-            return PairView(anchored=False, pending=bool(pair and pair.candidates))
+            return PairView(anchored=False, pending=bool(pair and pair.candidates), **tries)
         a = pair.anchor
         odo = [self.odometers.get(r, (0, None, o))[2] for r, o in ((self.robot_id, a.odo_i), (other, a.odo_j))]
         rot, pos = self.sigmas.get(other, (float("nan"), float("nan")))
         return PairView(anchored=True, pending=bool(pair.challengers), steps_since=step - a.step,
                         travelled_m=abs(odo[0] - a.odo_i) + abs(odo[1] - a.odo_j),
-                        sigma_rot_rad=rot, sigma_pos_m=pos)
+                        sigma_rot_rad=rot, sigma_pos_m=pos, **tries)
 
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
         """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
@@ -491,6 +494,8 @@ class RobotAgent:
             switch = (source, T, reason, anchor_step)
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
+        if st.requested.get(other):  # what the request policy's back-off reads: did the image place?
+            self.asks[other] = (st.step, 0 if info.direct_T is not None else self.asks.get(other, (0, 0))[1] + 1)
         best, via = st.memory_scores.get(other, (float("nan"), -1))
         return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
                           gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate_open(other),

@@ -11,7 +11,12 @@ The paper requests an image whenever the gate opens (``mode="gate"``, the defaul
   propagation model (:func:`propagation_sigma`: grows with the steps since the
   anchor and the metres both robots travelled since);
 * more than ``max_steps`` steps passed since the last anchor (a fresh look now and
-  then, whatever the model says).
+  then, whatever the model says);
+
+unless the pair is backing off: after ``miss_limit`` requests in a row whose image placed
+nothing (the gate opened on views that do not overlap enough), it asks only every
+``miss_backoff_steps`` steps until an image places again (0: never backs off). An open
+gate without overlap otherwise asks at every step, and those bytes buy nothing.
 
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
@@ -45,6 +50,8 @@ class PolicyConfig:
             fresh anchor's rotation sigma and its growth per step since.
         pos_sigma0_m, pos_sigma_per_m: the same for position, growing per metre the
             two robots travelled since the anchor (both odometers summed).
+        miss_limit, miss_backoff_steps: back off after this many requests in a row placed
+            nothing, asking every ``miss_backoff_steps`` steps (either 0: never back off).
     """
 
     mode: str = "gate"
@@ -56,6 +63,8 @@ class PolicyConfig:
     rot_sigma_per_step: float = 0.0035
     pos_sigma0_m: float = 0.05
     pos_sigma_per_m: float = 0.05
+    miss_limit: int = 0
+    miss_backoff_steps: int = 0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -65,8 +74,10 @@ class PolicyConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be finite and >= 0, got {v!r}")
-        if not (isinstance(self.max_steps, int) and self.max_steps >= 0):
-            raise PolicyError(f"request_policy: max_steps must be an integer >= 0, got {self.max_steps!r}")
+        for name in ("max_steps", "miss_limit", "miss_backoff_steps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                raise PolicyError(f"request_policy: {name} must be an integer >= 0, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -80,6 +91,8 @@ class PairView:
         travelled_m: metres the two robots travelled since, odometers summed.
         sigma_rot_rad, sigma_pos_m: the graph's marginal sigma of the last step (NaN:
             none, e.g. the switch back end: the propagation model is used instead).
+        misses: requests in a row (the newest last) whose image placed nothing.
+        steps_since_ask: steps since the last request to this peer (large: never asked).
     """
 
     anchored: bool
@@ -88,6 +101,8 @@ class PairView:
     travelled_m: float = 0.0
     sigma_rot_rad: float = float("nan")
     sigma_pos_m: float = float("nan")
+    misses: int = 0
+    steps_since_ask: int = 1 << 30
 
 
 def propagation_sigma(conf: PolicyConfig, view: PairView) -> tuple[float, float]:
@@ -107,6 +122,9 @@ def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[
         return False, "gate-closed"
     if conf.mode == "gate":
         return True, "gate"
+    if (view is not None and conf.miss_limit and conf.miss_backoff_steps and view.misses >= conf.miss_limit
+            and view.steps_since_ask < conf.miss_backoff_steps):
+        return False, "backoff"
     if view is None or not view.anchored:
         return True, "no-anchor"
     if view.pending:

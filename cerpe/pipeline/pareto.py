@@ -28,7 +28,7 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, read_json
 from ..errors import CerpeError
-from ..algorithm.config import COMPRESSED_MESSAGES
+from ..algorithm.config import COMPRESSED_MESSAGES, LEAN
 from .evaluate import frame_errors, load_run, summarise
 
 log = logging.getLogger(__name__)
@@ -39,15 +39,15 @@ PARETO_SETTINGS: dict[str, dict] = {
     "always": {"request_policy": {"mode": "always"}},
     "pays": {"request_policy": PAYS},
     "pays-compressed": {"request_policy": PAYS, **COMPRESSED_MESSAGES},  # pca-int8 descriptor, WebP-75 replies
-    # each further line costs about a minute of `make paper` (one encounter per synthetic setting), e.g.
-    # "pays-q60": {"request_policy": PAYS, "jpeg_quality": 60},
+    "lean": LEAN,  # ours at its leanest: pays + back-off from gates whose images place nothing, compressed
+    # each further line costs about a minute of `make paper` (one encounter per synthetic setting); at most 4
 }
 PARETO_LABELS: dict[str, str] = {
     "paper": "paper's protocol (gate, request every time)",
     "always": "always send (image to every peer, every step)",
     "pays": "ours: request when it pays",
     "pays-compressed": "ours + compressed messages (PCA int8 descriptor, WebP 75)",
-    "pays-q60": "ours + JPEG 60",
+    "lean": "ours, lean: + back-off from gates whose images do not place",
     "aliked-lightglue": "per-frame ALIKED+LightGlue (images every step)",
     "sift-ransac": "per-frame SIFT+RANSAC (images every step)",
 }
@@ -198,6 +198,35 @@ def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
     t["_o"] = t["scheme"].map(lambda s: order.get(s, len(order)))
     t = t.sort_values(["setting", "_o"], key=lambda c: c if c.name == "_o" else c.map(lambda v: (v == "all", v)))
     return t.drop(columns="_o").reset_index(drop=True)
+
+
+def breakdown(runs: Sequence[SchemeRun]) -> pd.DataFrame:
+    """Where a scheme's bytes go and where its e_rot comes from, one row per (setting, scheme).
+
+    Columns: bytes per robot per step by message kind (``descriptor``, ``pose``, ``request``,
+    ``reply``: the run's ``bytes_<kind>``), ``requests`` (pair rows with image bytes),
+    ``reply_bytes`` (mean bytes of one request + reply), ``placed`` (fraction of requests
+    that gave this step's estimate directly), and over the evaluated successful frames:
+    ``n_direct`` / ``e_rot_direct_rad``, ``n_propagated`` / ``e_rot_propagated_rad`` and
+    ``anchor_age`` (mean steps since the anchor of a propagated estimate).
+    """
+    rows = []
+    for r in runs:
+        frames, steps, robots = _loaded(r)
+        req = steps[steps["bytes_pair"] > 0] if "bytes_pair" in steps else steps.iloc[:0]
+        ok = frames[frames["success"]]
+        row: dict[str, Any] = {"setting": r.setting, "scheme": r.scheme}
+        for kind in ("descriptor", "pose", "request", "reply"):
+            row[kind] = float(robots[f"bytes_{kind}"].mean()) if f"bytes_{kind}" in robots else 0.0
+        row.update(requests=len(req), reply_bytes=float(req["bytes_pair"].mean()) if len(req) else float("nan"),
+                   placed=float((req["source"] == "direct").mean()) if len(req) else float("nan"))
+        for src in ("direct", "propagated"):
+            g = ok[ok["source"] == src]
+            row[f"n_{src}"], row[f"e_rot_{src}_rad"] = len(g), float(g["e_rot_rad"].mean()) if len(g) else float("nan")
+        prop = ok[ok["source"] == "propagated"]
+        row["anchor_age"] = float((prop["step"] - prop["anchor_step"]).mean()) if len(prop) else float("nan")
+        rows.append(row)
+    return pd.DataFrame(rows)
 
 
 def format_markdown(table: pd.DataFrame, setting: str = "all") -> str:
