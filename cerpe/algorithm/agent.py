@@ -213,6 +213,10 @@ class RobotAgent:
         st.timings["gate"] += time.perf_counter() - t0
         return score
 
+    def peer_gone(self, other: str) -> None:
+        """The link says ``other`` left: its last descriptor no longer stands in for a lost one."""
+        self.last_descriptors.pop(other, None)
+
     def _recent_descriptor(self, other: str, step: int) -> np.ndarray | None:
         """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
         ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""

@@ -77,6 +77,8 @@ class StepEngine:
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
         # (and that the request policy wants: CerpeConfig.request_policy; the paper's asks them all)
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
+        for p in got.gone:
+            a.peer_gone(p)
         for p in peers:
             a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.wants_image(p)}

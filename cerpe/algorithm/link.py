@@ -45,11 +45,14 @@ class Inbox:
             ``net:peer-lost``); the engine books them on this step's record.
         sent: for :meth:`Link.request`: peer -> bytes of the request frame put on
             the wire (absent: not sent).
+        gone: asked peers the link knows have left (bye or lost session): nothing more
+            will come from them, so the robot stops standing in for their lost frames.
     """
 
     messages: dict[str, Received] = field(default_factory=dict)
     degradations: list[str] = field(default_factory=list)
     sent: dict[str, int] = field(default_factory=dict)
+    gone: set[str] = field(default_factory=set)
 
     def message(self, peer: str) -> Message | None:
         got = self.messages.get(peer)

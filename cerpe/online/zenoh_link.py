@@ -409,7 +409,9 @@ class ZenohLink:
             for p in peers:
                 if p not in have:
                     self._degrade("msg:lost")
-            return self.box.inbox(step, kind, peers)
+            inbox = self.box.inbox(step, kind, peers)
+            inbox.gone = {p for p in peers if p in self._gone}
+            return inbox
 
     def request(self, step: int, frames: Mapping[str, bytes], deadline_s: float) -> Inbox:
         """Send each peer its image request (a Zenoh query), wait up to ``deadline_s`` for the replies.
