@@ -194,15 +194,27 @@ def _ensure_loaded(e: SettingEntry) -> bool:
     return e.status == "ok"
 
 
+def _run_baseline(manifest: Path, method: str, out: Path, preset: str) -> str:
+    """One per-frame baseline run in :func:`context`'s side process: ``""``, or its error."""
+    try:
+        run_method(manifest, method, out, profile=preset, overwrite=True, progress=False)
+    except CerpeError as exc:
+        return str(exc)
+    return ""
+
+
 def context(profile: str = "fixture", preset: str = "offline", build: bool = True,
             methods: Sequence[str] = RUN_METHODS, root: Path | None = None, progress: bool = True,
-            validate: bool = False) -> PaperContext:
+            validate: bool = False, side_process: bool = False) -> PaperContext:
     """Locate (and with ``build``, create or resume) every run of a notebook profile.
 
     ``fixture``: the synthetic fixture suite, runs cached in ``build/fixture/runs``
     (built when missing, reused when current). ``paper-default``: the paper suite
     in ``build/runs`` (what ``cerpe paper`` builds). ``validate`` loads every
     enabled setting even when its runs are cached (surfaces data errors).
+    ``side_process``: the per-frame baselines run in a second process beside the
+    cerpe methods' pass (a pass keeps about 1.3 of 2 cores busy); each run is the
+    same as alone (seeded, its own folder).
     """
     root = Path(root or ROOT)
     preset = PRESETS.get(preset, preset)
@@ -210,6 +222,13 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
     suite = "fixture" if profile == "fixture" else "paper-default"
     ctx = PaperContext(profile, suite, preset, lay["runs"], lay["figures"], lay["tables"], lay["notebooks"])
     ctx.settings = discover_settings(profile, suite, root / "datasets_manifest", lay["manifests"], load=validate)
+    side = None
+    if build and side_process:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        side = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    pending: list[tuple[str, str, Any]] = []  # (setting, method, future) of the side process
     for e in ctx.settings:
         if e.status != "ok":
             continue
@@ -221,6 +240,9 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
             try:
                 if not _ensure_loaded(e):
                     break
+                if side is not None and m in BASELINE_METHODS:
+                    pending.append((e.name, m, side.submit(_run_baseline, e.run_manifest, m, out, preset)))
+                    continue
                 run_method(e.run_manifest, m, out, profile=preset, overwrite=True, progress=progress,
                            setting=e.setting)
             except CerpeError as exc:
@@ -233,6 +255,20 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
             ctx.errors.append(f"{e.name}: {e.detail}")
             for m in methods:
                 ctx.run_dirs.pop((e.name, m), None)
+    if side is not None:
+        if pending:
+            log.info("waiting for %d baseline run(s) of the side process", sum(not f.done() for *_, f in pending))
+        for name, m, fut in pending:
+            try:
+                err = fut.result()
+            except Exception as exc:  # the side process died (killed, out of memory): say which run
+                err = f"the side process failed: {type(exc).__name__}: {exc}"
+            if err:
+                msg = f"{name}/{m}: {err}"
+                log.error(msg)
+                ctx.errors.append(msg)
+                ctx.run_dirs.pop((name, m), None)
+        side.shutdown()
     return ctx
 
 
@@ -517,7 +553,7 @@ def build_paper(profile_preset: str = "default", suite: str = "paper-default", f
 
         require_paper()
     ctx = context(nb_profile, preset=PRESETS.get(profile_preset, profile_preset), build=True, progress=progress,
-                  validate=True)
+                  validate=True, side_process=nb_profile != "fixture")
     from .pareto import context_runs  # the Pareto settings on a few encounters (notebook 07 reads them)
 
     t0 = time.perf_counter()
