@@ -165,9 +165,7 @@ class PairAnchors:
         per_step = turn / (step - last[0])
         if per_step <= self.conf.max_odo_rot_step or (self.anchor is None and not self.candidates):
             return 0.0
-        self.anchor = None
-        self.candidates.clear()
-        self.challengers.clear()
+        self._set(None)
         return per_step
 
     def offer(self, est: Anchor, others: Sequence[Anchor] = ()) -> Check:
@@ -212,7 +210,7 @@ class PairAnchors:
             return Check("replaced", against, rot, trans)
         return Check("rejected", against, rot, trans)
 
-    def _set(self, est: Anchor) -> None:
+    def _set(self, est: Anchor | None) -> None:
         self.anchor = est
         self.candidates.clear()
         self.challengers.clear()
