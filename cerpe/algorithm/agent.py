@@ -13,8 +13,8 @@ import numpy as np
 
 from ..compress import make_codec
 from ..geometry import pose_cov_sigmas, scale_translation, se3_inverse
-from ..memory import Keyframe, KeyframeMemory, cosine
-from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage, decode
+from ..memory import Keyframe, KeyframeMemory
+from ..messages import ImageReply, ImageRequest, PoseMessage
 from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
@@ -22,8 +22,8 @@ from .anchors import Anchor, PairAnchors
 from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
+from .gating import GateSide
 from .graph import DirectEstimate, PairGraph
-from .policy import PairView, decide
 from .poses import check_pose, direct_relative, ego_motion, registered_relative
 from .state import PairInfo, Previous, StepState
 
@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 _SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held"})
 
 
-class RobotAgent:
+class RobotAgent(GateSide):
     """One robot: its memory, odometry ``X`` (identity at its first step), anchors per peer.
 
     Phases, in order: :meth:`begin_step`, :meth:`descriptor_frame`,
@@ -126,143 +126,7 @@ class RobotAgent:
             self.degrade("frame:blank")
         return self.cur.descriptor
 
-    # ---------------------------------------------------------------- 2. broadcast
-    def descriptor_frame(self, dtype: str) -> bytes:
-        """This step's descriptor as a wire frame; the quantised values are kept for scoring."""
-        st = self._state()
-        if self.codec is not None:
-            msg = self.codec.message(self.index, st.step, st.descriptor)
-            st.wire_descriptor = self.codec.dequantise(msg.descriptor)
-            return msg.encode()
-        frame = DescriptorMessage(self.index, st.step, st.descriptor, dtype).encode()
-        st.wire_descriptor = decode(frame).descriptor
-        return frame
-
-    def _received_values(self, msg: DescriptorMessage) -> tuple[np.ndarray | None, str]:
-        """A received descriptor message -> the values the gate scores, or ``(None, fault)``."""
-        if self.codec is not None:
-            return self.codec.decode(msg)
-        if msg.coded:
-            return None, "codec-mismatch"
-        return msg.descriptor, ""
-
-    def _keyframe_values(self, kf: Keyframe) -> np.ndarray:
-        """A keyframe's descriptor as the gate compares it: its codec values (cached per keyframe) or itself."""
-        if self.codec is None:
-            return kf.descriptor
-        v = self._kf_wire.get(kf.step)
-        if v is None:
-            live = {k.step for k in self.memory.newest_first()}
-            self._kf_wire = {s: w for s, w in self._kf_wire.items() if s in live}
-            v = self._kf_wire[kf.step] = self.codec.wire(kf.descriptor)
-        return v
-
-    # ---------------------------------------------------------------- 3. gate
-    def score_descriptor(self, other: str, descriptor: "np.ndarray | DescriptorMessage | None") -> float:
-        """Cosine score against a received descriptor (None: it did not arrive); records the gate decision.
-
-        A :class:`~cerpe.messages.DescriptorMessage` is decoded first (a compressed one by
-        this robot's codec); one of another codec or codebook, or whose code does not
-        decode, is counted (``descriptor:<fault>``) and keeps the gate closed.
-
-        Returns the score of the current frame (the paper's gate score), NaN when
-        none can be computed (the gate stays closed and the reason is kept). The
-        received descriptor is also scored against every keyframe; the best of all
-        (and the keyframe that gave it) opens the gate with ``gate_memory``.
-        """
-        st = self._state()
-        t0 = time.perf_counter()
-        own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
-        score, reason = float("nan"), ""
-        if isinstance(descriptor, DescriptorMessage):
-            descriptor, fault = self._received_values(descriptor)
-            if fault:
-                self.degrade(f"descriptor:{fault}")
-                reason = f"descriptor-{fault}"
-        fresh = descriptor is not None
-        if not reason and descriptor is None:  # lost: the peer's last one if recent, else the gate waits
-            self.degrade("descriptor:missing")
-            descriptor = self._recent_descriptor(other, st.step)
-            if descriptor is None:
-                reason = "descriptor-missing"
-        if reason:
-            pass  # counted above
-        elif st.blank:
-            reason = "own-descriptor-degenerate"
-        else:
-            d = np.asarray(descriptor, dtype=np.float32).ravel()
-            if d.size != own.size:
-                self.degrade("descriptor:wrong-length")
-                reason = "descriptor-length-mismatch"
-            elif not np.all(np.isfinite(d)) or not np.any(d):
-                self.degrade("descriptor:other-zero-norm")
-                reason = "other-descriptor-degenerate"
-            else:
-                score = cosine(own, d)
-                if fresh:
-                    self.last_descriptors[other] = (st.step, d)
-                best = (score, -1)
-                for kf in self.memory.newest_first():
-                    c = cosine(self._keyframe_values(kf), d)
-                    if c > best[0]:
-                        best = (c, kf.step)
-                st.memory_scores[other] = best
-        st.scores[other] = score
-        if reason:
-            st.gate_reason[other] = reason
-        st.timings["gate"] += time.perf_counter() - t0
-        return score
-
-    def peer_gone(self, other: str) -> None:
-        """The link says ``other`` left: its last descriptor no longer stands in for a lost one."""
-        self.last_descriptors.pop(other, None)
-
-    def _recent_descriptor(self, other: str, step: int) -> np.ndarray | None:
-        """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
-        ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""
-        last = self.last_descriptors.get(other)
-        if last is None or not 0 < step - last[0] <= self.config.descriptor_max_age:
-            return None
-        self.degrade("descriptor:stale-used")
-        return last[1]
-
-    def gate_open(self, other: str) -> bool:
-        """``score >= gate_tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes
-        too (``gate_tau`` is ``tau``, or the codec's own threshold with a compressed descriptor)."""
-        st = self._state()
-        s = st.scores.get(other, float("nan"))
-        if self.config.gate_memory and np.isfinite(s):
-            s = st.memory_scores[other][0]
-        return bool(np.isfinite(s) and s >= self.gate_tau)
-
-    def wants_image(self, other: str) -> bool:
-        """Whether to request ``other``'s image this step: the gate and the request policy
-        (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens). A skipped
-        request is kept (``PairRecord.request_skipped``); the pair then propagates its anchor."""
-        st = self._state()
-        gate = self.gate_open(other)
-        conf = self.config.request_policy
-        ask, why = decide(conf, gate, self._pair_view(other, st.step) if conf.mode == "pays" else None)
-        st.requested[other] = ask
-        if gate and not ask:
-            st.skipped[other] = why
-        return ask
-
-    def _pair_view(self, other: str, step: int) -> PairView:
-        """What the request policy reads about a pair before this step's pass (anchors, odometers of
-        the previous step, the graph's last sigma)."""
-        pair = self.pairs.get(other)
-        last, misses = self.asks.get(other, (-(1 << 30), 0))
-        tries = {"misses": misses, "steps_since_ask": step - last}
-        if pair is None or pair.anchor is None:
-            return PairView(anchored=False, pending=bool(pair and pair.candidates), **tries)
-        a = pair.anchor
-        odo = [self.odometers.get(r, (0, None, o))[2] for r, o in ((self.robot_id, a.odo_i), (other, a.odo_j))]
-        rot, pos = self.sigmas.get(other, (float("nan"), float("nan")))
-        return PairView(anchored=True, pending=bool(pair.challengers), steps_since=step - a.step,
-                        travelled_m=abs(odo[0] - a.odo_i) + abs(odo[1] - a.odo_j),
-                        sigma_rot_rad=rot, sigma_pos_m=pos, **tries)
-
+    # ---------------------------------------------------------------- 3b. image exchange
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
         """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
         st = self._state()
