@@ -134,10 +134,3 @@ def test_gate_data_and_figure_carry_both_labels(ctx):
     assert any("ordered label: AUC 0.700 (symmetric-score ceiling 0.900)" in t for t in labels)
     out = plotting.save_figure(fig, ctx.figures_dir / "gate_quality")
     assert all(p.exists() for p in out)
-
-
-def test_side_process_baseline_run_returns_its_error_instead_of_raising(tmp_path):
-    bad = tmp_path / "broken.yaml"
-    bad.write_text("name: [unclosed\n")
-    err = paper._run_baseline(bad, "sift-ransac", tmp_path / "out", "offline")
-    assert err and "broken.yaml" in err

@@ -1,6 +1,6 @@
 """Build every table and figure of the paper (what ``make paper`` runs).
 
-Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture]``
+Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture] [--jobs N]``
 
 1. every manifest in ``datasets_manifest/``: enabled ones are loaded (synthetic
    settings are generated on demand with the chosen suite); disabled ones are
@@ -8,7 +8,9 @@ Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture]``
 2. every method runs on every enabled setting (``cerpe run``; cached in
    ``build/runs/<setting>/<method>/`` and resumed; a run of another
    configuration is replaced); the Pareto settings (:mod:`cerpe.pipeline.pareto`) run
-   on the first encounter of each synthetic setting (``build/runs/<setting>/pareto-*``);
+   on the first encounter of each synthetic setting (``build/runs/<setting>/pareto-*``), and the
+   message-loss sweep (``build/runs/synthetic-indoor/message-loss``); for paper-default these
+   runs go to ``--jobs`` worker processes (:mod:`cerpe.pipeline.schedule`), same results;
 3. the notebooks run with papermill into ``build/notebooks/`` and write
    ``tables/`` and ``figures/``. When the inputs' fingerprint (run
    fingerprints, notebooks, evaluation/plotting code, parameters) is unchanged
@@ -194,27 +196,15 @@ def _ensure_loaded(e: SettingEntry) -> bool:
     return e.status == "ok"
 
 
-def _run_baseline(manifest: Path, method: str, out: Path, preset: str) -> str:
-    """One per-frame baseline run in :func:`context`'s side process: ``""``, or its error."""
-    try:
-        run_method(manifest, method, out, profile=preset, overwrite=True, progress=False)
-    except CerpeError as exc:
-        return str(exc)
-    return ""
-
-
 def context(profile: str = "fixture", preset: str = "offline", build: bool = True,
             methods: Sequence[str] = RUN_METHODS, root: Path | None = None, progress: bool = True,
-            validate: bool = False, side_process: bool = False) -> PaperContext:
+            validate: bool = False) -> PaperContext:
     """Locate (and with ``build``, create or resume) every run of a notebook profile.
 
     ``fixture``: the synthetic fixture suite, runs cached in ``build/fixture/runs``
     (built when missing, reused when current). ``paper-default``: the paper suite
     in ``build/runs`` (what ``cerpe paper`` builds). ``validate`` loads every
     enabled setting even when its runs are cached (surfaces data errors).
-    ``side_process``: the per-frame baselines run in a second process beside the
-    cerpe methods' pass (a pass keeps about 1.3 of 2 cores busy); each run is the
-    same as alone (seeded, its own folder).
     """
     root = Path(root or ROOT)
     preset = PRESETS.get(preset, preset)
@@ -222,13 +212,6 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
     suite = "fixture" if profile == "fixture" else "paper-default"
     ctx = PaperContext(profile, suite, preset, lay["runs"], lay["figures"], lay["tables"], lay["notebooks"])
     ctx.settings = discover_settings(profile, suite, root / "datasets_manifest", lay["manifests"], load=validate)
-    side = None
-    if build and side_process:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        side = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-    pending: list[tuple[str, str, Any]] = []  # (setting, method, future) of the side process
     for e in ctx.settings:
         if e.status != "ok":
             continue
@@ -240,9 +223,6 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
             try:
                 if not _ensure_loaded(e):
                     break
-                if side is not None and m in BASELINE_METHODS:
-                    pending.append((e.name, m, side.submit(_run_baseline, e.run_manifest, m, out, preset)))
-                    continue
                 run_method(e.run_manifest, m, out, profile=preset, overwrite=True, progress=progress,
                            setting=e.setting)
             except CerpeError as exc:
@@ -255,20 +235,6 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
             ctx.errors.append(f"{e.name}: {e.detail}")
             for m in methods:
                 ctx.run_dirs.pop((e.name, m), None)
-    if side is not None:
-        if pending:
-            log.info("waiting for %d baseline run(s) of the side process", sum(not f.done() for *_, f in pending))
-        for name, m, fut in pending:
-            try:
-                err = fut.result()
-            except Exception as exc:  # the side process died (killed, out of memory): say which run
-                err = f"the side process failed: {type(exc).__name__}: {exc}"
-            if err:
-                msg = f"{name}/{m}: {err}"
-                log.error(msg)
-                ctx.errors.append(msg)
-                ctx.run_dirs.pop((name, m), None)
-        side.shutdown()
     return ctx
 
 
@@ -546,18 +512,31 @@ def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
 
 
 def build_paper(profile_preset: str = "default", suite: str = "paper-default", force_notebooks: bool = False,
-                progress: bool = True) -> PaperContext:
+                progress: bool = True, jobs: int = 2) -> PaperContext:
+    """Every run, then the notebooks. With ``jobs`` > 1 (paper-default only) the runs go to that many
+    worker processes (:mod:`cerpe.pipeline.schedule`); the results are the same as with one."""
     nb_profile = "fixture" if suite == "fixture" else "paper-default"
-    if PRESETS.get(profile_preset, profile_preset) == "paper":  # one error listing what is missing, before any work
+    preset = PRESETS.get(profile_preset, profile_preset)
+    if preset == "paper":  # one error listing what is missing, before any work
         from ..backbones.paper_profile import require_paper
 
         require_paper()
-    ctx = context(nb_profile, preset=PRESETS.get(profile_preset, profile_preset), build=True, progress=progress,
-                  validate=True, side_process=nb_profile != "fixture")
+    pool = nb_profile != "fixture" and int(jobs) > 1
+    ctx = context(nb_profile, preset=preset, build=not pool, progress=progress, validate=True)
+    t0 = time.perf_counter()
+    if pool:
+        from .schedule import paper_jobs, run_jobs
+
+        for job, err in run_jobs(paper_jobs(ctx, run_is_current), workers=int(jobs), progress=progress):
+            msg = f"{job.name}: {err}"
+            log.error(msg)
+            ctx.errors.append(msg)
+            for key in job.outputs:
+                ctx.run_dirs.pop(key, None)
+        log.info("runs on %d worker processes: %.1f s", int(jobs), time.perf_counter() - t0)
     from .pareto import context_runs  # the Pareto settings on a few encounters (notebook 07 reads them)
 
-    t0 = time.perf_counter()
-    runs, errors = context_runs(ctx, build=True, progress=progress)
+    runs, errors = context_runs(ctx, build=not pool, progress=progress)
     ctx.extra_runs = sorted({r.path for r in runs if r.path.name.startswith("pareto-")})
     ctx.errors += errors
     log.info("Pareto settings: %.1f s", time.perf_counter() - t0)
@@ -572,11 +551,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="synthetic suite size; fixture writes to build/fixture/ only")
     p.add_argument("--force-notebooks", action="store_true", help="execute the notebooks even if nothing changed")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", type=int, default=2, metavar="N",
+                   help="worker processes for the runs of --suite paper-default (default 2, for 2 cores; "
+                        "1: every run in this process with per-encounter progress bars); the tables are "
+                        "the same for any N")
 
 
 def main(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    ctx = build_paper(args.profile, args.suite, args.force_notebooks, progress=not args.no_progress)
+    if args.jobs < 1:
+        print(f"cerpe paper: error: --jobs {args.jobs}: at least 1", file=sys.stderr)
+        return 2
+    ctx = build_paper(args.profile, args.suite, args.force_notebooks, progress=not args.no_progress, jobs=args.jobs)
     print(f"tables:    {ctx.tables_dir}")
     print(f"figures:   {ctx.figures_dir}")
     print(f"notebooks: {ctx.notebooks_dir}")
