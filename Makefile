@@ -9,6 +9,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(VENV)/bin/pip
 STAMP  := $(VENV)/.cerpe-setup-stamp
 PROFILE ?= default
+JOBS    ?= 2
 export MPLBACKEND := Agg
 export PYTHONHASHSEED := 0
 export OMP_NUM_THREADS ?= 2
@@ -16,7 +17,7 @@ export OMP_NUM_THREADS ?= 2
 .PHONY: help setup test test-fast paper bench clean distclean
 
 help:
-	@echo "make paper   - every table and figure (sets itself up first)"
+	@echo "make paper   - every table and figure (sets itself up first; JOBS=N worker processes, default 2)"
 	@echo "make test    - every test, notebooks included (sets itself up first)"
 	@echo "make bench   - latency / memory / bytes benchmark, 2 and 3 robots (prints figures; renders its suite once)"
 	@echo "make setup   - create .venv (torch==2.13.0 CPU first, then cerpe[dev,notebooks])"
@@ -42,7 +43,7 @@ test-fast: setup
 	$(PY) -m pytest -q -x tests
 
 paper: setup
-	$(PY) -m cerpe.cli paper --profile $(PROFILE)
+	$(PY) -m cerpe.cli paper --profile $(PROFILE) --jobs $(JOBS)
 
 bench: setup
 	$(PY) -m cerpe.cli bench

@@ -9,7 +9,7 @@ exactly as a run in the main process would (seeded, fingerprinted, resumable), s
 the tables do not depend on the number of workers; only the wall time does. A CERPE
 pass keeps about 1.3 of 2 cores busy, so two workers fill a 2-core machine.
 
-Jobs are handed out longest first (a fixed estimate per kind, times the setting's
+Jobs go to free workers longest first (a fixed estimate per kind, times the setting's
 robot-steps), each as soon as the jobs it waits for have finished. A job that fails
 returns one error line naming the setting and what failed; the others go on.
 """
@@ -156,7 +156,7 @@ def run_jobs(jobs: Sequence[Job], workers: int = 2, progress: bool = True) -> li
     bar = tqdm(total=len(jobs), desc="cerpe paper runs", unit="job", disable=not progress)
     with ProcessPoolExecutor(max(1, int(workers)), mp_context=multiprocessing.get_context("spawn")) as pool:
         while waiting or running:
-            for j in [j for j in waiting if all(a in finished for a in j.after)]:
+            for j in [j for j in waiting if all(a in finished for a in j.after)][:max(1, int(workers)) - len(running)]:
                 waiting.remove(j)
                 running[pool.submit(j.fn, *j.args)] = (j, time.perf_counter())
                 log.info("job %s: started", j.name)
