@@ -62,3 +62,9 @@ def test_jobs_that_wait_for_each_other_or_for_nothing_known_are_errors(tmp_path)
         schedule.run_jobs([job("a", ("b",)), job("b", ("a",))], workers=1, progress=False)
     with pytest.raises(schedule.ScheduleError, match="not jobs"):
         schedule.run_jobs([job("a", ("zzz",))], workers=1, progress=False)
+
+
+def test_load_job_returns_the_manifest_error(tmp_path):
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("name: [unclosed\n")
+    assert "broken.yaml" in schedule.load_job(bad)

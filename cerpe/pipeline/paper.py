@@ -522,10 +522,17 @@ def build_paper(profile_preset: str = "default", suite: str = "paper-default", f
 
         require_paper()
     pool = nb_profile != "fixture" and int(jobs) > 1
+    if pool:  # the synthetic worlds render side by side (an error surfaces when context loads it below)
+        from .schedule import Job, load_job, run_jobs
+
+        lay = _layout(nb_profile, preset, ROOT)
+        synth = [e for e in discover_settings(nb_profile, nb_profile, ROOT / "datasets_manifest", lay["manifests"],
+                                              load=False) if e.world and e.status == "ok"]
+        run_jobs([Job(f"{e.name}/render", load_job, (e.run_manifest,)) for e in synth], int(jobs), progress)
     ctx = context(nb_profile, preset=preset, build=not pool, progress=progress, validate=True)
     t0 = time.perf_counter()
     if pool:
-        from .schedule import paper_jobs, run_jobs
+        from .schedule import paper_jobs
 
         for job, err in run_jobs(paper_jobs(ctx, run_is_current), workers=int(jobs), progress=progress):
             msg = f"{job.name}: {err}"

@@ -64,6 +64,17 @@ def methods_job(manifest: Path, methods: Sequence[str], runs_root: Path, preset:
     return ""
 
 
+def load_job(manifest: Path) -> str:
+    """Load one setting (a synthetic one is rendered into its cache when missing; the next load reads it)."""
+    from ..datasets import ManifestError, load_setting
+
+    try:
+        load_setting(manifest)
+    except ManifestError as exc:
+        return str(exc)
+    return ""
+
+
 def pareto_job(name: str, manifest: Path, runs_root: Path, preset: str, scheme: str, overrides: dict,
                n_encounters: int | None) -> str:
     """One Pareto setting on one synthetic setting (:func:`cerpe.pipeline.pareto.scheme_runs`)."""
