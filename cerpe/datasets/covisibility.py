@@ -86,7 +86,9 @@ def compute_overlap(enc: Encounter, stride: int = STRIDE, progress: bool = True)
     """
     n = len(enc.robots)
     out = np.full((enc.n_steps, n, n), np.nan)
-    for t in tqdm(range(enc.n_steps), desc=f"covisibility {enc.name}", unit="step", disable=not progress, leave=False):
+    bar = tqdm(range(enc.n_steps), desc=f"covisibility {enc.name}", unit="step", leave=False,
+               disable=None if progress else True)  # None: only on a terminal, never into a log file
+    for t in bar:
         depth = [rob.depth_m(t) if rob.depth is not None and rob.has_gt(t) else None for rob in enc.robots]
         for i, a in enumerate(enc.robots):
             if depth[i] is None:
