@@ -61,7 +61,9 @@ class CerpeConfig:
             shipped ``cerpe/data/xfeat_salad_projection.npz``, fitted for the offline descriptor).
         descriptor_codec_tau: the gate threshold on compressed scores (None: the codec's
             calibrated value stored in the projection file, else ``tau``).
-        reply_codec: image reply codec, ``jpeg`` (the paper's) or ``webp``.
+        reply_codec: image reply codec, ``jpeg`` (the paper's), ``webp``, or one of their
+            single-channel forms ``jpeg-grey``, ``webp-grey`` (the channels' mean: all the
+            offline backbone's XFeat features see of a colour image).
         reply_quality: its quality 0-100 (None: ``jpeg_quality``).
         reply_scale: image replies are downsized by this factor (1: full resolution, the
             paper's), intrinsics scaled alike.
