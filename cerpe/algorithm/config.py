@@ -68,7 +68,8 @@ class CerpeConfig:
         reply_scale: image replies are downsized by this factor (1: full resolution, the
             paper's), intrinsics scaled alike.
         request_retries: image requests sent again, within the step, to a peer whose reply
-            did not come (request or reply lost; counted ``msg:request-retried``); 0: never.
+            did not come (request or reply lost; counted ``msg:request-retried``); 0: never. No
+            effect without loss; under loss a pair without an anchor has no other way to get one.
         descriptor_max_age: when a peer's descriptor of this step is lost, the gate scores
             its last one received if at most this many steps old (counted
             ``descriptor:stale-used``; co-visibility changes little in a step); 0: the
@@ -153,7 +154,7 @@ class CerpeConfig:
     reply_codec: str = "jpeg"
     reply_quality: int | None = None
     reply_scale: float = 1.0
-    request_retries: int = 1
+    request_retries: int = 2
     descriptor_max_age: int = 1
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
