@@ -22,11 +22,13 @@ BACKENDS: tuple[str, ...] = ("switch", "graph")
 # 36 % of JPEG-90's bytes, the same placements). CerpeConfig(**COMPRESSED_MESSAGES) selects them.
 COMPRESSED_MESSAGES: dict[str, object] = {"descriptor_codec": "pca-int8", "reply_codec": "webp",
                                           "reply_quality": 75, "reply_scale": 1.0}
-# Ours at its leanest (issue 21; chosen on development data by scripts/dev_policy.py, figures in the commit
+# Ours at its leanest (issue 21; chosen on development data by scripts/dev_policy.py, figures in the commits
 # that set it): the request policy "pays" that also backs off from gates whose images do not place,
-# over COMPRESSED_MESSAGES. CerpeConfig(**LEAN) selects it; the Pareto settings of `make paper` run it.
+# over COMPRESSED_MESSAGES with grey WebP-75 replies (the channels' mean: all the offline backbone reads of a
+# received image; scripts/dev_codecs.py: the same placements at 81 % of colour WebP-75's bytes).
+# CerpeConfig(**LEAN) selects it; the Pareto settings of `make paper` run it.
 LEAN_POLICY: dict[str, object] = {"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3}
-LEAN: dict[str, object] = {"request_policy": LEAN_POLICY, **COMPRESSED_MESSAGES}
+LEAN: dict[str, object] = {"request_policy": LEAN_POLICY, **COMPRESSED_MESSAGES, "reply_codec": "webp-grey"}
 
 
 class AlgorithmError(CerpeError, ValueError):
