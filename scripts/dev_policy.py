@@ -44,6 +44,8 @@ GRID: dict[str, dict] = {
     "lean": LEAN,
     "lean-colour": {**LEAN, "reply_codec": "webp"},  # LEAN before the grey replies
     "lean-g60": {**LEAN, "reply_quality": 60},
+    "lean-tight": {**LEAN, "request_policy": {**LEAN_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
+                                               "max_steps": 15}},  # spends the grey replies' bytes on fresher anchors
     "pi-backoff": {"request_policy": LEAN_POLICY, "descriptor_codec": "pca-int8"},
     "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
     "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
