@@ -41,8 +41,11 @@ DESCRIPTOR_DTYPES = {"fp32": 0, "fp16": 1, "int8": 2}
 # compressed descriptors (cerpe.compress): the payload is an opaque code of a fitted projection
 CODED_DESCRIPTOR_DTYPES = {"pca-int8": 3, "pca-pq": 4}
 _DTYPE_CODES = {v: k for k, v in {**DESCRIPTOR_DTYPES, **CODED_DESCRIPTOR_DTYPES}.items()}
-# image reply codecs; a code the receiver does not know decodes as "unknown-<code>" (counted, not used)
-REPLY_CODECS = {"jpeg": 1, "webp": 2}
+# image reply codecs; a code the receiver does not know decodes as "unknown-<code>" (counted, not used).
+# "-grey": one channel, the mean of the image's three (what XFeat, the offline backbone's features, sees of
+# a colour image); the receiver decodes it to three equal channels.
+REPLY_CODECS = {"jpeg": 1, "webp": 2, "jpeg-grey": 3, "webp-grey": 4}
+JPEG_CODECS = ("jpeg", "jpeg-grey")
 _REPLY_CODES = {v: k for k, v in REPLY_CODECS.items()}
 
 
@@ -189,7 +192,8 @@ class ImageReply:
                    codec: str = "jpeg", scale: float = 1.0, pose_step: int = -1,
                    T_odom_cam: np.ndarray | None = None) -> "ImageReply":
         """Encode ``image_rgb`` with ``codec`` at ``quality`` (0-100), downsized by ``scale``
-        (area interpolation; intrinsics scaled to the encoded pixels), with the sender's pose."""
+        (area interpolation; intrinsics scaled to the encoded pixels), with the sender's pose.
+        A ``-grey`` codec encodes the mean of the three channels as one (rounded to uint8)."""
         import cv2
 
         if codec not in REPLY_CODECS:
@@ -203,8 +207,13 @@ class ImageReply:
             img = cv2.resize(image_rgb, (w, h), interpolation=cv2.INTER_AREA)
             sx, sy = w / W, h / H  # pixel centres: c' = (c + 0.5) * s - 0.5
             K = (K[0] * sx, K[1] * sy, (K[2] + 0.5) * sx - 0.5, (K[3] + 0.5) * sy - 0.5)
-        ext, flag = (".jpg", cv2.IMWRITE_JPEG_QUALITY) if codec == "jpeg" else (".webp", cv2.IMWRITE_WEBP_QUALITY)
-        ok, buf = cv2.imencode(ext, np.ascontiguousarray(img[:, :, ::-1]), [flag, int(quality)])
+        ext, flag = ((".jpg", cv2.IMWRITE_JPEG_QUALITY) if codec in JPEG_CODECS
+                     else (".webp", cv2.IMWRITE_WEBP_QUALITY))
+        if codec.endswith("-grey"):
+            pixels = np.round(img.mean(axis=2, dtype=np.float32)).astype(np.uint8)
+        else:
+            pixels = np.ascontiguousarray(img[:, :, ::-1])
+        ok, buf = cv2.imencode(ext, pixels, [flag, int(quality)])
         if not ok:
             raise MessageError(f"{codec} encoding failed")
         return ImageReply(sender, step, buf.tobytes(), K, codec=codec, pose_step=int(pose_step),
@@ -215,11 +224,12 @@ class ImageReply:
 
         if self.codec not in REPLY_CODECS:
             raise MessageError(f"image reply from robot {self.sender} step {self.step}: unknown codec {self.codec}")
-        arr = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        grey = self.codec.endswith("-grey")  # three equal channels (WebP's colour conversion is off by 1)
+        arr = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
         if arr is None:
             raise MessageError(f"image reply from robot {self.sender} step {self.step}: "
                                f"{self.codec} does not decode")
-        return arr[:, :, ::-1].copy()
+        return np.repeat(arr[:, :, None], 3, axis=2) if grey else arr[:, :, ::-1].copy()
 
 
 Message = Union[DescriptorMessage, PoseMessage, ImageRequest, ImageReply]

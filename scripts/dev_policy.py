@@ -6,7 +6,7 @@ and the real ``datasets_manifest/dev-*.yaml`` sets whose data is present), every
 encounter, and prints the Pareto table (``cerpe.pipeline.pareto``) per set and over
 all, with the issue's check for each policy setting.
 
-    python scripts/dev_policy.py [--seeds 1] [--out build/dev] [--sets PATTERN ...]
+    python scripts/dev_policy.py [--seeds 1] [--out build/dev] [--sets PATTERN ...] [--encounters PATTERN ...]
 
 Runs are cached in ``<out>/runs/<set>/pareto-<name>/`` (resumed; a changed setting
 is a new run); the table goes to ``<out>/policy.{csv,md}``.
@@ -42,6 +42,10 @@ GRID: dict[str, dict] = {
     "pi-j75": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 75},
     "pi-j50": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 50},
     "lean": LEAN,
+    "lean-colour": {**LEAN, "reply_codec": "webp"},  # LEAN before the grey replies
+    "lean-g60": {**LEAN, "reply_quality": 60},
+    "lean-tight": {**LEAN, "request_policy": {**LEAN_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
+                                               "max_steps": 15}},  # spends the grey replies' bytes on fresher anchors
     "pi-backoff": {"request_policy": LEAN_POLICY, "descriptor_codec": "pca-int8"},
     "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
     "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
@@ -54,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[1])
     p.add_argument("--out", type=Path, default=ROOT / "build" / "dev")
     p.add_argument("--sets", nargs="+", default=None, metavar="PATTERN")
+    p.add_argument("--encounters", nargs="+", default=None, metavar="PATTERN",
+                   help="only these encounters (shell patterns), e.g. a few for a quick comparison")
     p.add_argument("--schemes", nargs="+", default=["paper", "always", "pays", "pays-compressed", "lean"],
                    choices=list(GRID), help="GRID entries to run (each a CERPE run per set; cached)")
     args = p.parse_args(argv)
@@ -65,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
                     for setting in SUITES["paper-default"]]
     entries = [e for e in entries if not args.sets or any(fnmatch.fnmatchcase(e.name, q) for q in args.sets)]
     runs, errors = pareto.scheme_runs([(e.name, e.manifest, None) for e in entries], args.out / "runs",
-                                      schemes={k: GRID[k] for k in args.schemes}, n_encounters=None, progress=False)
+                                      schemes={k: GRID[k] for k in args.schemes}, n_encounters=None, progress=False,
+                                      only=args.encounters)
     for msg in errors:
         print(f"error: {msg}", file=sys.stderr)
     table = pareto.pareto_table(runs)

@@ -112,7 +112,8 @@ def _image():
     return np.ascontiguousarray(np.clip(img + rng.integers(0, 8, img.shape), 0, 255).astype(np.uint8))
 
 
-@pytest.mark.parametrize("codec, quality, scale", [("jpeg", 90, 1.0), ("jpeg", 60, 0.5), ("webp", 70, 0.75)])
+@pytest.mark.parametrize("codec, quality, scale", [("jpeg", 90, 1.0), ("jpeg", 60, 0.5), ("webp", 70, 0.75),
+                                                   ("jpeg-grey", 75, 1.0), ("webp-grey", 60, 0.5)])
 def test_reply_codecs_round_trip_with_scaled_intrinsics(codec, quality, scale):
     from cerpe.algorithm.frames import received_view
 
@@ -132,7 +133,34 @@ def test_reply_codecs_round_trip_with_scaled_intrinsics(codec, quality, scale):
     import cv2
 
     ref = cv2.resize(img, out.shape[1::-1], interpolation=cv2.INTER_AREA) if scale != 1 else img
+    if codec.endswith("-grey"):  # three equal channels: the mean of the sender's
+        assert np.array_equal(out[:, :, 0], out[:, :, 1]) and np.array_equal(out[:, :, 1], out[:, :, 2])
+        ref = np.repeat(ref.mean(axis=2, keepdims=True), 3, axis=2)
     assert np.abs(out.astype(float) - ref.astype(float)).mean() < 12  # lossy, but the same picture
+
+
+@pytest.mark.parametrize("codec", ["jpeg", "webp"])
+def test_grey_reply_is_smaller_and_keeps_the_grey_levels(codec):
+    """The grey codec carries the channel mean (what XFeat sees of a colour image) in fewer bytes."""
+    rng = np.random.default_rng(3)
+    img = np.clip(_image().astype(int) + rng.integers(-40, 40, (96, 128, 3)), 0, 255).astype(np.uint8)
+    K = (100.0, 101.0, 63.5, 47.5)
+    colour = ImageReply.from_image(1, 4, img, K, quality=75, codec=codec)
+    grey = ImageReply.from_image(1, 4, img, K, quality=75, codec=f"{codec}-grey")
+    assert len(grey.jpeg) < len(colour.jpeg)
+    mean = img.mean(axis=2)
+    err = lambda rep: np.abs(decode(rep.encode()).image_rgb().mean(axis=2) - mean).mean()
+    assert err(grey) <= err(colour) + 1.0
+
+
+def test_truncated_grey_jpeg_is_refused():
+    from cerpe.algorithm.frames import received_view
+
+    rep = ImageReply.from_image(1, 4, _image(), (100.0, 101.0, 63.5, 47.5), codec="jpeg-grey")
+    cut = dataclasses.replace(rep, jpeg=rep.jpeg[: len(rep.jpeg) // 2])
+    assert received_view("r1", decode(cut.encode())) == (None, "truncated-jpeg")
+    bad = dataclasses.replace(rep, jpeg=b"\x00" + rep.jpeg[1:])
+    assert received_view("r1", decode(bad.encode())) == (None, "undecodable-jpeg")
 
 
 def test_unknown_reply_codec_decodes_and_is_refused():

@@ -169,6 +169,29 @@ def test_a_lost_reply_is_asked_for_again_within_the_step():
     assert _pairs(no_retry)[5].source == "propagated"
 
 
+def test_a_reply_lost_twice_comes_with_the_second_retry():
+    """The default asks twice more within the step (request_retries=2): a pair without an anchor
+    whose reply is lost has no other way to get one that step."""
+    world = make_world(2, 8, seed=7, windows={(0, 1): [(0, 8)]})
+
+    def drop(limit):
+        dropped = []
+
+        def first_replies_of_step_5(s, r, m):
+            if isinstance(m, ImageReply) and (s, r) == ("r1", "r0") and m.step == 5 and len(dropped) < limit:
+                dropped.append(m)
+                return True
+            return False
+        return first_replies_of_step_5
+
+    results = list(_team(world, _Drop(world.robot_ids, drop(2))).run_encounter(world.to_encounter()))
+    degr = [d for r in results[5].robots if r.robot == "r0" for d in r.degradations]
+    assert _pairs(results)[5].source == "direct" and degr.count("msg:request-retried") == 2
+    once = list(_team(world, _Drop(world.robot_ids, drop(2)), request_retries=1).run_encounter(world.to_encounter()))
+    degr = [d for r in once[5].robots if r.robot == "r0" for d in r.degradations]
+    assert _pairs(once)[5].source == "propagated" and "msg:reply-missing" in degr
+
+
 def test_garbled_frames_are_counted_never_raised():
     world = make_world(3, 10, seed=2, windows={(0, 1): [(0, 10)], (0, 2): [(0, 10)], (1, 2): [(0, 10)]})
     results = list(_team(world, Channel(p_garble=1.0, seed=3)).run_encounter(world.to_encounter()))

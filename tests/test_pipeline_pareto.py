@@ -35,6 +35,18 @@ def fake(monkeypatch):
     return calls
 
 
+def test_pareto_runs_only_the_named_encounters(tmp_path, fake):
+    m = tmp_path / "toy.yaml"
+    m.write_text("name: toy\n")
+    s = _setting(n_steps=4, n_enc=3)
+    runs, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes={"pays": SCHEMES["pays"]},
+                                      n_encounters=None, progress=False, only=["enc[02]"])
+    assert not errors and sorted(p.name for p in runs[0].path.iterdir() if p.is_dir()) == ["enc0", "enc2"]
+    none, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes={"pays": SCHEMES["pays"]},
+                                      progress=False, only=["other-*"])
+    assert none == [] and errors == []
+
+
 def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, fake):
     m = tmp_path / "toy.yaml"
     m.write_text("name: toy\n")
@@ -112,4 +124,5 @@ def test_lean_preset_backs_off_over_the_compressed_messages():
     cfg = CerpeConfig(**LEAN)
     assert cfg.request_policy.mode == "pays" and cfg.request_policy.miss_limit == 3
     assert cfg.request_policy.miss_backoff_steps == 3
-    assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items())
+    assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items() if k != "reply_codec")
+    assert cfg.reply_codec == "webp-grey" and cfg.descriptor_codec == COMPRESSED_MESSAGES["descriptor_codec"]

@@ -22,11 +22,13 @@ BACKENDS: tuple[str, ...] = ("switch", "graph")
 # 36 % of JPEG-90's bytes, the same placements). CerpeConfig(**COMPRESSED_MESSAGES) selects them.
 COMPRESSED_MESSAGES: dict[str, object] = {"descriptor_codec": "pca-int8", "reply_codec": "webp",
                                           "reply_quality": 75, "reply_scale": 1.0}
-# Ours at its leanest (issue 21; chosen on development data by scripts/dev_policy.py, figures in the commit
+# Ours at its leanest (issue 21; chosen on development data by scripts/dev_policy.py, figures in the commits
 # that set it): the request policy "pays" that also backs off from gates whose images do not place,
-# over COMPRESSED_MESSAGES. CerpeConfig(**LEAN) selects it; the Pareto settings of `make paper` run it.
+# over COMPRESSED_MESSAGES with grey WebP-75 replies (the channels' mean: all the offline backbone reads of a
+# received image; scripts/dev_codecs.py: the same placements at 81 % of colour WebP-75's bytes).
+# CerpeConfig(**LEAN) selects it; the Pareto settings of `make paper` run it.
 LEAN_POLICY: dict[str, object] = {"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3}
-LEAN: dict[str, object] = {"request_policy": LEAN_POLICY, **COMPRESSED_MESSAGES}
+LEAN: dict[str, object] = {"request_policy": LEAN_POLICY, **COMPRESSED_MESSAGES, "reply_codec": "webp-grey"}
 
 
 class AlgorithmError(CerpeError, ValueError):
@@ -61,12 +63,15 @@ class CerpeConfig:
             shipped ``cerpe/data/xfeat_salad_projection.npz``, fitted for the offline descriptor).
         descriptor_codec_tau: the gate threshold on compressed scores (None: the codec's
             calibrated value stored in the projection file, else ``tau``).
-        reply_codec: image reply codec, ``jpeg`` (the paper's) or ``webp``.
+        reply_codec: image reply codec, ``jpeg`` (the paper's), ``webp``, or one of their
+            single-channel forms ``jpeg-grey``, ``webp-grey`` (the channels' mean: all the
+            offline backbone's XFeat features see of a colour image).
         reply_quality: its quality 0-100 (None: ``jpeg_quality``).
         reply_scale: image replies are downsized by this factor (1: full resolution, the
             paper's), intrinsics scaled alike.
         request_retries: image requests sent again, within the step, to a peer whose reply
-            did not come (request or reply lost; counted ``msg:request-retried``); 0: never.
+            did not come (request or reply lost; counted ``msg:request-retried``); 0: never. No
+            effect without loss; under loss a pair without an anchor has no other way to get one.
         descriptor_max_age: when a peer's descriptor of this step is lost, the gate scores
             its last one received if at most this many steps old (counted
             ``descriptor:stale-used``; co-visibility changes little in a step); 0: the
@@ -151,7 +156,7 @@ class CerpeConfig:
     reply_codec: str = "jpeg"
     reply_quality: int | None = None
     reply_scale: float = 1.0
-    request_retries: int = 1
+    request_retries: int = 2
     descriptor_max_age: int = 1
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False

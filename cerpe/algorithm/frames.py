@@ -6,7 +6,7 @@ from collections import Counter
 
 import numpy as np
 
-from ..messages import REPLY_CODECS, ImageReply, MessageError
+from ..messages import JPEG_CODECS, REPLY_CODECS, ImageReply, MessageError
 from ..protocols import DescriptorEncoder, FrameContext, View
 from ..scene import CameraIntrinsics
 from .config import AlgorithmError
@@ -102,9 +102,9 @@ def received_view(other: str, reply: ImageReply) -> tuple[View | None, str]:
     """
     if reply.codec not in REPLY_CODECS:  # a codec of another version: cannot be decoded here
         return None, "unknown-reply-codec"
-    if reply.codec == "jpeg" and not reply.jpeg.startswith(b"\xff\xd8"):  # no start-of-image marker
+    if reply.codec in JPEG_CODECS and not reply.jpeg.startswith(b"\xff\xd8"):  # no start-of-image marker
         return None, "undecodable-jpeg"
-    if reply.codec == "jpeg" and jpeg_truncated(reply.jpeg):
+    if reply.codec in JPEG_CODECS and jpeg_truncated(reply.jpeg):
         return None, "truncated-jpeg"
     try:
         img = reply.image_rgb()

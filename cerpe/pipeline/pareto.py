@@ -18,6 +18,7 @@ the figure is :func:`cerpe.plotting.pareto_figure`, the notebook ``07_pareto``.
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import json
 import logging
 from pathlib import Path
@@ -47,7 +48,7 @@ PARETO_LABELS: dict[str, str] = {
     "always": "always send (image to every peer, every step)",
     "pays": "ours: request when it pays",
     "pays-compressed": "ours + compressed messages (PCA int8 descriptor, WebP 75)",
-    "lean": "ours, lean: + back-off from gates whose images do not place",
+    "lean": "ours, lean: + back-off from gates whose images do not place, grey WebP 75",
     "aliked-lightglue": "per-frame ALIKED+LightGlue (images every step)",
     "sift-ransac": "per-frame SIFT+RANSAC (images every step)",
 }
@@ -88,13 +89,16 @@ def is_current(path: Path, manifest: Path, profile: str, overrides: Mapping, enc
 
 def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profile: str = "offline",
                 schemes: Mapping[str, dict] | None = None, n_encounters: int | None = N_ENCOUNTERS,
-                build: bool = True, progress: bool = True) -> tuple[list[SchemeRun], list[str]]:
+                build: bool = True, progress: bool = True,
+                only: Sequence[str] | None = None) -> tuple[list[SchemeRun], list[str]]:
     """Run (or find) every Pareto setting on the first ``n_encounters`` encounters of each set.
 
     Args:
         sets: ``(name, manifest, Setting or None)``; a None setting is loaded when a run is needed.
         schemes: name -> overrides (default :data:`PARETO_SETTINGS`).
         n_encounters: encounters per set (None: all).
+        only: keep the encounters whose name matches one of these shell patterns (before
+            ``n_encounters``; a set none of whose encounters match is left out).
         build: False only locates finished current runs (notebooks of ``make paper``).
 
     Returns:
@@ -116,6 +120,10 @@ def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profi
                 if encs is None:  # not building: the run says which encounters it ran
                     wanted = read_json(path / "run.json", "run.json")["config"]["encounters"]
                 else:
+                    if only:
+                        encs = [e for e in encs if any(fnmatch.fnmatchcase(e.name, q) for q in only)]
+                        if not encs:
+                            continue
                     encs = encs if n_encounters is None else encs[:int(n_encounters)]
                     wanted = [e.name for e in encs]
                 if not is_current(path, manifest, profile, overrides, wanted):
