@@ -149,23 +149,31 @@ def recover_scale(
 # --------------------------------------------------------------------------- step length
 @dataclass(frozen=True)
 class StepLengthRule:
-    """When a metric ego-motion step is too unlike the motion before it to be believed.
+    """When a metric ego-motion step is too slow after the motion before it to be believed.
 
     A pass can place the current view on the wrong motion: a vehicle ahead that holds
     most keypoints and surface, moving with the camera, makes a car at 8 m/s measure
-    1.7 m/s for as long as it stays in view (development CAD scenes). Its scale then
-    looks collapsed although every depth is right. Kinematics bound what can change
-    between two steps: the speed ``|t| / dt`` of a step is implausible when it differs
-    from the speed of the last accepted step by more than a factor ``max_ratio`` AND by
-    more than ``max_accel_mps2`` times the time since that step plus ``noise_m / dt`` (the
-    position noise of one step, so slow platforms and short steps never trip it). The
-    bound widens with every held step: a speed that persists is accepted once it could
-    have been reached. ``max_accel_mps2 = 0`` switches the rule off.
+    1.7 m/s for as long as it stays in view (development CAD scenes); the scale looks
+    collapsed although every depth is right. Kinematics bound how fast a platform slows
+    down: a step's speed ``|t| / dt`` is implausible when it is below the reference speed
+    (the median of the last ``window`` accepted steps' speeds, once there are
+    ``min_history``) by more than a factor ``max_ratio`` AND by more than
+    ``max_accel_mps2`` times the time since the last accepted step plus ``noise_m / dt``
+    (the position noise of one step, so slow platforms and short steps never trip it).
+    The bound widens with every held step: a slower speed that persists is accepted once
+    the platform could have braked to it.
+
+    Only drops are held. The failure is a collapse (a co-moving object, the at-rest motion
+    prior of a sequence's first steps); a rise after collapsed steps is the odometry
+    recovering, and a median reference is not moved by a single fast step. ``max_accel_mps2
+    = 0`` switches the rule off.
     """
 
     max_ratio: float = 2.0
     max_accel_mps2: float = 5.0
     noise_m: float = 0.05
+    window: int = 5
+    min_history: int = 3
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.max_ratio) and self.max_ratio > 1.0):
@@ -174,22 +182,30 @@ class StepLengthRule:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ScaleError(f"StepLengthRule: {name} must be finite and >= 0, got {v}")
+        if int(self.window) < 1 or not (1 <= int(self.min_history) <= int(self.window)):
+            raise ScaleError(f"StepLengthRule: need 1 <= min_history <= window, got {self.min_history}, {self.window}")
 
     @property
     def enabled(self) -> bool:
         return self.max_accel_mps2 > 0
 
+    def reference(self, speeds_mps: Sequence[float]) -> float | None:
+        """The reference speed of the accepted speeds so far (oldest first); None: too few."""
+        if len(speeds_mps) < int(self.min_history):
+            return None
+        return float(np.median(np.asarray(speeds_mps, np.float64)[-int(self.window):]))
+
     def plausible(self, length_m: float, dt_s: float, ref_speed_mps: float | None, since_ref_s: float) -> bool:
-        """Whether a step of ``length_m`` over ``dt_s`` seconds is believable after a last accepted
-        speed ``ref_speed_mps`` (None: nothing to compare with) ``since_ref_s`` seconds ago."""
+        """Whether a step of ``length_m`` over ``dt_s`` seconds is believable after a reference
+        speed ``ref_speed_mps`` (None: nothing to compare with) whose last step ended
+        ``since_ref_s`` seconds ago."""
         if not self.enabled or ref_speed_mps is None or not (np.isfinite(length_m) and dt_s > 0):
             return True
         speed = length_m / dt_s
         ref = float(ref_speed_mps)
-        lo, hi = ref / self.max_ratio, ref * self.max_ratio
-        if lo <= speed <= hi:
+        if speed * self.max_ratio >= ref:
             return True
-        return abs(speed - ref) <= self.max_accel_mps2 * max(since_ref_s, dt_s) + self.noise_m / dt_s
+        return ref - speed <= self.max_accel_mps2 * max(since_ref_s, dt_s) + self.noise_m / dt_s
 
 
 def step_ratios(lengths_m: np.ndarray, true_lengths_m: np.ndarray, min_true_m: float = 0.0) -> dict[str, float]:

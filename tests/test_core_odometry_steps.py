@@ -16,7 +16,7 @@ def test_rule_known_answers():
     rule = StepLengthRule(max_ratio=2.0, max_accel_mps2=5.0, noise_m=0.05)
     # a car at 8 m/s, 10 Hz: 1.7 m/s one step later is no braking (61 m/s^2)
     assert not rule.plausible(0.17, 0.1, 8.0, 0.1)
-    assert not rule.plausible(1.9, 0.1, 8.0, 0.1)  # nor 19 m/s
+    assert rule.plausible(1.9, 0.1, 8.0, 0.1)  # rises are never held (a collapsed reference recovering)
     assert rule.plausible(0.45, 0.1, 8.0, 0.1)  # 4.5 m/s: within the ratio
     # bound after held steps: 6.3 m/s off needs 5 * t + 0.5 >= 6.3, t >= 1.16 s
     assert not rule.plausible(0.17, 0.1, 8.0, 1.1)
@@ -27,15 +27,21 @@ def test_rule_known_answers():
     # nothing to compare with, or off
     assert rule.plausible(0.17, 0.1, None, 0.0)
     assert StepLengthRule(max_accel_mps2=0.0).plausible(0.17, 0.1, 8.0, 0.1)
+    # the reference: median of the last `window` accepted speeds, once there are `min_history`
+    rule = StepLengthRule(window=3, min_history=2)
+    assert rule.reference([8.0]) is None
+    assert rule.reference([1.0, 8.0, 30.0, 7.0]) == 8.0  # one fast step does not move it
 
 
-@pytest.mark.parametrize("kw", [{"max_ratio": 1.0}, {"max_accel_mps2": -1.0}, {"noise_m": float("nan")}])
+@pytest.mark.parametrize("kw", [{"max_ratio": 1.0}, {"max_accel_mps2": -1.0}, {"noise_m": float("nan")},
+                                {"window": 2, "min_history": 3}])
 def test_rule_refuses_bad_values(kw):
     with pytest.raises(ScaleError):
         StepLengthRule(**kw)
     with pytest.raises(AlgorithmError, match="step rule"):
         CerpeConfig(**{{"max_ratio": "ego_max_step_ratio", "max_accel_mps2": "ego_max_accel_mps2",
-                        "noise_m": "ego_step_noise_m"}[k]: v for k, v in kw.items()})
+                        "noise_m": "ego_step_noise_m", "window": "ego_step_window",
+                        "min_history": "ego_step_min_history"}[k]: v for k, v in kw.items()})
 
 
 def test_step_ratios_figures():
@@ -87,7 +93,7 @@ def test_collapsed_step_is_held_and_counted():
     got, raw = _step_lengths(_odometry(held, "r0")), _step_lengths(_odometry(free, "r0"))
     k = COLLAPSED - 1  # index of step COLLAPSED's length
     assert raw[k] == pytest.approx(0.2 * true[k], rel=1e-6)  # without the rule: the collapse itself
-    assert got[k] == pytest.approx(got[k - 1], rel=1e-9)  # held at the last accepted speed
+    assert got[k] == pytest.approx(np.median(true[k - 5:k]), rel=1e-6)  # held at the median of 5 accepted
     assert got[k] == pytest.approx(true[k], rel=0.05)
     counted = {res.step: r.degradations for res in held for r in res.robots if r.robot == "r0"}
     assert counted[COLLAPSED] == ["ego:step-held"]

@@ -58,7 +58,7 @@ class RobotAgent(GateSide):
         self.last_scale = float("nan")
         self.step_rule = self.config.step_rule()
         self.ego_base: tuple[float, np.ndarray] | None = None  # (stamp, X) of the last pose the odometry set
-        self.ego_ref: tuple[float, float, np.ndarray] | None = None  # last accepted step: (speed, stamp, t)
+        self.ego_speeds: list[tuple[float, float, np.ndarray]] = []  # accepted steps: (speed, stamp, t), newest last
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
@@ -282,13 +282,13 @@ class RobotAgent(GateSide):
         kfs = self.memory.newest_first()
         if out is None:
             st.ego_status = "blank"
-            self.ego_base = self.ego_ref = None  # what the next step measures from is unknown
+            self.ego_base, self.ego_speeds = None, []  # what the next step measures from is unknown
             return self.X
         if not kfs:
             st.ego_status = "first" if self.last_step is None else "no-keyframe"
             if st.ego_status == "no-keyframe":
                 self.degrade("ego:no-keyframe")
-                self.ego_base = self.ego_ref = None
+                self.ego_base, self.ego_speeds = None, []
             else:
                 self.ego_base = (st.stamp_s, self.X.copy())
             return self.X
@@ -316,36 +316,37 @@ class RobotAgent(GateSide):
                     return self.X
             st.ego_status = "keyframes-invalid"
         self.degrade("ego:no-estimate")
-        self.ego_base = self.ego_ref = None
+        self.ego_base, self.ego_speeds = None, []
         return self.X
 
     def _step_rule(self, st: StepState, X_new: np.ndarray) -> np.ndarray:
-        """``X_new``, or, when its step is implausible after the last accepted one
+        """``X_new``, or, when its step is implausibly slow after the accepted ones
         (:class:`~cerpe.scale.StepLengthRule`), the last pose moved by the pass's rotation and
-        the last accepted step's translation direction at that step's speed (``ego_status``
+        the last accepted step's translation direction at the reference speed (``ego_status``
         ``held``, counted ``ego:step-held``; the pose graph counts the step as lost odometry).
 
-        After a step without an estimate (``X`` kept) the next step sets the reference unchecked:
-        what it is measured from no longer is where the robot was."""
-        base, ref = self.ego_base, self.ego_ref
+        After a step without an estimate (``X`` kept) the history starts again: what the next
+        step is measured from no longer is where the robot was."""
+        base, hist = self.ego_base, self.ego_speeds
         self.ego_base = (st.stamp_s, X_new)
         if base is None or not st.stamp_s > base[0]:
-            self.ego_ref = None
+            self.ego_speeds = []
             return X_new
         dt = st.stamp_s - base[0]
         inc = se3_inverse(base[1]) @ X_new
         length = float(np.linalg.norm(inc[:3, 3]))
-        if ref is not None and not self.step_rule.plausible(length, dt, ref[0], st.stamp_s - ref[1]):
+        ref = self.step_rule.reference([v for v, _, _ in hist])
+        if ref is not None and not self.step_rule.plausible(length, dt, ref, st.stamp_s - hist[-1][1]):
             held = inc.copy()
-            t_ref = ref[2]
+            t_ref = hist[-1][2]
             n = float(np.linalg.norm(t_ref))
-            held[:3, 3] = t_ref * (ref[0] * dt / n) if n > 0 else 0.0
+            held[:3, 3] = t_ref * (ref * dt / n) if n > 0 else 0.0
             X = base[1] @ held
             self.ego_base = (st.stamp_s, X)
             st.ego_status = "held"
             self.degrade("ego:step-held")
             return X
-        self.ego_ref = (length / dt, st.stamp_s, inc[:3, 3].copy())
+        self.ego_speeds = (hist + [(length / dt, st.stamp_s, inc[:3, 3].copy())])[-int(self.step_rule.window):]
         return X_new
 
     # ---------------------------------------------------------------- 7. pose broadcast

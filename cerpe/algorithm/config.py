@@ -76,10 +76,12 @@ class CerpeConfig:
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
             are evaluated with ground-truth-scale translation only.
-        ego_max_accel_mps2, ego_max_step_ratio, ego_step_noise_m: the step-length rule of the
-            odometry (:class:`cerpe.scale.StepLengthRule`): a step whose speed differs from the
-            last accepted one by more than the ratio and than the acceleration (plus the noise)
-            allows is held at that speed (counted ``ego:step-held``); acceleration 0: off.
+        ego_max_accel_mps2, ego_max_step_ratio, ego_step_noise_m, ego_step_window,
+            ego_step_min_history: the step-length rule of the odometry
+            (:class:`cerpe.scale.StepLengthRule`): a step slower than the median speed of the
+            last ``window`` accepted steps by more than the ratio and than braking at the
+            acceleration (plus the noise) allows is held at that speed (counted
+            ``ego:step-held``); acceleration 0: off.
         track_previous: also hand the previous frame (with its metric depth) to the
             joint pass and compose the odometry from the previous-to-current increment
             (METHOD.md 2); the newest keyframe is the fallback. False is the paper's
@@ -164,6 +166,8 @@ class CerpeConfig:
     ego_max_accel_mps2: float = 5.0
     ego_max_step_ratio: float = 2.0
     ego_step_noise_m: float = 0.05
+    ego_step_window: int = 5
+    ego_step_min_history: int = 3
     backbone_metric_unit: bool = True
     min_image_std: float = 2.0
     gate_memory: bool = True
@@ -265,7 +269,8 @@ class CerpeConfig:
         """The odometry's step-length rule (:class:`cerpe.scale.StepLengthRule`)."""
         try:
             return StepLengthRule(max_ratio=float(self.ego_max_step_ratio), max_accel_mps2=float(self.ego_max_accel_mps2),
-                                  noise_m=float(self.ego_step_noise_m))
+                                  noise_m=float(self.ego_step_noise_m), window=int(self.ego_step_window),
+                                  min_history=int(self.ego_step_min_history))
         except ScaleError as exc:
             raise AlgorithmError(f"config: ego step rule: {exc}") from None
 
