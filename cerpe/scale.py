@@ -157,7 +157,7 @@ class StepLengthRule:
     collapsed although every depth is right. Kinematics bound how fast a platform slows
     down: a step's speed ``|t| / dt`` is implausible when it is below the reference speed
     (the median of the last ``window`` accepted steps' speeds, once there are
-    ``min_history``) by more than a factor ``max_ratio`` AND by more than
+    ``min_history`` and they are steady) by more than a factor ``max_ratio`` AND by more than
     ``max_accel_mps2`` times the time since the last accepted step plus ``noise_m / dt``
     (the position noise of one step, so slow platforms and short steps never trip it).
     The bound widens with every held step: a slower speed that persists is accepted once
@@ -190,10 +190,15 @@ class StepLengthRule:
         return self.max_accel_mps2 > 0
 
     def reference(self, speeds_mps: Sequence[float]) -> float | None:
-        """The reference speed of the accepted speeds so far (oldest first); None: too few."""
+        """The reference speed of the accepted speeds so far (oldest first): their median over the
+        last ``window``; None when there are fewer than ``min_history`` or they are not steady
+        (fastest more than ``max_ratio`` times the slowest: no speed to hold)."""
         if len(speeds_mps) < int(self.min_history):
             return None
-        return float(np.median(np.asarray(speeds_mps, np.float64)[-int(self.window):]))
+        v = np.asarray(speeds_mps, np.float64)[-int(self.window):]
+        if v.max() > self.max_ratio * v.min():
+            return None
+        return float(np.median(v))
 
     def plausible(self, length_m: float, dt_s: float, ref_speed_mps: float | None, since_ref_s: float) -> bool:
         """Whether a step of ``length_m`` over ``dt_s`` seconds is believable after a reference

@@ -30,7 +30,8 @@ def test_rule_known_answers():
     # the reference: median of the last `window` accepted speeds, once there are `min_history`
     rule = StepLengthRule(window=3, min_history=2)
     assert rule.reference([8.0]) is None
-    assert rule.reference([1.0, 8.0, 30.0, 7.0]) == 8.0  # one fast step does not move it
+    assert rule.reference([1.0, 8.0, 9.0, 7.0]) == 8.0  # the last 3; an older slow step does not count
+    assert rule.reference([8.0, 30.0, 7.0]) is None  # not steady: no speed to hold
 
 
 @pytest.mark.parametrize("kw", [{"max_ratio": 1.0}, {"max_accel_mps2": -1.0}, {"noise_m": float("nan")},
