@@ -144,3 +144,83 @@ def recover_scale(
             f"#{k} {r}" for k, r in skipped)
         return ScaleEstimate(float("nan"), medians, counts, 0, skipped, reason)
     return ScaleEstimate(float(np.mean(medians[used])), medians, counts, n_used, skipped)
+
+
+# --------------------------------------------------------------------------- step length
+@dataclass(frozen=True)
+class StepLengthRule:
+    """When a metric ego-motion step is too slow after the motion before it to be believed.
+
+    A pass can place the current view on the wrong motion: a vehicle ahead that holds
+    most keypoints and surface, moving with the camera, makes a car at 8 m/s measure
+    1.7 m/s for as long as it stays in view (development CAD scenes); the scale looks
+    collapsed although every depth is right. Kinematics bound how fast a platform slows
+    down: a step's speed ``|t| / dt`` is implausible when it is below the reference speed
+    (the median of the last ``window`` accepted steps' speeds, once there are
+    ``min_history`` and they are steady) by more than a factor ``max_ratio`` AND by more than
+    ``max_accel_mps2`` times the time since the last accepted step plus ``noise_m / dt``
+    (the position noise of one step, so slow platforms and short steps never trip it).
+    The bound widens with every held step: a slower speed that persists is accepted once
+    the platform could have braked to it.
+
+    Only drops are held. The failure is a collapse (a co-moving object, the at-rest motion
+    prior of a sequence's first steps); a rise after collapsed steps is the odometry
+    recovering, and a median reference is not moved by a single fast step. ``max_accel_mps2
+    = 0`` switches the rule off.
+    """
+
+    max_ratio: float = 2.0
+    max_accel_mps2: float = 5.0
+    noise_m: float = 0.05
+    window: int = 5
+    min_history: int = 3
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.max_ratio) and self.max_ratio > 1.0):
+            raise ScaleError(f"StepLengthRule: max_ratio must be > 1, got {self.max_ratio}")
+        for name in ("max_accel_mps2", "noise_m"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ScaleError(f"StepLengthRule: {name} must be finite and >= 0, got {v}")
+        if int(self.window) < 1 or not (1 <= int(self.min_history) <= int(self.window)):
+            raise ScaleError(f"StepLengthRule: need 1 <= min_history <= window, got {self.min_history}, {self.window}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.max_accel_mps2 > 0
+
+    def reference(self, speeds_mps: Sequence[float]) -> float | None:
+        """The reference speed of the accepted speeds so far (oldest first): their median over the
+        last ``window``; None when there are fewer than ``min_history`` or they are not steady
+        (fastest more than ``max_ratio`` times the slowest: no speed to hold)."""
+        if len(speeds_mps) < int(self.min_history):
+            return None
+        v = np.asarray(speeds_mps, np.float64)[-int(self.window):]
+        if v.max() > self.max_ratio * v.min():
+            return None
+        return float(np.median(v))
+
+    def plausible(self, length_m: float, dt_s: float, ref_speed_mps: float | None, since_ref_s: float) -> bool:
+        """Whether a step of ``length_m`` over ``dt_s`` seconds is believable after a reference
+        speed ``ref_speed_mps`` (None: nothing to compare with) whose last step ended
+        ``since_ref_s`` seconds ago."""
+        if not self.enabled or ref_speed_mps is None or not (np.isfinite(length_m) and dt_s > 0):
+            return True
+        speed = length_m / dt_s
+        ref = float(ref_speed_mps)
+        if speed * self.max_ratio >= ref:
+            return True
+        return ref - speed <= self.max_accel_mps2 * max(since_ref_s, dt_s) + self.noise_m / dt_s
+
+
+def step_ratios(lengths_m: np.ndarray, true_lengths_m: np.ndarray, min_true_m: float = 0.0) -> dict[str, float]:
+    """Figures of predicted / true step length over the steps whose true length is at least
+    ``min_true_m``: ``n``, ``median``, ``p10``, ``p90``, ``outside`` (ratios outside [0.5, 2])."""
+    L = np.asarray(lengths_m, np.float64)
+    G = np.asarray(true_lengths_m, np.float64)
+    ok = np.isfinite(L) & np.isfinite(G) & (G > 0) & (G >= min_true_m)
+    r = L[ok] / G[ok]
+    if len(r) == 0:
+        return {"n": 0, "median": float("nan"), "p10": float("nan"), "p90": float("nan"), "outside": 0}
+    return {"n": int(len(r)), "median": float(np.median(r)), "p10": float(np.quantile(r, 0.1)),
+            "p90": float(np.quantile(r, 0.9)), "outside": int(np.count_nonzero((r < 0.5) | (r > 2.0)))}

@@ -20,6 +20,14 @@ used by its own SfM poses) and a synthetic suite (exact depth) are controls; the
 frames are also run through the fr1 lens and a barrel lens (k1 = -0.2) that nobody undoes.
 
     python scripts/dev_scale.py --synth build/dev-synth/indoor-s7/manifest.yaml
+
+``--runs DIR`` instead measures the odometry of finished CERPE runs (``cerpe dev``'s
+``DIR/runs/<set>/cerpe/``): per set, the predicted / true length of every step of every
+robot (``robots.csv``'s ``T_odom_cam`` against the manifest's ground truth): median, 10th
+and 90th percentile, the steps outside [0.5, 2], and the steps held by the odometry's
+step-length rule (``ego:step-held``)::
+
+    python scripts/dev_scale.py --runs build/dev
 """
 from __future__ import annotations
 
@@ -156,6 +164,60 @@ def run(name: str, frames: list[Frame], gaps: list[int], methods: list[str], arg
               f"| {s['along']:.3f} | {s['err_mm']:.1f} | {s['rot_deg']:.2f} |", flush=True)
 
 
+def run_step_lengths(run_dir: Path, min_true_m: float) -> tuple[list[float], list[float], int]:
+    """Predicted and true step lengths of every robot of every encounter of one run folder
+    (steps whose true length is below ``min_true_m`` left out) and the steps held."""
+    import json
+
+    import pandas as pd
+
+    from cerpe.geometry import se3_from_tq_xyzw, se3_inverse
+    from cerpe.pipeline.run import load_manifest_setting
+
+    setting = load_manifest_setting(Path(json.loads((run_dir / "run.json").read_text())["manifest"]))
+    pred, true, held = [], [], 0
+    for enc in setting.encounters:
+        f = run_dir / enc.name / "robots.csv"
+        if not f.is_file():
+            continue
+        df = pd.read_csv(f)
+        for r in enc.robots:
+            d = df[df.robot == r.robot_id].sort_values("step")
+            held += int(d.degradations.astype(str).str.count("ego:step-held").sum())
+            X = [se3_from_tq_xyzw(row[["odom_tx", "odom_ty", "odom_tz"]].to_numpy(float),
+                                  row[["odom_qx", "odom_qy", "odom_qz", "odom_qw"]].to_numpy(float)) for _, row in d.iterrows()]
+            G = r.T_world_cam[d.step.to_numpy()]
+            for k in range(1, len(X)):
+                if not (np.all(np.isfinite(G[k - 1])) and np.all(np.isfinite(G[k]))):
+                    continue
+                tg = float(np.linalg.norm((se3_inverse(G[k - 1]) @ G[k])[:3, 3]))
+                if tg >= min_true_m:
+                    pred.append(float(np.linalg.norm((se3_inverse(X[k - 1]) @ X[k])[:3, 3])))
+                    true.append(tg)
+    return pred, true, held
+
+
+def runs_report(root: Path, method: str, min_true_m: float) -> None:
+    """One line per set of ``root/runs``: the step-length figures of ``method``'s odometry."""
+    import json
+
+    from cerpe.scale import step_ratios
+
+    print("| set | steps | median pred/true | p10 | p90 | outside [0.5, 2] | held |")
+    print("|---|---|---|---|---|---|---|")
+    for sd in sorted((root / "runs").iterdir()):
+        rd = sd / method
+        if not (rd / "run.json").is_file():
+            continue
+        if not json.loads((rd / "run.json").read_text()).get("metric_scale", True):
+            print(f"| {sd.name} | no metric depth: up to scale | | | | | |")
+            continue
+        pred, true, held = run_step_lengths(rd, min_true_m)
+        s = step_ratios(np.array(pred), np.array(true))
+        print(f"| {sd.name} | {s['n']} | {s['median']:.3f} | {s['p10']:.3f} | {s['p90']:.3f} | {s['outside']} | {held} |",
+              flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--min-baseline", type=float, default=0.02, help="pairs with a shorter true baseline are left out")
@@ -163,7 +225,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--methods", nargs="+",
                     default=["gt-vs-depth", "keypoint_depths", "nearest", "backbone", "backbone-nodense"])
     ap.add_argument("--data", nargs="+", default=["fr1", "sun3d"], help="real sets to run (fr1, sun3d)")
+    ap.add_argument("--runs", type=Path, default=None,
+                    help="a `cerpe dev --out` folder: measure its CERPE runs' odometry step lengths instead")
+    ap.add_argument("--method", default="cerpe", help="with --runs: the method whose odometry is measured")
+    ap.add_argument("--min-step", type=float, default=0.005,
+                    help="with --runs: steps whose true length is shorter (m) are left out")
     args = ap.parse_args(argv)
+    if args.runs is not None:
+        runs_report(args.runs, args.method, args.min_step)
+        return 0
     enc = XFeatEncoder()
     bbs = {"backbone": OfflineGeometryBackbone(encoder=enc),
            "backbone-nodense": OfflineGeometryBackbone({"dense_refine": False}, encoder=enc)}

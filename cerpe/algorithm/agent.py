@@ -56,6 +56,9 @@ class RobotAgent(GateSide):
         self.memory = KeyframeMemory(self.config.memory_config())
         self.X = np.eye(4)
         self.last_scale = float("nan")
+        self.step_rule = self.config.step_rule()
+        self.ego_base: tuple[float, np.ndarray] | None = None  # (stamp, X) of the last pose the odometry set
+        self.ego_speeds: list[tuple[float, float, np.ndarray]] = []  # accepted steps: (speed, stamp, t), newest last
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
@@ -279,11 +282,15 @@ class RobotAgent(GateSide):
         kfs = self.memory.newest_first()
         if out is None:
             st.ego_status = "blank"
+            self.ego_base, self.ego_speeds = None, []  # what the next step measures from is unknown
             return self.X
         if not kfs:
             st.ego_status = "first" if self.last_step is None else "no-keyframe"
             if st.ego_status == "no-keyframe":
                 self.degrade("ego:no-keyframe")
+                self.ego_base, self.ego_speeds = None, []
+            else:
+                self.ego_base = (st.stamp_s, self.X.copy())
             return self.X
         if not out.valid[0]:
             st.ego_status = "current-invalid"
@@ -302,14 +309,45 @@ class RobotAgent(GateSide):
                 starts.setdefault(1 + k, kf.T_odom_cam)
             for s, X_s in starts.items():
                 if out.valid[s]:
-                    self.X = ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale)
                     st.ego_status = "ok"
+                    self.X = self._step_rule(st, ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale))
                     if s != ref and s != p and s > 1:
                         self.degrade("ego:older-keyframe")
                     return self.X
             st.ego_status = "keyframes-invalid"
         self.degrade("ego:no-estimate")
+        self.ego_base, self.ego_speeds = None, []
         return self.X
+
+    def _step_rule(self, st: StepState, X_new: np.ndarray) -> np.ndarray:
+        """``X_new``, or, when its step is implausibly slow after the accepted ones
+        (:class:`~cerpe.scale.StepLengthRule`), the last pose moved by the pass's rotation and
+        the last accepted step's translation direction at the reference speed (``ego_status``
+        ``held``, counted ``ego:step-held``; the pose graph counts the step as lost odometry).
+
+        After a step without an estimate (``X`` kept) the history starts again: what the next
+        step is measured from no longer is where the robot was."""
+        base, hist = self.ego_base, self.ego_speeds
+        self.ego_base = (st.stamp_s, X_new)
+        if base is None or not st.stamp_s > base[0]:
+            self.ego_speeds = []
+            return X_new
+        dt = st.stamp_s - base[0]
+        inc = se3_inverse(base[1]) @ X_new
+        length = float(np.linalg.norm(inc[:3, 3]))
+        ref = self.step_rule.reference([v for v, _, _ in hist])
+        if ref is not None and not self.step_rule.plausible(length, dt, ref, st.stamp_s - hist[-1][1]):
+            held = inc.copy()
+            t_ref = hist[-1][2]
+            n = float(np.linalg.norm(t_ref))
+            held[:3, 3] = t_ref * (ref * dt / n) if n > 0 else 0.0
+            X = base[1] @ held
+            self.ego_base = (st.stamp_s, X)
+            st.ego_status = "held"
+            self.degrade("ego:step-held")
+            return X
+        self.ego_speeds = (hist + [(length / dt, st.stamp_s, inc[:3, 3].copy())])[-int(self.step_rule.window):]
+        return X_new
 
     # ---------------------------------------------------------------- 7. pose broadcast
     def pose_frame(self) -> bytes:
@@ -554,7 +592,7 @@ class RobotAgent(GateSide):
         self.previous = None
         if not self.config.track_previous:
             return
-        if st.ego_status == "ok" or (st.ego_status == "first" and st.out is not None):
+        if st.ego_status in ("ok", "held") or (st.ego_status == "first" and st.out is not None):
             # joint_pass attached this frame's depth and memo to st.view
             self.previous = Previous(step=st.step, view=st.view, T_odom_cam=self.X.copy())
 

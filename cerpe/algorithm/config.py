@@ -10,6 +10,7 @@ from ..errors import CerpeError
 from ..memory import MemoryConfig
 from ..compress import CODECS as DESCRIPTOR_CODECS
 from ..messages import DESCRIPTOR_DTYPES, REPLY_CODECS
+from ..scale import ScaleError, StepLengthRule
 from .anchors import AnchorConfig
 from .graph import GraphConfig
 from .policy import PolicyConfig
@@ -80,6 +81,12 @@ class CerpeConfig:
         unit_scale_without_depth: with no metric depth at all (depth source ``none``)
             use s = 1 instead of giving up (counted ``scale:unit-no-depth``); such runs
             are evaluated with ground-truth-scale translation only.
+        ego_max_accel_mps2, ego_max_step_ratio, ego_step_noise_m, ego_step_window,
+            ego_step_min_history: the step-length rule of the odometry
+            (:class:`cerpe.scale.StepLengthRule`): a step slower than the median speed of the
+            last ``window`` accepted steps by more than the ratio and than braking at the
+            acceleration (plus the noise) allows is held at that speed (counted
+            ``ego:step-held``); acceleration 0: off.
         track_previous: also hand the previous frame (with its metric depth) to the
             joint pass and compose the odometry from the previous-to-current increment
             (METHOD.md 2); the newest keyframe is the fallback. False is the paper's
@@ -161,6 +168,11 @@ class CerpeConfig:
     min_scale_pixels: int = 25
     unit_scale_without_depth: bool = False
     track_previous: bool = True
+    ego_max_accel_mps2: float = 5.0
+    ego_max_step_ratio: float = 2.0
+    ego_step_noise_m: float = 0.05
+    ego_step_window: int = 5
+    ego_step_min_history: int = 3
     backbone_metric_unit: bool = True
     min_image_std: float = 2.0
     gate_memory: bool = True
@@ -214,6 +226,7 @@ class CerpeConfig:
                 raise AlgorithmError(f"config: {name} must be >= 0, got {getattr(self, name)}")
         if int(self.min_scale_pixels) < 1:
             raise AlgorithmError(f"config: min_scale_pixels must be >= 1, got {self.min_scale_pixels}")
+        self.step_rule()  # checks the step-length rule's values
         if not (np.isfinite(self.min_image_std) and self.min_image_std >= 0):
             raise AlgorithmError(f"config: min_image_std must be finite and >= 0, got {self.min_image_std}")
         for name in ("anchor_rot_tol_rad", "anchor_trans_tol_m", "anchor_rot_drift_per_step",
@@ -256,6 +269,15 @@ class CerpeConfig:
     def memory_config(self) -> MemoryConfig:
         r = self if self.tau_m is not None and self.tau_k is not None else self.resolved()
         return MemoryConfig(tau_m=r.tau_m, tau_k=r.tau_k, delta_k=self.delta_k, capacity=self.memory_capacity)
+
+    def step_rule(self) -> StepLengthRule:
+        """The odometry's step-length rule (:class:`cerpe.scale.StepLengthRule`)."""
+        try:
+            return StepLengthRule(max_ratio=float(self.ego_max_step_ratio), max_accel_mps2=float(self.ego_max_accel_mps2),
+                                  noise_m=float(self.ego_step_noise_m), window=int(self.ego_step_window),
+                                  min_history=int(self.ego_step_min_history))
+        except ScaleError as exc:
+            raise AlgorithmError(f"config: ego step rule: {exc}") from None
 
     def anchor_config(self) -> AnchorConfig:
         """The tolerances of anchor verification (:mod:`cerpe.algorithm.anchors`)."""

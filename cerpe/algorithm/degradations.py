@@ -24,6 +24,10 @@ DEGRADATIONS: dict[str, str] = {
     "ego:no-estimate": "the pass placed neither the current view nor a view to chain through, or there is no "
                        "scale: X keeps its value (constant position)",
     "ego:older-keyframe": "odometry chained through an older keyframe (newer views not placed)",
+    "ego:step-held": "the step is implausibly slow after the accepted ones (below their median speed by more than "
+                     "ego_max_step_ratio and than braking at ego_max_accel_mps2 allows): the pass's rotation is "
+                     "kept, the translation is the last accepted step's at the median speed; the pose graph "
+                     "counts the step's odometry as lost",
     "ego:no-keyframe": "the memory is empty after the first step (the first frames were blank)",
     "memory:reinit": "no keyframe could be placed but the current view could: memory restarts from it at the last X",
     "scale:fallback-last": "the memory gave no scale: the last valid one is used",
