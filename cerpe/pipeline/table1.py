@@ -102,7 +102,8 @@ def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
     Says whether the scale step ran (it is skipped for passes whose unit is already the
     metre, ``BackboneOutput.metric_unit``, when ``backbone_metric_unit`` is on: the offline
     backbone anchors its passes on the metric depth priors) and through which view ego-motion
-    is chained (``track_previous``: the previous frame; off: keyframes only, the paper's pass).
+    is chained (``track_previous``: the previous frame; off: keyframes only, the paper's pass),
+    and whether the odometry's step-length rule was on (``ego_max_accel_mps2`` > 0).
     """
     note = [PRESET_NOTES.get(preset, f"CERPE uses the {preset!r} backbone preset.")]
     metric = {bool(c["backbone_metric_unit"]) for c in cerpe_configs if "backbone_metric_unit" in c}
@@ -121,7 +122,11 @@ def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
                     "through the keyframes as in the paper's pass.")
     elif prev == {False}:
         note.append("Ego-motion is chained through the keyframes, as in the paper's pass (track_previous off).")
-    if len(metric) > 1 or len(prev) > 1:
+    held = {float(c["ego_max_accel_mps2"]) > 0 for c in cerpe_configs if "ego_max_accel_mps2" in c}
+    if held == {True}:
+        note.append("A metric ego-motion step far slower than the robot's last steady ones, more than braking "
+                    "explains, is held at their speed (CerpeConfig.ego_max_accel_mps2; not in the paper).")
+    if len(metric) > 1 or len(prev) > 1 or len(held) > 1:
         note.append("These settings differ between the CERPE runs (see their run.json).")
     return " ".join(note)
 
