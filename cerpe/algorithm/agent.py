@@ -15,8 +15,15 @@ from ..compress import make_codec
 from ..geometry import pose_cov_sigmas, scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory
 from ..messages import ImageReply, ImageRequest, PoseMessage
-from ..protocols import (REASON_APPEARANCE, BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource,
-                         PoseBackbone, View)
+from ..protocols import (
+    REASON_APPEARANCE,
+    BackboneOutput,
+    DescriptorEncoder,
+    FrameContext,
+    MetricDepthSource,
+    PoseBackbone,
+    View,
+)
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
 from .anchors import Anchor, PairAnchors
