@@ -28,6 +28,10 @@ class BackboneError(CerpeError, ValueError):
     """Malformed input to a plug-in (wrong shape, dtype, descriptor length...)."""
 
 
+# BackboneOutput.reasons of a collaborator view whose placement by keypoints the images contradict
+REASON_APPEARANCE = "appearance-mismatch"
+
+
 @dataclass
 class View:
     """One image handed to a backbone.
@@ -102,7 +106,9 @@ class BackboneOutput:
             translations, 0 where unknown (may be sparse).
         depth_conf: ``S`` arrays like ``depth``, >= 0, 0 where invalid.
         intrinsics: ``S`` intrinsics (estimated or passed through), None if unknown.
-        reasons: per-view reason when not valid (``""`` when valid).
+        reasons: per-view reason when not valid (``""`` when valid); :data:`REASON_APPEARANCE`
+            for a collaborator view placed by the keypoints whose placement the images
+            themselves contradict (the algorithm counts it ``direct:appearance-mismatch``).
         timings_s: stage name -> seconds spent in this pass.
         extra: other per-pass figures a backbone reports (e.g. peak VRAM bytes),
             name -> number; may be empty.

@@ -15,7 +15,15 @@ from ..compress import make_codec
 from ..geometry import pose_cov_sigmas, scale_translation, se3_inverse
 from ..memory import Keyframe, KeyframeMemory
 from ..messages import ImageReply, ImageRequest, PoseMessage
-from ..protocols import BackboneOutput, DescriptorEncoder, FrameContext, MetricDepthSource, PoseBackbone, View
+from ..protocols import (
+    REASON_APPEARANCE,
+    BackboneOutput,
+    DescriptorEncoder,
+    FrameContext,
+    MetricDepthSource,
+    PoseBackbone,
+    View,
+)
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
 from .anchors import Anchor, PairAnchors
@@ -523,6 +531,9 @@ class RobotAgent(GateSide):
             return [], st.gate_reason.get(other, "reply-missing")
         regs = [r for r in out.registrations.get(k, ()) if r.via in st.own_views]
         if not regs:
+            if not out.valid[k] and k < len(out.reasons) and out.reasons[k] == REASON_APPEARANCE:
+                self.degrade("direct:appearance-mismatch")  # placed by keypoints, contradicted by the images
+                return [], "appearance-mismatch"
             if not out.valid[k]:
                 return [], "collaborator-view-not-placed"
             if not out.valid[0]:

@@ -54,6 +54,9 @@ DEGRADATIONS: dict[str, str] = {
                            "not an anchor; the anchor's propagation is reported instead",
     "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "
                        "the anchor",
+    "direct:appearance-mismatch": "the backbone placed the collaborator's view by keypoints but the images contradict "
+                                  "the placement (where it says the views overlap they do not look alike: repeated "
+                                  "or mirrored structure): no direct estimate this step, the anchor is carried",
     "anchor:odometry-jump": "one robot's odometry turned by more than anchor_max_odo_rot_step in one step (a lost "
                             "track): the pair forgot its anchor and candidates rather than carry them through it",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",

@@ -85,13 +85,15 @@ class OfflineGeometryBackbone:
             ``min_inliers_mnn`` (mutual-NN stage), ``min_inlier_ratio``,
             ``pnp_px``, ``epipolar_px``, ``max_views`` (own views the learned stage
             tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
-            ``feature_cache_size``, ``scale_match_px``.
+            ``feature_cache_size``, ``scale_match_px``, and the appearance check of every
+            metric collaborator placement (joint or registered): ``appearance_check``,
+            ``appearance_min_ncc``, ``appearance_min_pixels`` (:func:`.cross.check_appearance`).
 
     ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
     ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
     ``cross-learned`` (collaborator views the learned stage ran for),
     ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``,
-    ``cross-image-size-mismatch``); statistics only, they change no result.
+    ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``); statistics only, they change no result.
     """
 
     default_conf: dict[str, Any] = {
@@ -194,6 +196,7 @@ class OfflineGeometryBackbone:
                  matcher=self.matcher, memos=memos, timings=timings)
         own = [s for s in range(S) if not is_collab[s]]
         rec, reasons = self._solve_own(p, own)
+        cross_mod.check_joint_placements(p, rec, [s for s in own if views[s].role == "collaborator"], reasons)
         T = np.full((S, 4, 4), np.nan)
         valid = np.zeros(S, bool)
         valid[0] = True

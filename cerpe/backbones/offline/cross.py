@@ -17,6 +17,15 @@ registration needs ``min_inliers_mnn`` verified inliers from the mutual-NN stage
 evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from the
 learned one (and, for the essential matrix, an inlier ratio of ``min_inlier_ratio``); a
 learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
+
+A metric placement of a collaborator on fewer than ``appearance_max_inliers`` inliers, in the
+joint pass or here, must also pass the **appearance check** (:func:`check_appearance`): the own
+view's depth pixels, moved into the collaborator's camera by the placement, must look like what
+the collaborator saw there (normalised cross-correlation of the grey levels at least
+``appearance_min_ncc``). Repeated or mirrored structure gives a handful of consistent keypoint
+inliers for a pose that no surface supports (the collaborator put about where the robot
+stands, turned alike, while it is metres away or facing elsewhere); such a placement is
+dropped (reason :data:`cerpe.protocols.REASON_APPEARANCE`).
 """
 from __future__ import annotations
 
@@ -26,11 +35,12 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
-from ...protocols import Registration
+from ...protocols import REASON_APPEARANCE, Registration
 from ..cache import LRUCache
 from .context import OfflineBackboneError, Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T
 from .two_view import relative_pose, triangulate_pair
+from .vote import photometric_agreement
 
 MATCHERS = ("aliked", "xfeat", "none")
 
@@ -52,6 +62,12 @@ default_conf: dict[str, Any] = {
     "filter_threshold": 0.1,
     "feature_cache_size": 32,
     "scale_match_px": 1.5,
+    # the appearance check of metric collaborator placements (False: off)
+    # (the placement of a collaborator on a handful of keypoints, as repeated structure gives one)
+    "appearance_check": True,
+    "appearance_max_inliers": 40,  # placements with at least this many inliers are not judged
+    "appearance_min_ncc": 0.5,
+    "appearance_min_pixels": 200,
 }
 
 
@@ -62,6 +78,9 @@ def check_conf(c: Mapping[str, Any]) -> None:
                                    f"got {c['enabled']!r}")
     if c["matcher"] not in MATCHERS:
         raise OfflineBackboneError(f"offline backbone conf: cross.matcher {c['matcher']!r}; valid: {', '.join(MATCHERS)}")
+    if not -1.0 <= float(c["appearance_min_ncc"]) <= 1.0:
+        raise OfflineBackboneError(f"offline backbone conf: cross.appearance_min_ncc must be in [-1, 1], "
+                                   f"got {c['appearance_min_ncc']}")
     for name in ("min_inliers", "min_inliers_mnn", "max_views", "max_keypoints"):
         if int(c[name]) < 1:
             raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be >= 1, got {c[name]}")
@@ -179,9 +198,14 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
                 best[s] = res
         p.timings["cross_learned"] = p.timings.get("cross_learned", 0.0) + time.perf_counter() - tl
     out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None]
+    placed = bool(out)
+    if mode == "pnp":
+        out = [r for r in out if not check_appearance(p, r.via, k, r.T_via_cam, r.inliers)]
     out.sort(key=lambda r: (-r.inliers, r.via))
     if out:
         return out, ""
+    if placed:
+        return [], REASON_APPEARANCE
     return [], "few-inliers" if any(m >= need_mnn for _, _, m in best.values()) else "few-matches"
 
 
@@ -242,6 +266,50 @@ def pass_unit(p: Pass, rec: Recon | None, s: int, k: int, uv_s: np.ndarray, uv_k
                 return unit
     p.counts["cross-unscaled"] += 1
     return 1.0
+
+
+def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int) -> str:
+    """The appearance check of collaborator ``k`` placed at ``T_a_k`` (metres) in own view ``a``
+    on ``inliers`` keypoint inliers: ``""`` (agrees, or not judged) or
+    :data:`~cerpe.protocols.REASON_APPEARANCE`.
+
+    A placement on at least ``appearance_max_inliers`` inliers is not judged: the keypoints
+    alone support it (and an imprecise but right placement over a wide baseline can look
+    unlike the collaborator's image pixel by pixel). Below, view ``a``'s depth-prior pixels (every ``vote_stride``-th) moved into camera ``k``
+    (:func:`.vote.photometric_agreement`): when at least ``appearance_min_pixels`` land
+    inside, the normalised cross-correlation of both images' grey levels there must reach
+    ``appearance_min_ncc``. Not judged (``""``) either: the check off, ``a`` without a depth
+    prior, either view blank, too few pixels inside. Counted ``cross-appearance-<checked|rejected>``.
+    """
+    c = p.conf["cross"]
+    if (not c["appearance_check"] or int(inliers) >= int(c["appearance_max_inliers"])
+            or p.views[a].depth_m is None or p.low_tex[a] or p.low_tex[k] or p.Ks[k] is None
+            or not np.all(np.isfinite(T_a_k))):
+        return ""
+    n, ncc = photometric_agreement(p, a, k, se3_inverse(T_a_k))
+    if n < int(c["appearance_min_pixels"]) or not np.isfinite(ncc):
+        return ""
+    p.counts["cross-appearance-checked"] += 1
+    if ncc >= float(c["appearance_min_ncc"]):
+        return ""
+    p.counts["cross-appearance-rejected"] += 1
+    return REASON_APPEARANCE
+
+
+def check_joint_placements(p: Pass, rec: Any, collab: Sequence[int], reasons: list[str]) -> None:
+    """The appearance check of the collaborator views ``collab`` that the joint (metric)
+    reconstruction ``rec`` placed, against the current view (0), on the points it observes
+    (``rec.obs``; none for a two-view placement scaled by the current view's prior); a view that fails leaves
+    ``rec`` (in place) with reason :data:`~cerpe.protocols.REASON_APPEARANCE`. An image-only
+    reconstruction (unit not the metre) is not checked."""
+    if rec is None or not rec.metric or 0 not in rec.T:
+        return
+    for k in collab:
+        if k in rec.T and check_appearance(p, 0, k, se3_inverse(rec.T[0]) @ rec.T[k],
+                                           len(rec.obs[k][0]) if k in rec.obs else 0):
+            del rec.T[k]
+            rec.obs.pop(k, None)
+            reasons[k] = REASON_APPEARANCE
 
 
 def place_collaborators(regs: Mapping[int, Sequence[Registration]], T: np.ndarray, valid: np.ndarray) -> None:

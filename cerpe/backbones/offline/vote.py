@@ -31,44 +31,22 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
     depth there within ``vote_depth_tol`` (relative) and its grey level (both images
     blurred with ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a
     prior depth, or set in ``exclude`` (``[n_grid]`` bool), are neither."""
-    import cv2
-
     c = p.conf
-    Da = np.asarray(p.views[a].depth_m, np.float64)
     Db = np.asarray(p.views[b].depth_m, np.float64)
-    st = max(int(c["vote_stride"]), 1)
-    sigma = float(c["vote_blur_sigma"])
-    grey = [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
-            else grey_image(p.views[k].image) for k in (a, b)]
-    H, W = p.feats[a].image_hw
+    grey = _blurred(p, (a, b), float(c["vote_blur_sigma"]))
     Hb, Wb = p.feats[b].image_hw
     hb, wb = Db.shape
-    vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
-    vv, uu = vv.ravel(), uu.ravel()
-    z = Da[map_index(vv.astype(np.float64), Da.shape[0], H), map_index(uu.astype(np.float64), Da.shape[1], W)]
-    ok = np.isfinite(z) & (z > 0)
-    if exclude is not None and exclude.shape == ok.shape:
-        ok &= ~exclude
+    vv, uu, ok, X = _grid_points(p, a, exclude)
     sel = np.flatnonzero(ok)
-    uv = np.column_stack([uu[sel], vv[sel]]).astype(np.float64)
     g_a = grey[0][vv[sel], uu[sel]]
-    X = pixels_to_rays(uv, p.Ks[a]) * z[sel, None]
     inside = np.zeros((len(T_b_a), len(ok)), bool)
     consistent = np.zeros((len(T_b_a), len(ok)), bool)
-    g_b = grey[1]
     for h, T in enumerate(T_b_a):
-        Xb = X @ T[:3, :3].T + T[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pr = Xb @ p.Ks[b].T
-            ub, vb = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
-        ins = (Xb[:, 2] > 0) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
+        Xb, ub, vb, ins = _project(p, b, X, T)
         inside[h, sel] = ins
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
         meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
-        x0, y0 = np.minimum(ub.astype(np.int64), Wb - 2), np.minimum(vb.astype(np.int64), Hb - 2)
-        ax, ay = ub - x0, vb - y0
-        g = ((1 - ax) * (1 - ay) * g_b[y0, x0] + ax * (1 - ay) * g_b[y0, x0 + 1]
-             + (1 - ax) * ay * g_b[y0 + 1, x0] + ax * ay * g_b[y0 + 1, x0 + 1])
+        g = _bilinear(grey[1], ub, vb)
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
         consistent[h, sel[ins]] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
@@ -140,3 +118,75 @@ def grid_mask_image(grid: np.ndarray, image_hw: tuple[int, int], stride: int) ->
     cells = cv2.dilate(cells, box)
     rows, cols = np.minimum(np.arange(H) // st, gh - 1), np.minimum(np.arange(W) // st, gw - 1)
     return cells[rows[:, None], cols[None, :]].astype(bool)
+
+
+def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
+                          blur_px: float | None = None) -> tuple[int, float]:
+    """How well view ``b``'s image agrees with view ``a``'s, moved by ``T_b_a`` (camera-``a``
+    points into camera ``b``) on ``a``'s depth prior: ``(n, ncc)``, the grid pixels of ``a``
+    that land inside ``b`` and the normalised cross-correlation of both blurred grey levels
+    there (gain and offset of either camera do not matter). ``(n, nan)`` below 2 such pixels.
+    ``blur_px``: the Gaussian blur of both images (default ``vote_blur_sigma``); a wider one
+    forgives the few pixels a right but imprecise placement is off by.
+
+    Keypoint inliers say only that some features agree; a placement from repeated or
+    mirrored structure agrees there and nowhere else, while a true one makes the whole
+    shared surface look alike."""
+    c = p.conf
+    grey = _blurred(p, (a, b), float(c["vote_blur_sigma"] if blur_px is None else blur_px))
+    vv, uu, ok, X = _grid_points(p, a)
+    _, ub, vb, ins = _project(p, b, X, T_b_a)
+    n = int(ins.sum())
+    if n < 2:
+        return n, float("nan")
+    g_a = grey[0][vv[ok][ins], uu[ok][ins]].astype(np.float64)
+    g = _bilinear(grey[1], ub[ins], vb[ins]).astype(np.float64)
+    da, db = g_a - g_a.mean(), g - g.mean()
+    den = float(np.sqrt((da @ da) * (db @ db)))
+    return n, float(da @ db / den) if den > 0 else float("nan")
+
+
+def _blurred(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
+    """Grey images of ``views``, blurred with ``sigma`` px (none at 0)."""
+    import cv2
+
+    return [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
+            else grey_image(p.views[k].image) for k in views]
+
+
+def _grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """View ``a``'s ``vote_stride`` grid: rows ``vv``, columns ``uu`` ``[n_grid]``, the mask ``ok`` of
+    grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``."""
+    Da = np.asarray(p.views[a].depth_m, np.float64)
+    st = max(int(p.conf["vote_stride"]), 1)
+    H, W = p.feats[a].image_hw
+    vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
+    vv, uu = vv.ravel(), uu.ravel()
+    z = Da[map_index(vv.astype(np.float64), Da.shape[0], H), map_index(uu.astype(np.float64), Da.shape[1], W)]
+    ok = np.isfinite(z) & (z > 0)
+    if exclude is not None and exclude.shape == ok.shape:
+        ok &= ~exclude
+    uv = np.column_stack([uu[ok], vv[ok]]).astype(np.float64)
+    return vv, uu, ok, pixels_to_rays(uv, p.Ks[a]) * z[ok, None]
+
+
+def _project(p: Pass, b: int, X: np.ndarray, T_b_a: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points ``X`` moved by ``T_b_a`` into camera ``b``: ``(Xb, u, v, inside)`` (in front, within the image)."""
+    Hb, Wb = p.feats[b].image_hw
+    Xb = X @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = Xb @ p.Ks[b].T
+        ub, vb = pr[:, 0] / pr[:, 2], pr[:, 1] / pr[:, 2]
+    ins = (Xb[:, 2] > 0) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
+    return Xb, ub, vb, ins
+
+
+def _bilinear(g: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Image ``g`` sampled bilinearly at pixels ``(u, v)`` inside it."""
+    h, w = g.shape[:2]
+    x0, y0 = np.minimum(u.astype(np.int64), w - 2), np.minimum(v.astype(np.int64), h - 2)
+    ax, ay = u - x0, v - y0
+    return ((1 - ax) * (1 - ay) * g[y0, x0] + ax * (1 - ay) * g[y0, x0 + 1]
+            + (1 - ax) * ay * g[y0 + 1, x0] + ax * ay * g[y0 + 1, x0 + 1])
