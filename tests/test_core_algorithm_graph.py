@@ -165,6 +165,24 @@ def test_an_odometry_jump_opens_the_walk_and_the_next_direct_estimate_re_anchors
         assert float(e_rot(out[t].T_cj_ci, s.truth[t])) < 3 * 0.01, t
 
 
+def test_a_propagated_estimate_whose_rotation_sigma_says_anywhere_is_not_reported():
+    # dev indoor seed 2001 (e01 r1->r2): after an odometry jump the graph propagated a 1.7 rad wrong pose for
+    # 8 steps with a predicted rotation sigma of 3.3 rad; the switch had dropped its anchor (none)
+    s = simulate_pair(seed=6, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[2, 4, 6, 8, 10, 24, 26, 28],
+                      direct_rot=0.01, direct_trans=0.02)
+    s.X_j[15:] = s.X_j[15:] @ make_se3(so3_exp(np.array([0.0, 1.7, 0.0])), np.array([0.3, 0.0, 0.2]))
+    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0)
+    _, out = feed(s, GraphConfig(**base))
+    withheld = [t for t, r in enumerate(out) if r.uninformative]
+    assert withheld == list(range(15, 24))  # from the jump to the next direct estimate
+    for t in withheld:
+        assert out[t].T_cj_ci is None and pose_cov_sigmas(out[t].cov)[1] > GraphConfig().max_sigma_rot_rad
+    assert all(out[t].T_cj_ci is not None for t in [*range(2, 15), *range(24, 40)])
+    _, out = feed(s, GraphConfig(**base, max_sigma_rot_rad=0.0))  # 0: always reported
+    assert all(out[t].T_cj_ci is not None and not out[t].uninformative for t in range(2, 40))
+    assert float(e_rot(out[20].T_cj_ci, s.truth[20])) > 1.0  # what it withheld was wrong
+
+
 @pytest.mark.parametrize("verdicts,reported", [(("unverified", "unverified"), [*range(3, 6), *range(10, 13)]),
                                                 (("unverified", "rejected"), [*range(3, 6), *range(10, 13)]),
                                                 (("unverified", "pending"), [*range(3, 6), *range(10, 13)]),

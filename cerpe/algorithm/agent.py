@@ -451,6 +451,8 @@ class RobotAgent(GateSide):
         if res.T_cj_ci is None:
             if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
                 return "none", None, "; ".join(r for r in (reason, "unverified-expired") if r), res.node_step, None
+            if res.uninformative:  # predicted rotation sigma above graph.max_sigma_rot_rad (an odometry failure)
+                return "none", None, "; ".join(r for r in (reason, "graph-uninformative") if r), res.node_step, None
             return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
         return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
 

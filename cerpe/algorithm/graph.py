@@ -87,6 +87,12 @@ class GraphConfig:
     :data:`CONFIRMED`), the graph reports nothing more than ``max_unverified_steps`` steps after
     its newest direct estimate, as the switch does with an unverified candidate (the same default).
 
+    Uninformative: a propagated estimate whose predicted rotation sigma (``sqrt`` of the rotation
+    block's trace) exceeds ``max_sigma_rot_rad`` (0: never) is not reported (``uninformative``; its
+    covariance still is): after an odometry failure the walk's covariance says the pose may be
+    anywhere, and a pose that may be anywhere is a guess, which the switch does not report either
+    (it drops its anchor at an odometry jump). A direct estimate that became a node is always reported.
+
     Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
     minimum where it starts), so when a new direct estimate fails the chi-square gate
     ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
@@ -120,6 +126,7 @@ class GraphConfig:
     consensus_gate_chi2: float = 22.46
     consensus_ratio: float = 1.5
     max_unverified_steps: int = 2
+    max_sigma_rot_rad: float = 0.5
     max_iterations: int = 30
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -128,7 +135,7 @@ class GraphConfig:
     def __post_init__(self) -> None:
         for name in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad", "odo_trans_per_step",
                      "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "odo_jump_rad", "direct_rot_rad", "direct_trans_m",
-                     "direct_trans_rel", "direct_inliers_ref", "min_sigma"):
+                     "direct_trans_rel", "direct_inliers_ref", "min_sigma", "max_sigma_rot_rad"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
@@ -168,7 +175,8 @@ class GraphEstimate:
     """What the graph says at one step: ``T_cj_ci`` and its ``[6,6]`` covariance (None before the
     first node, and once an unconfirmed graph expired: ``expired``), the step of its newest node,
     whether this step's direct estimate became one, and the degradations of this step (names of
-    :data:`GRAPH_DEGRADATIONS`)."""
+    :data:`GRAPH_DEGRADATIONS`). ``uninformative``: ``T_cj_ci`` withheld because its predicted
+    rotation sigma is above ``GraphConfig.max_sigma_rot_rad`` (``cov`` is still given)."""
 
     T_cj_ci: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -176,6 +184,7 @@ class GraphEstimate:
     measured: bool = False
     degradations: list[str] = field(default_factory=list)
     expired: bool = False
+    uninformative: bool = False
 
 
 def _diag(rot_sigma: float, trans_sigma: float) -> np.ndarray:
@@ -555,4 +564,7 @@ class PairGraph:
             return out
         A = se3_adjoint(_inv(Xi))
         out.T_cj_ci, out.cov = T, _sym(A @ (self._P + self._Q) @ A.T)
+        lim = self.conf.max_sigma_rot_rad
+        if lim > 0 and not out.measured and np.sqrt(max(np.trace(out.cov[:3, :3]), 0.0)) > lim:
+            out.T_cj_ci, out.uninformative = None, True  # a pose that may be anywhere: a guess, not reported
         return out
