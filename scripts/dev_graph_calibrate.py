@@ -13,7 +13,8 @@ Usage::
    left out (gross errors are the kernel's job, not the noise model's).
 2. Odometry increments of every robot against ground truth (synthetic sets and real sets
    with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
-   single steps (least squares on squared errors, own-odometry failures left out), then the
+   single steps (least squares on squared errors, own-odometry failures and jumps above
+   ``odo_jump_rad`` per step left out: the graph models them apart), then the
    ratio of the observed to the modelled RMS error over longer windows (drift correlated
    over steps makes it > 1).
 3. With ``--grid``: replay the graph (:func:`cerpe.pipeline.graphdev.replay_run`) on every
@@ -97,7 +98,7 @@ def fit_odometry(sets: list[Path]) -> dict:
             for r in enc.robots:
                 if r.T_world_cam is None or not np.all(np.isfinite(r.T_world_cam)):
                     continue
-                for s in odometry_samples(R[R["robot"] == r.robot_id], r.T_world_cam):
+                for s in odometry_samples(R[R["robot"] == r.robot_id], r.T_world_cam, jump_rad=GraphConfig().odo_jump_rad):
                     rows.append({**s, "set": d.name})
     O = pd.DataFrame(rows)
     one = O[(O["window"] == 1) & ~O["failed"]]

@@ -169,3 +169,24 @@ def test_cerpe_graph_is_a_run_method_and_in_the_paper_and_dev_runs():
     assert "cerpe-graph" in paper.RUN_METHODS and "cerpe-graph" in dev.METHODS
     assert table1.TABLE_METHODS[-1] == "cerpe-graph" and "05_uncertainty" in paper.NOTEBOOKS
     assert (Path(paper.ROOT) / "notebooks" / "05_uncertainty.ipynb").is_file()
+
+
+def test_odometry_samples_mark_a_jump_as_a_failure_for_the_calibration():
+    # dev indoor seed 2001: one 1.7 rad odometry jump made the calibration's per-radian rotation sigma 0.5
+    from cerpe.geometry import make_se3, se3_to_tq_xyzw, so3_exp
+    from cerpe.pipeline.graphdev import odometry_samples
+
+    n = 12
+    T = np.stack([make_se3(so3_exp(np.array([0.0, 0.02 * t, 0.0])), np.array([0.3 * t, 0.0, 0.0])) for t in range(n)])
+    X = T.copy()
+    X[6:] = X[6:] @ make_se3(so3_exp(np.array([0.0, 1.7, 0.0])), np.zeros(3))  # the jump at step 6 (never made)
+    t_, q_ = se3_to_tq_xyzw(X)
+    rows = pd.DataFrame({"step": range(n), "degradations": [""] * n,
+                         **{f"odom_{c}": v for c, v in zip(ev.POSE, np.concatenate([t_, q_], 1).T)}})
+    plain = list(odometry_samples(rows, T, windows=(1, 3)))
+    assert not any(s["failed"] for s in plain)
+    marked = list(odometry_samples(rows, T, windows=(1, 3), jump_rad=1.0))
+    # windows (a, a + w] holding step 6: a in [6 - w, 5]; they and only they are failures, and only they are wrong
+    want = [w >= 1 and 6 - w <= a <= 5 for w in (1, 3) for a in range(n - w)]
+    assert [s["failed"] for s in marked] == want
+    assert all((s["rot_err_rad"] > 1.0) == f for s, f in zip(marked, want))

@@ -113,13 +113,14 @@ def direct_samples(steps: pd.DataFrame) -> pd.DataFrame:
     })
 
 
-def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows: tuple[int, ...] = (1, 5, 10, 20)
-                     ) -> Iterator[dict]:
+def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows: tuple[int, ...] = (1, 5, 10, 20),
+                     jump_rad: float = 0.0) -> Iterator[dict]:
     """Odometry increments of one robot over ``windows`` steps against ground truth ``[T,4,4]``.
 
     Yields ``window``, ``dist_m``, ``angle_rad`` (of the estimated increment), ``rot_err_rad``,
     ``trans_err_m`` (right perturbation, in the new camera's frame) and ``failed`` (an own-odometry
-    failure within the window).
+    failure within the window, or with ``jump_rad > 0`` a step turning more than that: a jump,
+    which the graph models apart from the noise, ``GraphConfig.odo_jump_rad``).
     """
     from ..geometry import rotation_angle
 
@@ -127,6 +128,9 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
     X = _poses(r, "odom")
     steps = r["step"].astype(int).to_numpy()
     bad = r["degradations"].map(lambda d: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)).to_numpy()
+    if jump_rad > 0 and len(X) > 1:
+        turn = rotation_angle((se3_inverse(X[:-1]) @ X[1:])[:, :3, :3])
+        bad = bad | np.concatenate([[False], np.nan_to_num(turn, nan=0.0) > jump_rad * np.diff(steps)])
     for w in windows:
         for a in range(len(steps) - w):
             b = a + w
