@@ -295,8 +295,9 @@ def test_peer_that_said_bye_is_not_lost(team_of):
     team = team_of(["r0", "r1"])
     team["r1"].close(linger_s=0.0)
     t0 = time.monotonic()
-    while "r1" in team["r0"].present and time.monotonic() - t0 < 10:
+    while "r1" in team["r0"].present and time.monotonic() - t0 < 30:  # generous: a loaded machine is slow
         team["r0"].poll(0.1)
+    assert "r1" not in team["r0"].present, "r0 never heard r1's bye"
     inbox = team["r0"].gather(0, "pose", ["r1"], deadline_s=5.0)
     assert inbox.degradations == ["msg:lost"]  # its frame is missing, but no net:peer-lost
 
