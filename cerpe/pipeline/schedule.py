@@ -6,8 +6,11 @@ per-frame baseline, one Pareto setting (:mod:`cerpe.pipeline.pareto`), or the
 message-loss sweep (:mod:`cerpe.pipeline.message_loss`, which reuses the lossless
 runs of its setting, so it waits for them). Each job writes its own run folders
 exactly as a run in the main process would (seeded, fingerprinted, resumable), so
-the tables do not depend on the number of workers; only the wall time does. A CERPE
-pass keeps about 1.3 of 2 cores busy, so two workers fill a 2-core machine.
+the tables do not depend on the number of workers; only the wall time does. On a 2-core
+machine two workers gain mostly from the short jobs filling the gaps: a CERPE pass and an
+ALIKED run side by side take about as long as one after the other (clean make paper of
+b9d2f28: 267 s and 318 s together, about 170 s and 150 s alone; the two renders 176 s together,
+about 180 s in sequence). More cores, more gain (``--jobs``).
 
 Jobs go to free workers longest first (a fixed estimate per kind, times the setting's
 robot-steps), each as soon as the jobs it waits for have finished. A job that fails
