@@ -205,14 +205,20 @@ def markdown(summary: pd.DataFrame) -> str:
     return md_table(list(cols.values()), rows)
 
 
+def _entry(ctx: Any, setting: str) -> Any:
+    """The context's entry of ``setting`` with data (MessageLossError when it has none)."""
+    entry = next((e for e in ctx.settings if e.name == setting and e.status == "ok"), None)
+    if entry is None:
+        raise MessageLossError(f"message loss: setting {setting!r} has no data in this profile")
+    return entry
+
+
 def context_paths(ctx: Any, conf: dict | None = None) -> tuple[dict, dict]:
     """``(conf, paths)`` of :func:`main` for a paper context (``cerpe.pipeline.paper.context``):
     the sweep of its ``conf["setting"]`` (default synthetic-indoor) in ``<runs>/<setting>/message-loss/``,
     the loss-0 point from the context's lossless runs of that setting."""
     c = merge_conf(default_conf, conf or {}, "message_loss")
-    entry = next((e for e in ctx.settings if e.name == c["setting"] and e.status == "ok"), None)
-    if entry is None:
-        raise MessageLossError(f"message loss: setting {c['setting']!r} has no data in this profile")
+    entry = _entry(ctx, c["setting"])
     lossless = {m: ctx.run_dirs[(entry.name, m)] for m in c["methods"] if (entry.name, m) in ctx.run_dirs}
     return {**c, "profile": ctx.preset}, {"manifest": entry.run_manifest,
                                           "runs": ctx.runs_root / entry.name / "message-loss", "lossless": lossless}
@@ -221,8 +227,7 @@ def context_paths(ctx: Any, conf: dict | None = None) -> tuple[dict, dict]:
 def for_context(ctx: Any, conf: dict | None = None, progress: bool = False) -> Path:
     """:func:`main` on a paper context (see :func:`context_paths`)."""
     c, paths = context_paths(ctx, conf)
-    entry = next(e for e in ctx.settings if e.name == c["setting"])
-    return main(c, paths, setting=entry.setting, progress=progress)
+    return main(c, paths, setting=_entry(ctx, c["setting"]).setting, progress=progress)
 
 
 def write_tables(summary: pd.DataFrame, tables_dir: Path) -> list[Path]:
