@@ -82,6 +82,12 @@ class SensorDepthSim:
         """An outdoor stereo-like range: 0.5..40 m (other fields as given)."""
         return cls(**{**OUTDOOR_SENSOR, **kw})
 
+    @property
+    def rel_sigma(self) -> float:
+        """Relative sigma of the depth map's scale (:class:`~cerpe.protocols.MetricDepthSource`): none,
+        the simulated sensor's errors are per pixel (they average out over a placement's points)."""
+        return 0.0
+
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         z = _exact(frame, "SensorDepthSim")
         if z is None:
@@ -127,6 +133,12 @@ class MonoDepthSim:
     max_m: float = 300.0
     seed: int = 0
     name: str = "mono-sim"
+
+    @property
+    def rel_sigma(self) -> float:
+        """Relative sigma of the depth map's scale (:class:`~cerpe.protocols.MetricDepthSource`): the
+        per-frame scale bias and the low-frequency distortion, which a placement's points share."""
+        return float(np.hypot(self.scale_sigma, self.distortion_sigma))
 
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         z = _exact(frame, "MonoDepthSim")

@@ -200,7 +200,11 @@ class MetricDepthSource(Protocol):
     """Metric depth for a robot's own frame: ``[H,W] float32`` metres, 0 = unknown.
 
     Returns None when the source has nothing for this frame (the scale step then
-    skips it and counts it).
+    skips it and counts it). Optionally ``rel_sigma: float``: the relative sigma of a depth
+    map's scale and low-frequency shape (what a whole placement's points share, so it
+    moves a camera placed on them along its line of sight; per-pixel noise averages out):
+    about 0.1 for a monocular network, ~0 for a depth sensor. The pose graph's noise model
+    reads it (:class:`cerpe.algorithm.graph.DirectEstimate`); absent: unknown.
     """
 
     name: str

@@ -327,6 +327,7 @@ class SensorDepthDouble:
     """
 
     name = "sensor-double"
+    rel_sigma = 0.0  # MetricDepthSource.rel_sigma: as the sensor simulation reports (bias_sigma aside)
 
     def __init__(self, bias_sigma: float = 0.0, pixel_sigma: float = 0.0, outlier_frac: float = 0.0,
                  none_keys: Sequence[Hashable] = (), seed: int = 0) -> None:

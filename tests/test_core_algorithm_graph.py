@@ -15,13 +15,16 @@ from cerpe.algorithm.config import AlgorithmError
 from cerpe.algorithm.degradations import known
 from cerpe.algorithm.graph import DirectEstimate, GraphError, PairGraph, odometry_cov
 from cerpe.algorithm.graph_sim import simulate_pair
+from cerpe.depthsim import MonoDepthSim, SensorDepthSim
 from cerpe.geometry import (e_rot, make_se3, pose_cov_in_parent, pose_cov_sigmas, random_se3, se3_adjoint,
                             so3_exp)
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
 
-def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozenset(), replace: dict | None = None):
-    """Run a PairGraph over a simulated stream; returns (graph, [GraphEstimate per step])."""
+def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozenset(), replace: dict | None = None,
+         rel: float | None = None):
+    """Run a PairGraph over a simulated stream (its direct estimates placed on depth of relative scale
+    sigma ``rel``, None: unknown); returns (graph, [GraphEstimate per step])."""
     g = PairGraph(conf)
     out = []
     last_j = None
@@ -31,7 +34,7 @@ def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozen
         if t in (replace or {}):  # None: this step's estimate never came
             d = replace[t]
         else:
-            d = DirectEstimate(t, stream.direct[t]) if t in stream.direct else None
+            d = DirectEstimate(t, stream.direct[t], depth_rel_sigma=rel) if t in stream.direct else None
         out.append(g.step(t, stream.X_i[t], None if last_j is None else last_j[1], -1 if last_j is None else last_j[0],
                           d))
     return g, out
@@ -101,7 +104,8 @@ def test_one_wrong_anchor_among_five_good_ones_is_down_weighted():
     s = simulate_pair(seed=4, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[4, 8, 12, 16, 20, 24],
                       direct_rot=noise_rot, direct_trans=noise_trans)
     wrong = s.truth[16] @ make_se3(so3_exp(np.array([0.0, 0.5, 0.0])), np.zeros(3))
-    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0, direct_along_factor=1.0)
+    conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0, direct_along_factor=1.0,
+                       direct_depth_rel_unknown=0.0)
     _, out = feed(s, conf, replace={16: DirectEstimate(16, wrong)})
     for t in range(16, 40):  # from the wrong anchor on: within the good anchors' noise (3 sigma)
         r = out[t]
@@ -116,7 +120,7 @@ def _five_good_and(replace: dict, consensus: int):
     s = simulate_pair(seed=4, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[4, 8, 12, 16, 20, 24],
                       direct_rot=noise_rot, direct_trans=noise_trans)
     conf = GraphConfig(direct_rot_rad=noise_rot, direct_trans_m=noise_trans, direct_trans_rel=0.0,
-                       direct_along_factor=1.0, consensus_min_support=consensus)
+                       direct_along_factor=1.0, direct_depth_rel_unknown=0.0, consensus_min_support=consensus)
     g, out = feed(s, conf, replace={t: DirectEstimate(t, f(s, t)) for t, f in replace.items()})
     return s, g, [float(e_rot(r.T_cj_ci, s.truth[t])) if r.T_cj_ci is not None else np.nan for t, r in enumerate(out)]
 
@@ -156,7 +160,8 @@ def test_an_odometry_jump_opens_the_walk_and_the_next_direct_estimate_re_anchors
                       direct_rot=0.01, direct_trans=0.02)
     J = make_se3(so3_exp(np.array([0.0, 1.7, 0.0])), np.array([0.3, 0.0, 0.2]))
     s.X_j[15:] = s.X_j[15:] @ J  # the other robot's odometry from step 15 on (the truth and the estimates stay)
-    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0)
+    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0,
+                direct_depth_rel_unknown=0.0)
     _, out = feed(s, GraphConfig(**base, odo_jump_rad=0.0, consensus_min_support=0))
     assert float(e_rot(out[24].T_cj_ci, s.truth[24])) > 1.0  # the chain holds the offset of before the jump
     _, out = feed(s, GraphConfig(**base))
@@ -171,7 +176,8 @@ def test_a_propagated_estimate_whose_rotation_sigma_says_anywhere_is_not_reporte
     s = simulate_pair(seed=6, n_steps=40, odo_rot=0.0005, odo_trans=0.001, direct_steps=[2, 4, 6, 8, 10, 24, 26, 28],
                       direct_rot=0.01, direct_trans=0.02)
     s.X_j[15:] = s.X_j[15:] @ make_se3(so3_exp(np.array([0.0, 1.7, 0.0])), np.array([0.3, 0.0, 0.2]))
-    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0)
+    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0,
+                direct_depth_rel_unknown=0.0)
     _, out = feed(s, GraphConfig(**base))
     withheld = [t for t, r in enumerate(out) if r.uninformative]
     assert withheld == list(range(15, 24))  # from the jump to the next direct estimate
@@ -200,10 +206,15 @@ def test_an_unconfirmed_graph_is_propagated_as_long_as_the_switch_would(verdicts
     assert GraphConfig().max_unverified_steps == AnchorConfig().max_unverified_steps
 
 
-def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating():
+MONO_REL = MonoDepthSim().rel_sigma  # what the mono-sim depth source reports (0.094)
+
+
+# a depth sensor's direct estimates, a monocular prior's: each with noise of its kind's size
+@pytest.mark.parametrize("rel,noise_rot,noise_trans", [(0.0, 0.003, 0.015), (MONO_REL, 0.006, 0.05)])
+def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating(rel, noise_rot, noise_trans):
     s = simulate_pair(seed=1, n_steps=30, odo_rot=0.001, odo_trans=0.002, direct_steps=[2, 12, 13],
-                      direct_rot=0.01, direct_trans=0.02)
-    _, out = feed(s)
+                      direct_rot=noise_rot, direct_trans=noise_trans)
+    _, out = feed(s, rel=rel)
     tr = [trace(r.cov) if r.cov is not None else np.nan for r in out]
     assert all(tr[t + 1] > tr[t] for t in range(2, 11))  # propagation: grows every step
     assert tr[12] < tr[11] and tr[13] < tr[12]  # each anchor: shrinks
@@ -215,7 +226,7 @@ def test_covariance_shrinks_after_an_anchor_and_grows_while_propagating():
 def test_predicted_sigma_is_calibrated_when_the_noise_model_is_right():
     conf = GraphConfig(odo_rot_per_step=0.002, odo_rot_per_m=0.0, odo_rot_per_rad=0.0, odo_trans_per_step=0.004,
                        odo_trans_per_m=0.0, direct_rot_rad=0.02, direct_trans_m=0.05, direct_trans_rel=0.0,
-                       direct_along_factor=1.0,
+                       direct_along_factor=1.0, direct_depth_rel_unknown=0.0,
                        kernel="none")
     e2, s2 = [], []
     for seed in range(12):
@@ -245,6 +256,71 @@ def _good_then(bad: DirectEstimate | None, at: int = 10, **kw):
     s = simulate_pair(seed=5, n_steps=16, odo_rot=0.001, odo_trans=0.002, direct_steps=[3, 6], direct_rot=0.01,
                       direct_trans=0.02)
     return s, feed(s, replace={at: bad}, **kw)
+
+
+# --------------------------------------------------------------------------- depth kinds (issue 20, graphcov)
+def test_depth_sources_report_their_scale_sigma():
+    from cerpe.backbones.depth import DATASET_REL_SIGMA, DepthSourceError, build_depth_source
+
+    assert MonoDepthSim().rel_sigma == pytest.approx(np.hypot(0.08, 0.05))  # per-frame scale and distortion
+    assert MonoDepthSim(scale_sigma=0.2, distortion_sigma=0.0).rel_sigma == pytest.approx(0.2)
+    assert SensorDepthSim().rel_sigma == 0.0  # per-pixel noise only: it averages out over a placement
+    assert build_depth_source("dataset").rel_sigma == DATASET_REL_SIGMA
+    assert build_depth_source("dataset", {"rel_sigma": 0.03}).rel_sigma == 0.03
+    assert getattr(build_depth_source("none"), "rel_sigma", None) is None
+    with pytest.raises(DepthSourceError, match="rel_sigma"):
+        build_depth_source("dataset", {"rel_sigma": -1})
+
+
+def test_direct_covariance_carries_the_depth_kind():
+    conf = GraphConfig(direct_rot_rad=0.002, direct_trans_m=0.01, direct_trans_rel=0.005, direct_along_factor=1.5,
+                       direct_depth_rot=0.05, direct_depth_across=0.3, direct_depth_along=1.0,
+                       direct_depth_rel_unknown=0.5)
+    rng = np.random.default_rng(0)
+    T = random_se3(rng, 1.0)
+    T[:3, 3] = 8.0 * T[:3, 3] / np.linalg.norm(T[:3, 3])  # the other camera 8 m away
+    w = T[:3, :3].T @ T[:3, 3] / 8.0  # the line between the cameras, in camera i
+    for rel, want in ((0.0, 0.0), (0.1, 0.1), (None, 0.5), (float("nan"), 0.5)):
+        C = graph_mod.direct_cov(conf, DirectEstimate(0, T, depth_rel_sigma=rel))
+        across = 0.01 + 8.0 * np.hypot(0.005, 0.3 * want)
+        along = np.hypot(1.5 * (0.01 + 8.0 * 0.005), 1.0 * want * 8.0)
+        np.testing.assert_allclose(np.diag(C[:3, :3]), np.hypot(0.002, 0.05 * want) ** 2)
+        assert w @ C[3:, 3:] @ w == pytest.approx(along**2)
+        u = np.cross(w, [0.0, 0.0, 1.0])
+        u /= np.linalg.norm(u)
+        assert u @ C[3:, 3:] @ u == pytest.approx(across**2)
+        assert graph_mod.usable_cov(C)
+    # a monocular prior's estimate is looser along the line than a sensor's, by its depth's scale sigma
+    mono = graph_mod.direct_cov(GraphConfig(), DirectEstimate(0, T, depth_rel_sigma=MONO_REL))
+    sensor = graph_mod.direct_cov(GraphConfig(), DirectEstimate(0, T, depth_rel_sigma=0.0))
+    assert np.sqrt(w @ mono[3:, 3:] @ w) > 1.1 * np.sqrt(w @ sensor[3:, 3:] @ w)
+    assert np.sqrt(mono[0, 0]) > 1.1 * np.sqrt(sensor[0, 0])
+    # with no depth gains the model is the one before depth kinds (isotropic across, a factor along)
+    old = GraphConfig(direct_depth_rot=0.0, direct_depth_across=0.0, direct_depth_along=0.0, direct_along_factor=2.0)
+    C = graph_mod.direct_cov(old, DirectEstimate(0, T, depth_rel_sigma=MONO_REL))
+    assert w @ C[3:, 3:] @ w == pytest.approx((2.0 * (old.direct_trans_m + 8.0 * old.direct_trans_rel)) ** 2)
+
+
+# the noise model of cerpe-graph before depth kinds (commit a50f8ce's calibration, one model for every depth)
+ONE_MODEL = {"direct_rot_rad": 0.004, "direct_trans_m": 0.001, "direct_trans_rel": 0.0275, "direct_along_factor": 2.0,
+             "direct_depth_rot": 0.0, "direct_depth_across": 0.0, "direct_depth_along": 0.0}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_consistent_mono_distance_bias_is_pulled_toward_the_truth(seed):
+    # every direct estimate of a monocular prior 10 % short along the line between the cameras while the
+    # robots drive apart (the line turns): with the depth kind's covariance (loose along the line, tight
+    # across it) the lines' cross-track parts pin the other robot down; one model trusts the biased range
+    s = simulate_pair(seed=seed, n_steps=60, speed_m=0.3, odo_rot=0.0005, odo_trans=0.002, direct_every=2,
+                      direct_rot=0.005, direct_trans=0.01)
+    short = {t: make_se3(T[:3, :3], 0.9 * T[:3, 3]) for t, T in s.direct.items()}
+    err = {}
+    for name, conf in (("kind", GraphConfig()), ("one-model", GraphConfig(**ONE_MODEL))):
+        _, out = feed(s, conf, replace={t: DirectEstimate(t, T, depth_rel_sigma=MONO_REL) for t, T in short.items()})
+        err[name] = [np.linalg.norm(r.T_cj_ci[:3, 3] - s.truth[t][:3, 3]) for t, r in enumerate(out)]
+    bias = [0.1 * np.linalg.norm(s.truth[t][:3, 3]) for t in range(len(s.truth))]
+    assert err["kind"][-1] < err["one-model"][-1] < bias[-1]  # both below the raw bias, the kind's closer
+    assert np.mean(err["kind"][20:]) < np.mean(err["one-model"][20:])  # and on average once apart
 
 
 @pytest.mark.parametrize("cov", [np.zeros((6, 6)), np.full((6, 6), np.nan), -np.eye(6), np.eye(5)])

@@ -51,7 +51,7 @@ def runs(tmp_path_factory):
     mp.setattr(rp, "prepare_method", _gt_prepare(world))
     root = tmp_path_factory.mktemp("graphruns")
     m = root / "toy.yaml"
-    m.write_text("name: toy\n")
+    m.write_text("name: toy\nmetric_depth: sensor\n")  # the replay reads the depth kind (rel_sigma) here
     out = {meth: rp.run_method(m, meth, root / meth, setting=setting, progress=False)
            for meth in ("cerpe", "cerpe-graph")}
     mp.undo()
@@ -190,3 +190,64 @@ def test_odometry_samples_mark_a_jump_as_a_failure_for_the_calibration():
     want = [w >= 1 and 6 - w <= a <= 5 for w in (1, 3) for a in range(n - w)]
     assert [s["failed"] for s in marked] == want
     assert all((s["rot_err_rad"] > 1.0) == f for s, f in zip(marked, want))
+
+
+def test_direct_noise_fit_recovers_hand_made_covariances_per_depth_kind():
+    # direct estimates drawn from direct_cov of a known model for a sensor's (rel 0) and a monocular
+    # prior's (rel 0.1) depth, through steps.csv columns and direct_samples: the fit gives the model back,
+    # and its per-kind predicted sigmas match the observed ones
+    from cerpe.algorithm.graph import DirectEstimate, GraphConfig, direct_cov
+    from cerpe.geometry import make_se3, random_se3, se3_to_tq_xyzw, so3_exp
+    from cerpe.pipeline.graphdev import direct_samples, fit_direct_kinds
+
+    true = GraphConfig(direct_rot_rad=0.003, direct_trans_m=0.004, direct_trans_rel=0.006, direct_along_factor=1.0,
+                       direct_depth_rot=0.05, direct_depth_across=0.25, direct_depth_along=1.0)
+    rng = np.random.default_rng(7)
+    parts = []
+    for rel, n in ((0.0, 1500), (0.1, 1500), (np.nan, 600)):
+        gt, est = [], []
+        for _ in range(n):
+            G = random_se3(rng, 1.0)
+            G[:3, 3] *= rng.uniform(1.0, 12.0) / np.linalg.norm(G[:3, 3])
+            C = direct_cov(true if np.isfinite(rel) else dataclasses.replace(true, direct_depth_rel_unknown=0.4),
+                           DirectEstimate(0, G, depth_rel_sigma=None if np.isnan(rel) else rel))
+            x = rng.multivariate_normal(np.zeros(6), C)
+            gt.append(G)
+            est.append(G @ make_se3(so3_exp(x[:3]), x[3:]))
+        cols = {}
+        for pre, T in (("gt", np.stack(gt)), ("dir", np.stack(est))):
+            t, q = se3_to_tq_xyzw(T)
+            cols.update({f"{pre}_{c}": v for c, v in zip(POSE, np.concatenate([t, q], 1).T)})
+        steps = pd.DataFrame({"encounter": "e", "step": range(n), "ego": "r0", "other": "r1", **cols})
+        parts.append(direct_samples(steps).assign(rel=rel))
+    fit = fit_direct_kinds(pd.concat(parts, ignore_index=True))
+    for name, tol in (("direct_rot_rad", 0.1), ("direct_trans_rel", 0.1), ("direct_depth_rot", 0.15),
+                      ("direct_depth_across", 0.1), ("direct_depth_along", 0.1)):
+        assert fit[name] == pytest.approx(getattr(true, name), rel=tol), name
+    assert fit["direct_along_factor"] == pytest.approx(1.0, abs=0.15)
+    assert fit["direct_depth_rel_unknown"] == pytest.approx(0.4, rel=0.15)  # what the no-depth estimates had
+    for k in fit["kinds"]:
+        for q in ("rot", "across_rel", "along_rel"):
+            assert k[f"pred_{q}"] == pytest.approx(k[q], rel=0.1), (k["rel"], q)
+    # too few estimates of any kind: one clear error
+    from cerpe.pipeline.graphdev import GraphDevError
+
+    with pytest.raises(GraphDevError, match="depth kind"):
+        fit_direct_kinds(parts[0].head(10))
+
+
+def test_oracles_correct_the_direct_translations_from_ground_truth():
+    from cerpe.pipeline.graphdev import GraphDevError, oracle_steps
+
+    rng = np.random.default_rng(3)
+    gt = rng.normal(size=(6, 3)) * 5.0
+    across = np.cross(gt, [0.0, 0.0, 1.0]) * 0.01  # a small error across each line
+    d = pd.DataFrame({"gt_tx": gt[:, 0], "gt_ty": gt[:, 1], "gt_tz": gt[:, 2],
+                      "dir_tx": (0.9 * gt + across)[:, 0], "dir_ty": (0.9 * gt + across)[:, 1],
+                      "dir_tz": (0.9 * gt + across)[:, 2]})
+    t = lambda df: df[["dir_tx", "dir_ty", "dir_tz"]].to_numpy()  # noqa: E731
+    np.testing.assert_allclose(t(oracle_steps(d, "pair-scale")), gt + across / 0.9, atol=1e-9)  # 10 % short, one scale
+    np.testing.assert_allclose(t(oracle_steps(d, "no-along")), gt + across, atol=1e-9)
+    np.testing.assert_allclose(t(oracle_steps(d, "exact-translation")), gt)
+    with pytest.raises(GraphDevError, match="unknown oracle"):
+        oracle_steps(d, "magic")

@@ -436,7 +436,8 @@ class RobotAgent(GateSide):
             graph = self.graphs[other] = PairGraph(self.config.graph)
         pose = self.poses.get(other)
         direct = (None if info.direct_T is None else
-                  DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict))
+                  DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
+                                 depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
         res = graph.step(st.step, self.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
                          direct, own_ok=st.ego_status in ("ok", "first"))
         st.timings["graph"] += time.perf_counter() - t0

@@ -76,7 +76,12 @@ class GraphConfig:
     Direct estimates: rotation ``direct_rot_rad``, translation ``direct_trans_m +
     direct_trans_rel |t|`` across the line between the cameras (``|t|`` their distance) and
     ``direct_along_factor`` times that along it (metric depth errors move the other camera
-    mostly along the line of sight); with
+    mostly along the line of sight). The metric depth the estimate stands on adds its own part:
+    with ``r`` its relative scale sigma (:attr:`DirectEstimate.depth_rel_sigma`, reported by the
+    depth source; ``direct_depth_rel_unknown`` when it reports none), ``direct_depth_rot r`` to the
+    rotation, ``direct_depth_across r |t|`` across and ``direct_depth_along r |t|`` along the line
+    (each added in quadrature), so a monocular prior (5-10 %) and a depth sensor (< 1 %) get their
+    own sigmas from one model; with
     ``direct_inliers_ref > 0`` both are scaled by ``sqrt(direct_inliers_ref / inliers)``
     clipped to ``[1/direct_inliers_clip, direct_inliers_clip]``; estimates that anchor
     verification left unverified or rejected are scaled by ``unverified_scale`` /
@@ -111,10 +116,16 @@ class GraphConfig:
     odo_lost_rot: float = 0.05
     odo_lost_trans: float = 0.15
     odo_jump_rad: float = 1.0
+    # direct estimates: the floors (all a depth sensor's estimates get) as calibrated before depth kinds; the
+    # gains on the depth source's rel_sigma from dev runs of the mono-sim sets (see the commit that set them)
     direct_rot_rad: float = 0.004
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
     direct_along_factor: float = 2.0
+    direct_depth_rot: float = 0.05
+    direct_depth_across: float = 0.0
+    direct_depth_along: float = 0.4
+    direct_depth_rel_unknown: float = 0.3
     direct_inliers_ref: float = 0.0
     direct_inliers_clip: float = 3.0
     unverified_scale: float = 1.0
@@ -135,7 +146,8 @@ class GraphConfig:
     def __post_init__(self) -> None:
         for name in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad", "odo_trans_per_step",
                      "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "odo_jump_rad", "direct_rot_rad", "direct_trans_m",
-                     "direct_trans_rel", "direct_inliers_ref", "min_sigma", "max_sigma_rot_rad"):
+                     "direct_trans_rel", "direct_inliers_ref", "min_sigma", "max_sigma_rot_rad", "direct_depth_rot",
+                     "direct_depth_across", "direct_depth_along", "direct_depth_rel_unknown"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
@@ -160,7 +172,9 @@ class DirectEstimate:
 
     ``inliers``: the registration's inlier count (-1 unknown); ``verdict``: anchor
     verification's (``accepted``, ``verified``, ``unverified``, ``rejected``, ...);
-    ``cov``: its own ``[6,6]`` covariance when it has one (None: :func:`direct_cov`).
+    ``cov``: its own ``[6,6]`` covariance when it has one (None: :func:`direct_cov`);
+    ``depth_rel_sigma``: the relative sigma of the scale of the metric depth it was placed on
+    (the depth source's ``rel_sigma``, :class:`~cerpe.protocols.MetricDepthSource`; None: unknown).
     """
 
     step: int
@@ -168,6 +182,7 @@ class DirectEstimate:
     inliers: int = -1
     verdict: str = ""
     cov: np.ndarray | None = None
+    depth_rel_sigma: float | None = None
 
 
 @dataclass
@@ -189,6 +204,11 @@ class GraphEstimate:
 
 def _diag(rot_sigma: float, trans_sigma: float) -> np.ndarray:
     return np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+
+
+def _rel(conf: GraphConfig, rel: float | None) -> float:
+    """A depth source's relative scale sigma, ``direct_depth_rel_unknown`` when it gave none."""
+    return conf.direct_depth_rel_unknown if rel is None or not np.isfinite(rel) or rel < 0 else float(rel)
 
 
 def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0) -> np.ndarray:
@@ -218,10 +238,14 @@ def direct_cov(conf: GraphConfig, est: DirectEstimate) -> np.ndarray:
         f *= conf.rejected_scale
     T = np.asarray(est.T_cj_ci, dtype=np.float64)
     dist = float(np.linalg.norm(T[:3, 3]))
-    cov = _diag(f * conf.direct_rot_rad, f * (conf.direct_trans_m + conf.direct_trans_rel * dist))
-    if conf.direct_along_factor != 1.0 and dist > 0:
+    r = _rel(conf, est.depth_rel_sigma)
+    across = conf.direct_trans_m + dist * np.hypot(conf.direct_trans_rel, conf.direct_depth_across * r)
+    along = np.hypot(conf.direct_along_factor * (conf.direct_trans_m + conf.direct_trans_rel * dist),
+                     conf.direct_depth_along * r * dist)
+    cov = _diag(f * float(np.hypot(conf.direct_rot_rad, conf.direct_depth_rot * r)), f * across)
+    if dist > 0 and along != across:
         w = T[:3, :3].T @ T[:3, 3] / dist  # the line between the cameras, in camera i (the perturbation's frame)
-        cov[3:, 3:] += (conf.direct_along_factor**2 - 1.0) * cov[3, 3] * np.outer(w, w)
+        cov[3:, 3:] += f**2 * (along**2 - across**2) * np.outer(w, w)
     return cov
 
 

@@ -25,6 +25,9 @@ from ..depthsim import MonoDepthSim, SensorDepthSim
 from ..protocols import BackboneError, FrameContext, View
 
 DEPTH_SOURCES: tuple[str, ...] = ("sensor", "mono-sim", "dataset", "metric3d", "none")
+# relative scale sigma of a dataset's own depth (RGB-D sensors, projected LiDAR): about 1 %, an assumption
+# (a depth camera's scale calibration), overridden by the manifest's metric_depth_options {rel_sigma: ...}
+DATASET_REL_SIGMA = 0.01
 
 
 class DepthSourceError(BackboneError):
@@ -36,12 +39,18 @@ class DatasetDepth:
 
     Non-finite and non-positive values become 0 (unknown); a map whose size
     differs from the image raises :class:`DepthSourceError` naming robot and step.
+    ``rel_sigma`` (option, default :data:`DATASET_REL_SIGMA`): the relative sigma of the
+    depth's scale (:class:`~cerpe.protocols.MetricDepthSource`).
     """
 
     name = "dataset"
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = dict(conf or {})
+        r = self.conf.get("rel_sigma", DATASET_REL_SIGMA)
+        if not isinstance(r, (int, float)) or not np.isfinite(r) or r < 0:
+            raise DepthSourceError(f"depth source 'dataset': rel_sigma must be a finite number >= 0, got {r!r}")
+        self.rel_sigma = float(r)
 
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         d = frame.sensor_depth_m

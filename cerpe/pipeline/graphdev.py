@@ -20,8 +20,14 @@ import numpy as np
 import pandas as pd
 
 from ..algorithm.graph import DirectEstimate, GraphConfig, PairGraph
+from ..errors import CerpeError
 from ..geometry import pose_cov_sigmas, se3_from_tq_xyzw, se3_inverse, se3_to_tq_xyzw
 from .evaluate import POSE, load_run
+
+
+class GraphDevError(CerpeError, ValueError):
+    """Bad development-tool input: too few samples to fit, an unknown oracle (names it)."""
+
 
 # own-odometry failures as the agent counts them (``own_ok`` of PairGraph.step)
 OWN_FAILURES = ("ego:no-estimate", "frame:blank", "ego:no-keyframe")
@@ -36,10 +42,27 @@ def _poses(df: pd.DataFrame, prefix: str) -> np.ndarray:
     return out
 
 
+def depth_rel_sigma(run_meta: dict) -> float | None:
+    """The ``rel_sigma`` the run's depth source reports (its manifest's ``metric_depth`` and options;
+    None when it reports none), as the agent hands it to the graph with each direct estimate."""
+    from ..backbones.depth import build_depth_source
+    from ..datasets.manifest import read_yaml
+
+    raw = read_yaml(Path(run_meta["manifest"]))
+    name = raw.get("metric_depth", "dataset")
+    if name == "metric3d":  # not built (weights); its class says what it would report
+        from ..backbones.metric3d import Metric3DDepth
+
+        return float(Metric3DDepth.rel_sigma)
+    r = getattr(build_depth_source(name, raw.get("metric_depth_options") or {}), "rel_sigma", None)
+    return None if r is None else float(r)
+
+
 def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd.DataFrame,
-                conf: GraphConfig) -> pd.DataFrame:
+                conf: GraphConfig, rel_sigma: float | None = None) -> pd.DataFrame:
     """The graph of one ordered pair over one encounter's records: ``pair_steps`` with ``est_*``,
-    ``source``, ``anchor_step``, ``sigma_pos_m``, ``sigma_rot_rad`` replaced by the replay's."""
+    ``source``, ``anchor_step``, ``sigma_pos_m``, ``sigma_rot_rad`` replaced by the replay's
+    (``rel_sigma``: the depth source's, :func:`depth_rel_sigma`)."""
     steps = pair_steps.sort_values("step").reset_index(drop=True)
     ego = ego_rows.set_index("step")
     other = other_rows.set_index("step")
@@ -55,8 +78,8 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     verdicts = steps["anchor_verdict"].fillna("").astype(str) if "anchor_verdict" in steps else [""] * len(steps)
     inliers = steps["direct_inliers"].fillna(-1).astype(int) if "direct_inliers" in steps else [-1] * len(steps)
     for k, t in enumerate(steps["step"].astype(int)):
-        direct = (DirectEstimate(t, T_dir[k], int(inliers[k]), str(verdicts[k])) if np.all(np.isfinite(T_dir[k]))
-                  else None)
+        direct = (DirectEstimate(t, T_dir[k], int(inliers[k]), str(verdicts[k]), depth_rel_sigma=rel_sigma)
+                  if np.all(np.isfinite(T_dir[k])) else None)
         xj = X_j.get(t)
         res = graph.step(t, X_i[t], xj, t if xj is not None else -1, direct, own_ok=not failed.get(t, False))
         if res.T_cj_ci is None:
@@ -79,13 +102,49 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     return out
 
 
-def replay_run(run_dir: Path | str, conf: GraphConfig) -> pd.DataFrame:
-    """:func:`replay_pair` over every ordered pair and encounter of a cerpe-method run folder."""
+ORACLES: dict[str, str] = {
+    "pair-scale": "each pair's direct translations divided by (1 + the median of their true relative error "
+                  "along the line between the cameras): the best one distance-scale factor per pair can do",
+    "no-along": "each direct estimate's translation error along the line between the cameras removed: the best "
+                "a per-estimate scale correction can do",
+    "exact-translation": "each direct translation replaced by the truth (rotation errors and odometry left)",
+}
+
+
+def oracle_steps(pair_steps: pd.DataFrame, oracle: str) -> pd.DataFrame:
+    """One pair's records with its direct translations corrected from ground truth (:data:`ORACLES`):
+    upper bounds of what a fix of the direct estimates' scale could give, measured by replaying."""
+    if oracle not in ORACLES:
+        raise GraphDevError(f"unknown oracle {oracle!r}; known: {sorted(ORACLES)}")
+    cols = ["dir_tx", "dir_ty", "dir_tz"]
+    t = pair_steps[cols].to_numpy(float).copy()
+    tg = pair_steps[["gt_tx", "gt_ty", "gt_tz"]].to_numpy(float)
+    ok = np.all(np.isfinite(t), axis=1) & np.all(np.isfinite(tg), axis=1)
+    dist = np.maximum(np.linalg.norm(tg, axis=1), 1e-9)
+    u = tg / dist[:, None]
+    along = np.sum((t - tg) * u, axis=1)
+    if oracle == "pair-scale" and ok.any():
+        t[ok] /= 1.0 + float(np.median(along[ok] / dist[ok]))
+    elif oracle == "no-along":
+        t[ok] -= along[ok, None] * u[ok]
+    elif oracle == "exact-translation":
+        t[ok] = tg[ok]
+    out = pair_steps.copy()
+    out[cols] = t
+    return out
+
+
+def replay_run(run_dir: Path | str, conf: GraphConfig, oracle: str | None = None) -> pd.DataFrame:
+    """:func:`replay_pair` over every ordered pair and encounter of a cerpe-method run folder
+    (``oracle``: its direct translations corrected first, :func:`oracle_steps`)."""
     run = load_run(run_dir)
+    rel = depth_rel_sigma(run.meta)
     parts = []
     for (enc, ego, other), g in run.steps.groupby(["encounter", "ego", "other"], sort=True):
+        if oracle is not None:
+            g = oracle_steps(g, oracle)
         R = run.robots[run.robots["encounter"] == enc]
-        parts.append(replay_pair(g, R[R["robot"] == ego], R[R["robot"] == other], conf))
+        parts.append(replay_pair(g, R[R["robot"] == ego], R[R["robot"] == other], conf, rel))
     return pd.concat(parts, ignore_index=True)
 
 
@@ -141,3 +200,100 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
             yield {"window": w, "dist_m": float(np.linalg.norm(Ge[:3, 3])), "angle_rad": float(rotation_angle(Ge[:3, :3])),
                    "rot_err_rad": float(rotation_angle(D[:3, :3])), "trans_err_m": float(np.linalg.norm(D[:3, 3])),
                    "failed": bool(bad[a + 1: b + 1].any())}
+
+
+# --------------------------------------------------------------------------- direct estimates per depth kind
+MAXWELL_MEDIAN = 1.5382  # median of |x| for x ~ N(0, sigma^2 I_3), in sigmas
+RAYLEIGH_MEDIAN = 1.1774  # median of |x| for x ~ N(0, sigma^2 I_2), in sigmas
+NORMAL_ABS_MEDIAN = 0.6745  # median of |x| for x ~ N(0, sigma^2)
+MIN_REL_DIST_M = 0.5  # relative (per-metre) direct errors only from cameras at least this far apart
+TRIM = 0.05  # stat "trimmed": the worst 5 % of a kind's errors left to the robust kernel
+GROSS_ROT_RAD = 0.5  # direct estimates this far off are the kernel's job, not the noise model's
+
+
+def _per_metre(x: np.ndarray, dist: np.ndarray, floor: float, dof: int, stat: str) -> float:
+    """``b`` of a per-axis sigma ``floor + b dist`` that explains the errors ``x`` (norms over ``dof``
+    axes): their median in sigmas is the Gaussian's (``stat="median"``) or their mean square is
+    ``dof`` (``"rms"``); 0 when the floor alone explains them."""
+    x, dist = np.abs(np.asarray(x, float)), np.asarray(dist, float)
+    if len(x) == 0:
+        return np.nan
+    if stat == "trimmed":  # RMS of all but the worst TRIM of relative errors (the kernel's share)
+        keep = x / np.maximum(dist, 1e-9) <= np.quantile(x / np.maximum(dist, 1e-9), 1.0 - TRIM)
+        x, dist, stat = x[keep], dist[keep], "rms"
+    k = {1: NORMAL_ABS_MEDIAN, 2: RAYLEIGH_MEDIAN}[dof]
+    f = ((lambda b: float(np.median(x / (floor + b * dist))) - k) if stat == "median" else
+         (lambda b: float(np.mean((x / (floor + b * dist)) ** 2)) - dof))
+    if f(0.0) <= 0:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while f(hi) > 0 and hi < 1e6:
+        hi *= 10.0
+    for _ in range(60):  # bisection: f decreases in b
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) > 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def kind_sigmas(samples: pd.DataFrame, floor_m: float = 0.0, min_dist_m: float = MIN_REL_DIST_M,
+                stat: str = "median") -> dict:
+    """Per-axis sigmas of one group of direct estimates (:func:`direct_samples` rows): rotation (rad),
+    and the per-metre parts across / along the line between the cameras of a sigma ``floor_m +
+    b distance`` (estimates closer than ``min_dist_m`` left out of those two); ``stat``: ``median``
+    (robust) or ``rms`` (what the calibration figure compares: RMS error against RMS sigma)."""
+    far = samples[samples["dist_m"] >= min_dist_m]
+    rot = samples["rot_err_rad"].to_numpy()
+    return {"n": int(len(samples)),
+            "rot": float(np.median(rot) / MAXWELL_MEDIAN if stat == "median" else
+                         np.sqrt(np.mean(np.sort(rot)[: max(int(np.ceil(len(rot) * (1.0 - TRIM))), 1)] ** 2) / 3)
+                         if stat == "trimmed" else np.sqrt(np.mean(rot**2) / 3)),
+            "across_rel": _per_metre(far["perp_m"], far["dist_m"], floor_m, 2, stat),
+            "along_rel": _per_metre(far["along_m"], far["dist_m"], floor_m, 1, stat),
+            "dist_median_m": float(samples["dist_m"].median())}
+
+
+def quadrature_fit(rel: np.ndarray, sigma: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """``(c, g)`` with ``sigma^2 = c^2 + (g rel)^2`` over depth kinds: non-negative least squares on the
+    relative misfit, each kind weighted by its count ``n``."""
+    from scipy.optimize import nnls
+
+    w = np.asarray(n, float) / np.maximum(np.asarray(sigma, float) ** 2, 1e-12)
+    r2 = np.asarray(rel, float) ** 2
+    coef, _ = nnls(np.stack([w, w * r2], 1), w * np.asarray(sigma, float) ** 2)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+
+
+def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "median") -> dict:
+    """The direct estimates' noise model (:func:`~cerpe.algorithm.graph.direct_cov`) from
+    :func:`direct_samples` rows with a ``rel`` column (the depth source's relative scale sigma, NaN:
+    none): floors and gains on ``rel`` fitted in quadrature over the depth kinds (one ``rel`` value
+    each, at least ``min_kind`` estimates, gross ones left out), the absolute floor ``direct_trans_m``
+    from cameras closer than :data:`MIN_REL_DIST_M` (else 1 mm), ``direct_depth_rel_unknown`` as the
+    ``rel`` that predicts the along-line error of estimates without one. Returns the
+    :class:`~cerpe.algorithm.graph.GraphConfig` fields and ``kinds``: per kind the observed and
+    predicted sigmas (the calibration's figures)."""
+    good = samples[samples["rot_err_rad"] < GROSS_ROT_RAD]
+    near = good[good["dist_m"] < MIN_REL_DIST_M]
+    a = max(float(np.median(near["perp_m"]) / RAYLEIGH_MEDIAN) if len(near) >= 10 else 0.0, 1e-3)
+    kinds = [{"rel": float(rel), **kind_sigmas(g, a, stat=stat)} for rel, g in good[np.isfinite(good["rel"])].groupby("rel")
+             if len(g) >= min_kind]
+    if not kinds:
+        raise GraphDevError(f"no depth kind has {min_kind} direct estimates (rot error < {GROSS_ROT_RAD} rad): "
+                            "nothing to fit")
+    K = pd.DataFrame(kinds)
+    r, n = K["rel"].to_numpy(), K["n"].to_numpy(float)
+    rot0, g_rot = quadrature_fit(r, K["rot"].to_numpy(), n)
+    c, g_across = quadrature_fit(r, K["across_rel"].to_numpy(), n)
+    c_along, g_along = quadrature_fit(r, K["along_rel"].to_numpy(), n)
+    along_factor = float(max(c_along / max(c, 1e-9), 1.0))
+    fit = {"direct_rot_rad": rot0, "direct_trans_m": a, "direct_trans_rel": c,
+           "direct_along_factor": along_factor, "direct_depth_rot": g_rot, "direct_depth_across": g_across,
+           "direct_depth_along": g_along}
+    unknown = good[~np.isfinite(good["rel"])]
+    u = kind_sigmas(unknown, a, stat=stat)["along_rel"] if len(unknown) else np.nan
+    if np.isfinite(u) and g_along > 0:
+        fit["direct_depth_rel_unknown"] = float(np.sqrt(max(u**2 - (along_factor * c) ** 2, 0.0)) / g_along)
+    K["pred_rot"] = np.hypot(rot0, g_rot * r)
+    K["pred_across_rel"] = np.hypot(c, g_across * r)
+    K["pred_along_rel"] = np.hypot(along_factor * c, g_along * r)
+    return {**fit, "n": int(len(samples)), "n_used": int(len(good)), "kinds": K.to_dict("records")}
