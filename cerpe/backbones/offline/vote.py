@@ -52,7 +52,8 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
         meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
         g = _bilinear(grey[1], ub, vb)
         grey_ok = np.abs(g - gi) <= c["vote_grey_tol"]
-        s, spread = depth_scale(zi, meas, grey_ok, float(c["vote_depth_tol"]), float(c["vote_depth_scale_max"]))
+        s, spread = depth_scale(zi, meas, grey_ok, float(c["vote_depth_tol"]), float(c["vote_depth_scale_max"]),
+                                float(c["vote_depth_scale_search"]))
         tol = float(c["vote_depth_tol"])
         if spread_k > 0:
             tol = max(tol, min(spread_k * spread, float(c["vote_depth_tol_max"])))
@@ -63,24 +64,27 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
 
 
 def depth_scale(z_pred: np.ndarray, z_meas: np.ndarray, grey_ok: np.ndarray, tol: float,
-                scale_max: float) -> tuple[float, float]:
+                scale_max: float, search: float | None = None) -> tuple[float, float]:
     """One depth scale ``s`` of a motion: ``s * z_pred`` (``[n]``, depths moved by the motion)
     best matches ``z_meas`` (``[n]``, the other view's prior there), the median ratio over
     the pixels whose grey level agrees (``grey_ok``) and whose depths agree within
-    ``(1 + scale_max) * (1 + tol)``, clipped to a factor ``1 + scale_max`` either way;
-    1 with fewer than 3 such pixels or ``scale_max`` <= 0 (off). Also the robust sigma
-    (1.4826 MAD) of the log ratios about it over those pixels (0 without any): what is
-    left of the prior's error within a frame (a network's smooth distortion) once the
-    scale is fitted.
+    ``(1 + search) * (1 + tol)`` (``search`` defaults to ``scale_max``), clipped to a factor
+    ``1 + scale_max`` either way; 1 with fewer than 3 such pixels or ``scale_max`` <= 0 (off).
+    Also the robust sigma (1.4826 MAD) of the log ratios about it over those pixels (0
+    without any): what is left of the prior's error within a frame (a network's smooth
+    distortion) once the scale is fitted. The bound is about the prior's own per-frame
+    scale noise: a wider one lets a motion fit away part of a real depth change (moving
+    forward towards a scene looks much like a scale).
 
     Why: a depth prior whose metric scale wanders from frame to frame (a monocular depth
     network, ~8 % per frame) fails a tight relative depth test over the whole static
     scene, which then counts as moving. The scale is one number per motion and frame pair,
     so an object moving in the scene still disagrees with the static part it is fitted on."""
     smax = np.log1p(max(scale_max, 0.0))
+    window = np.log1p(max(scale_max if search is None else search, 0.0)) + np.log1p(tol)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.log(z_meas / z_pred)
-    use = grey_ok & np.isfinite(r) & (np.abs(r) <= smax + np.log1p(tol))
+    use = grey_ok & np.isfinite(r) & (np.abs(r) <= window)
     if use.sum() < 3:
         return 1.0, 0.0
     m = float(np.clip(np.median(r[use]), -smax, smax))
