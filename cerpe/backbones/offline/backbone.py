@@ -67,6 +67,12 @@ class OfflineGeometryBackbone:
         motion_hypotheses: rigid motions RANSAC looks for on a prior.
         vote_stride, vote_depth_tol, vote_grey_tol, vote_blur_sigma: the dense vote
             between them (:mod:`.vote`).
+        vote_depth_scale_max, vote_depth_scale_search: the vote fits one depth scale per motion
+            and frame pair (a prior whose scale wanders per frame) on the pixels whose depths
+            agree within a factor ``1 + vote_depth_scale_search``, bounded to a factor
+            ``1 + vote_depth_scale_max`` (about the prior's per-frame scale noise; 0: off).
+        vote_moving_spread_k, vote_depth_tol_max: the moving mask's depth tolerance widens to
+            that many robust sigmas of the chosen motion's depth residuals, at most the max (0: off).
         motion_prior: the prior view's own motion (from its memo) joins as a hypothesis.
         vote_views, vote_chain_hops: older views that vote, reached through at most that
             many hops of the memos' motion chains.
@@ -122,6 +128,10 @@ class OfflineGeometryBackbone:
         "motion_hypotheses": 3,
         "vote_stride": 4,
         "vote_depth_tol": 0.05,
+        "vote_depth_scale_max": 0.08,
+        "vote_depth_scale_search": 0.15,
+        "vote_moving_spread_k": 3.0,
+        "vote_depth_tol_max": 0.2,
         "vote_grey_tol": 6.0,
         "vote_blur_sigma": 1.0,
         "motion_prior": True,

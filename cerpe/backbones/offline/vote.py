@@ -23,14 +23,18 @@ from .matching import map_index, pixels_to_rays
 
 
 def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
-                exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                exclude: np.ndarray | None = None, spread_k: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """View ``a``'s prior depth pixels on the ``vote_stride`` grid, moved into view ``b``
     by each ``T_b_a[h]``: ``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool.
 
     ``inside``: in front of ``b`` and within its image; ``consistent``: also ``b``'s prior
-    depth there within ``vote_depth_tol`` (relative) and its grey level (both images
-    blurred with ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a
-    prior depth, or set in ``exclude`` (``[n_grid]`` bool), are neither."""
+    depth there within ``vote_depth_tol`` (relative) of the moved depth times the motion's
+    depth scale (:func:`depth_scale`) and its grey level (both images blurred with
+    ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a prior depth, or
+    set in ``exclude`` (``[n_grid]`` bool), are neither. ``spread_k`` > 0 widens the depth
+    tolerance of each motion to ``spread_k`` robust sigmas of its log depth residuals
+    (:func:`depth_scale`), at most ``vote_depth_tol_max``: for one motion already chosen
+    (the moving mask), never between motions (a wrong one would widen its own)."""
     c = p.conf
     Db = np.asarray(p.views[b].depth_m, np.float64)
     grey = _blurred(p, (a, b), float(c["vote_blur_sigma"]))
@@ -47,10 +51,44 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
         meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
         g = _bilinear(grey[1], ub, vb)
+        grey_ok = np.abs(g - gi) <= c["vote_grey_tol"]
+        s, spread = depth_scale(zi, meas, grey_ok, float(c["vote_depth_tol"]), float(c["vote_depth_scale_max"]),
+                                float(c["vote_depth_scale_search"]))
+        tol = float(c["vote_depth_tol"])
+        if spread_k > 0:
+            tol = max(tol, min(spread_k * spread, float(c["vote_depth_tol_max"])))
         with np.errstate(divide="ignore", invalid="ignore"):
-            depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(zi - meas) <= c["vote_depth_tol"] * meas)
-        consistent[h, sel[ins]] = depth_ok & (np.abs(g - gi) <= c["vote_grey_tol"])
+            depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(s * zi - meas) <= tol * meas)
+        consistent[h, sel[ins]] = depth_ok & grey_ok
     return inside, consistent
+
+
+def depth_scale(z_pred: np.ndarray, z_meas: np.ndarray, grey_ok: np.ndarray, tol: float,
+                scale_max: float, search: float | None = None) -> tuple[float, float]:
+    """One depth scale ``s`` of a motion: ``s * z_pred`` (``[n]``, depths moved by the motion)
+    best matches ``z_meas`` (``[n]``, the other view's prior there), the median ratio over
+    the pixels whose grey level agrees (``grey_ok``) and whose depths agree within
+    ``(1 + search) * (1 + tol)`` (``search`` defaults to ``scale_max``), clipped to a factor
+    ``1 + scale_max`` either way; 1 with fewer than 3 such pixels or ``scale_max`` <= 0 (off).
+    Also the robust sigma (1.4826 MAD) of the log ratios about it over those pixels (0
+    without any): what is left of the prior's error within a frame (a network's smooth
+    distortion) once the scale is fitted. The bound is about the prior's own per-frame
+    scale noise: a wider one lets a motion fit away part of a real depth change (moving
+    forward towards a scene looks much like a scale).
+
+    Why: a depth prior whose metric scale wanders from frame to frame (a monocular depth
+    network, ~8 % per frame) fails a tight relative depth test over the whole static
+    scene, which then counts as moving. The scale is one number per motion and frame pair,
+    so an object moving in the scene still disagrees with the static part it is fitted on."""
+    smax = np.log1p(max(scale_max, 0.0))
+    window = np.log1p(max(scale_max if search is None else search, 0.0)) + np.log1p(tol)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.log(z_meas / z_pred)
+    use = grey_ok & np.isfinite(r) & (np.abs(r) <= window)
+    if use.sum() < 3:
+        return 1.0, 0.0
+    m = float(np.clip(np.median(r[use]), -smax, smax))
+    return float(np.exp(m)), float(1.4826 * np.median(np.abs(r[use] - m)))
 
 
 def motion_votes(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
@@ -99,7 +137,7 @@ def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray) -> np.ndarray | None:
     object, mostly); None when ``mask_moving`` is off or the current view has no prior."""
     if not p.conf["mask_moving"] or p.views[0].depth_m is None:
         return None
-    inside, consistent = consistency(p, 0, d, [T_d_0])
+    inside, consistent = consistency(p, 0, d, [T_d_0], spread_k=float(p.conf["vote_moving_spread_k"]))
     return inside[0] & ~consistent[0]
 
 
