@@ -44,9 +44,15 @@ GRID: dict[str, dict] = {
     "lean": LEAN,
     "lean-colour": {**LEAN, "reply_codec": "webp"},  # LEAN before the grey replies
     "lean-g60": {**LEAN, "reply_quality": 60},
+    "lean-g90": {**LEAN, "reply_quality": 90},  # is the grey-vs-colour placement loss the codec's quality?
     "lean-tight": {**LEAN, "request_policy": {**LEAN_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
                                                "max_steps": 15}},  # spends the grey replies' bytes on fresher anchors
     "pi-backoff": {"request_policy": LEAN_POLICY, "descriptor_codec": "pca-int8"},
+    # issue 21, success: only a pair with an anchor backs off (a pair without one loses the frames it does not ask
+    # for), with a constant wait (ua) or one doubling per miss up to 12 steps (ua-grow: fewer bytes on anchored misses)
+    "lean-ua": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True}},
+    "lean-ua-grow": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True, "miss_backoff_growth": 2.0,
+                                                 "miss_backoff_max_steps": 12}},
     "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
     "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
                                         "max_steps": 10}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},

@@ -9,7 +9,14 @@ import pytest
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
 from cerpe.algorithm import AlgorithmError, CerpeConfig, Team
-from cerpe.algorithm.policy import PairView, PolicyConfig, PolicyError, decide, propagation_sigma
+from cerpe.algorithm.policy import (
+    PairView,
+    PolicyConfig,
+    PolicyError,
+    backoff_steps,
+    decide,
+    propagation_sigma,
+)
 from cerpe.geometry import e_rot
 
 PAYS = PolicyConfig(mode="pays")
@@ -146,6 +153,7 @@ def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
 
     P = run({"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3})
     B = run({"mode": "pays"})
+    A = run({"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3, "backoff_anchored_only": True})
     assert all(P[t].gate_open for t in P)
     # nothing places before step 5: three requests that place nothing, then one every third step
     asked = [t for t in range(10) if P[t].bytes_pair > 0]
@@ -155,3 +163,31 @@ def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
     assert P[5].source == "direct" and [P[t].anchor_verdict for t in (5, 6, 7)] == ["unverified", "unverified",
                                                                                    "verified"]
     assert sum(p.bytes_pair > 0 for p in P.values()) < sum(p.bytes_pair > 0 for p in B.values())
+    # backing off from anchored pairs only: without an anchor it asks at every step, and places at 5 as before
+    assert [t for t in range(6) if A[t].bytes_pair > 0] == [0, 1, 2, 3, 4, 5] and A[5].source == "direct"
+
+
+
+def test_growing_backoff_and_anchored_only_known_answers():
+    conf = PolicyConfig(mode="pays", miss_limit=2, miss_backoff_steps=3, miss_backoff_growth=2.0,
+                        miss_backoff_max_steps=12)
+    assert [backoff_steps(conf, m) for m in range(6)] == [0, 0, 3, 6, 12, 12]
+    assert [backoff_steps(PolicyConfig(mode="pays", miss_limit=2, miss_backoff_steps=3), m)
+            for m in range(5)] == [0, 0, 3, 3, 3]  # growth 1: the constant wait of before
+    missed = PairView(anchored=False, misses=3, steps_since_ask=5)
+    assert decide(conf, True, missed) == (False, "backoff")  # third miss: waits 6 steps
+    assert decide(conf, True, dataclasses.replace(missed, steps_since_ask=6)) == (True, "no-anchor")
+    old = dataclasses.replace(FRESH, steps_since=40, misses=4, steps_since_ask=11)
+    assert decide(conf, True, old) == (False, "backoff")
+    assert decide(conf, True, dataclasses.replace(old, steps_since_ask=12)) == (True, "stale")
+    # with backoff_anchored_only a pair without an anchor (no estimate while it waits) never backs off
+    only = dataclasses.replace(conf, backoff_anchored_only=True)
+    assert decide(only, True, missed) == (True, "no-anchor")
+    assert decide(only, True, dataclasses.replace(missed, pending=True)) == (True, "no-anchor")
+    assert decide(only, True, old) == (False, "backoff")
+    with pytest.raises(PolicyError, match="miss_backoff_growth"):
+        PolicyConfig(miss_backoff_growth=0.5)
+    with pytest.raises(PolicyError, match="miss_backoff_max_steps"):
+        PolicyConfig(miss_backoff_max_steps=-1)
+    with pytest.raises(PolicyError, match="backoff_anchored_only"):
+        PolicyConfig(backoff_anchored_only=1)

@@ -15,8 +15,13 @@ The paper requests an image whenever the gate opens (``mode="gate"``, the defaul
 
 unless the pair is backing off: after ``miss_limit`` requests in a row whose image placed
 nothing (the gate opened on views that do not overlap enough), it asks only every
-``miss_backoff_steps`` steps until an image places again (0: never backs off). An open
-gate without overlap otherwise asks at every step, and those bytes buy nothing.
+``miss_backoff_steps`` steps, the wait growing ``miss_backoff_growth`` times per further
+miss up to ``miss_backoff_max_steps``, until an image places again (0: never backs off).
+An open gate without overlap otherwise asks at every step, and those bytes buy nothing.
+With ``backoff_anchored_only`` only a pair that has an anchor backs off: it keeps an
+estimate (its anchor propagated) while it waits, whereas a pair without one loses every
+frame it does not ask for (and an unverified candidate expires unless the next images
+verify it).
 
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
@@ -52,6 +57,9 @@ class PolicyConfig:
             two robots travelled since the anchor (both odometers summed).
         miss_limit, miss_backoff_steps: back off after this many requests in a row placed
             nothing, asking every ``miss_backoff_steps`` steps (either 0: never back off).
+        miss_backoff_growth, miss_backoff_max_steps: the wait grows this many times per
+            miss beyond ``miss_limit``, up to this many steps (1, 0: a constant wait).
+        backoff_anchored_only: only a pair with an anchor backs off.
     """
 
     mode: str = "gate"
@@ -65,6 +73,9 @@ class PolicyConfig:
     pos_sigma_per_m: float = 0.05
     miss_limit: int = 0
     miss_backoff_steps: int = 0
+    miss_backoff_growth: float = 1.0
+    miss_backoff_max_steps: int = 0
+    backoff_anchored_only: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -74,7 +85,14 @@ class PolicyConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be finite and >= 0, got {v!r}")
-        for name in ("max_steps", "miss_limit", "miss_backoff_steps"):
+        if not (isinstance(self.miss_backoff_growth, (int, float)) and math.isfinite(self.miss_backoff_growth)
+                and self.miss_backoff_growth >= 1):
+            raise PolicyError(f"request_policy: miss_backoff_growth must be finite and >= 1, "
+                              f"got {self.miss_backoff_growth!r}")
+        if not isinstance(self.backoff_anchored_only, bool):
+            raise PolicyError(f"request_policy: backoff_anchored_only must be true or false, "
+                              f"got {self.backoff_anchored_only!r}")
+        for name in ("max_steps", "miss_limit", "miss_backoff_steps", "miss_backoff_max_steps"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be an integer >= 0, got {v!r}")
@@ -111,6 +129,21 @@ def propagation_sigma(conf: PolicyConfig, view: PairView) -> tuple[float, float]
             conf.pos_sigma0_m + conf.pos_sigma_per_m * max(view.travelled_m, 0.0))
 
 
+def backoff_steps(conf: PolicyConfig, misses: int) -> int:
+    """Steps between requests after ``misses`` requests in a row placed nothing (0: not backing off)."""
+    if not (conf.miss_limit and conf.miss_backoff_steps) or misses < conf.miss_limit:
+        return 0
+    wait = conf.miss_backoff_steps * conf.miss_backoff_growth ** (misses - conf.miss_limit)
+    cap = conf.miss_backoff_max_steps or conf.miss_backoff_steps
+    return int(min(max(wait, conf.miss_backoff_steps), max(cap, conf.miss_backoff_steps)))
+
+
+def _backing_off(conf: PolicyConfig, view: PairView) -> bool:
+    if conf.backoff_anchored_only and not view.anchored:
+        return False
+    return view.steps_since_ask < backoff_steps(conf, view.misses)
+
+
 def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[bool, str]:
     """``(request, why)``; ``why`` names the rule that asked, or why a request was skipped.
 
@@ -122,8 +155,7 @@ def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[
         return False, "gate-closed"
     if conf.mode == "gate":
         return True, "gate"
-    if (view is not None and conf.miss_limit and conf.miss_backoff_steps and view.misses >= conf.miss_limit
-            and view.steps_since_ask < conf.miss_backoff_steps):
+    if view is not None and _backing_off(conf, view):
         return False, "backoff"
     if view is None or not view.anchored:
         return True, "no-anchor"
