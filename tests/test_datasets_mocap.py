@@ -199,6 +199,29 @@ def test_metric_depth_options_reach_the_setting_and_the_depth_source(tmp_path: P
             load_manifest(m)
 
 
+def test_a_misspelt_depth_option_is_an_error_naming_the_file_in_check_and_run(tmp_path: Path) -> None:
+    """``dataset`` and ``none`` took any option and ignored it; now every source names an unknown one."""
+    from cerpe.backbones.depth import DepthSourceError, build_depth_source
+    from cerpe.datasets.cli import check_one
+    from cerpe.pipeline.run import RunError, run_method
+
+    assert build_depth_source("dataset", {"rel_sigma": 0.02}).rel_sigma == 0.02
+    for name, opts in (("dataset", {"rel_sigmaa": 0.02}), ("none", {"rel_sigma": 0.0}), ("dataset", {"rel_sigma": -1})):
+        with pytest.raises(DepthSourceError, match="rel_sigma"):
+            build_depth_source(name, opts)
+    m = write_mocap(tmp_path)
+    raw = yaml.safe_load(m.read_text())
+    raw["metric_depth"], raw["metric_depth_options"] = "dataset", {"rel_sigmaa": 0.02}
+    m.write_text(yaml.safe_dump(raw))
+    problems = check_one(str(m), None, False, False)
+    assert len(problems) == 1 and str(m) in problems[0] and "metric_depth_options" in problems[0] \
+        and "rel_sigmaa" in problems[0]
+    with pytest.raises(RunError, match="metric_depth_options.*rel_sigmaa") as exc:
+        run_method(m, "cerpe", tmp_path / "run", progress=False)
+    assert str(m.resolve()) in str(exc.value)
+    assert not (tmp_path / "run").exists()  # nothing written
+
+
 def test_synth_manifest_gives_the_cad_world_an_outdoor_sensor() -> None:
     from cerpe.synth import sensor_options
 

@@ -17,7 +17,7 @@ Heavy or optional modules are imported only when their source is built.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class DatasetDepth:
     name = "dataset"
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = dict(conf or {})
+        self.conf = _known_options(conf, ("rel_sigma",), self.name)
         r = self.conf.get("rel_sigma", DATASET_REL_SIGMA)
         if not isinstance(r, (int, float)) or not np.isfinite(r) or r < 0:
             raise DepthSourceError(f"depth source 'dataset': rel_sigma must be a finite number >= 0, got {r!r}")
@@ -70,19 +70,26 @@ class NoDepth:
     name = "none"
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = dict(conf or {})
+        self.conf = _known_options(conf, (), self.name)
 
     def depth_m(self, view: View, frame: FrameContext) -> np.ndarray | None:
         return None
 
 
-def _simulation(cls: type, conf: dict[str, Any], what: str) -> Any:
-    """A depth simulation (a dataclass) from the manifest's ``metric_depth_options``."""
-    known = [f.name for f in dataclasses.fields(cls) if f.name != "name"]
+def _known_options(conf: dict[str, Any] | None, known: Sequence[str], what: str) -> dict[str, Any]:
+    """``conf`` as a dict; DepthSourceError naming the unknown options and the known ones (a
+    misspelt option would otherwise be ignored without a word)."""
+    conf = dict(conf or {})
     unknown = sorted(set(conf) - set(known))
     if unknown:
         raise DepthSourceError(f"depth source {what!r}: bad options {sorted(conf)}: unknown option(s) {unknown}; "
-                               f"known: {known}")
+                               f"known: {list(known) or 'none'}")
+    return conf
+
+
+def _simulation(cls: type, conf: dict[str, Any], what: str) -> Any:
+    """A depth simulation (a dataclass) from the manifest's ``metric_depth_options``."""
+    _known_options(conf, [f.name for f in dataclasses.fields(cls) if f.name != "name"], what)
     try:
         return cls(**conf)
     except (TypeError, ValueError) as exc:

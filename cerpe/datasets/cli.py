@@ -46,6 +46,20 @@ def _fmt(v: float, spec: str = ".3f", unit: str = "") -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:{spec}}{unit}"
 
 
+def depth_source_problem(path: str, manifest) -> str:
+    """The manifest's depth source built with its options ("" when it builds): a misspelt or bad
+    option is a problem naming the file and field. ``metric3d`` is not built here (it loads weights)."""
+    from ..backbones.depth import DepthSourceError, build_depth_source
+
+    if manifest.metric_depth == "metric3d":
+        return ""
+    try:
+        build_depth_source(manifest.metric_depth, manifest.metric_depth_options)
+    except DepthSourceError as exc:
+        return f"{path}: metric_depth_options: {exc}"
+    return ""
+
+
 def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, out=None) -> list[str]:
     """Check one manifest, print its summary to ``out`` (stdout); returns the problems as lines."""
     out = out if out is not None else sys.stdout
@@ -53,6 +67,9 @@ def check_one(path: str, frames: int | None, verify: bool, per_encounter: bool, 
         manifest = load_manifest(path)
     except ManifestError as exc:
         return [str(p) for p in exc.problems]
+    bad_depth = depth_source_problem(path, manifest)
+    if bad_depth:
+        return [bad_depth]
     if not manifest.enabled:
         print(f"{path}: {manifest.name} ({manifest.adapter}): {disabled_reason(manifest)}; schema OK", file=out)
         return []

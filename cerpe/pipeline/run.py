@@ -418,9 +418,15 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     setting = setting if setting is not None else load_manifest_setting(manifest)
     every = evaluation_every(setting, manifest)
     lossy = {} if loss is None or loss.lossless else {"channel": loss}  # test doubles take no channel
-    mconf, steps = prepare_method(method, profile, seed, getattr(setting, "metric_depth", None), every,
-                                  getattr(setting, "metric_depth_options", None), **lossy,
-                                  **({"overrides": overrides} if overrides else {}))
+    from ..backbones.depth import DepthSourceError
+
+    depth = getattr(setting, "metric_depth", None)
+    try:
+        mconf, steps = prepare_method(method, profile, seed, depth, every,
+                                      getattr(setting, "metric_depth_options", None), **lossy,
+                                      **({"overrides": overrides} if overrides else {}))
+    except DepthSourceError as exc:  # the manifest's depth source: name the file and its fields
+        raise RunError(f"{manifest}: metric_depth {depth!r} / metric_depth_options: {exc}") from None
     config = {
         "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
