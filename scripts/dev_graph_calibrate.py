@@ -20,7 +20,8 @@ Usage::
    ``odo_jump_rad`` per step left out: the graph models them apart), then the
    ratio of the observed to the modelled RMS error over longer windows (drift correlated
    over steps makes it > 1).
-3. With ``--grid``: replay the graph (:func:`cerpe.pipeline.graphdev.replay_run`) on every
+3. With ``--grid``: replay the graph (:func:`cerpe.pipeline.graphdev.replay_run`), from the noise
+   models fitted in 1 and 2 (not the defaults), on every
    ``cerpe-graph`` run with multipliers of both models and kernel widths, and print e_pos,
    e_rot, success and the calibration ratio per set against CERPE and CERPE w/o EM.
 4. With ``--oracle``: replay with the direct translations corrected from ground truth
@@ -186,7 +187,9 @@ def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[flo
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", type=Path, default=ROOT / "build" / "dev" / "runs")
-    p.add_argument("--grid", action="store_true", help="replay the graph with scaled noise models and kernels")
+    p.add_argument("--grid", action="store_true",
+                   help="replay the graph with the noise models FITTED above (not GraphConfig's defaults) times "
+                        "--odo / --direct, and kernel widths --k: a row at 1 1 1 is the fit, not the shipped graph")
     p.add_argument("--odo", type=float, nargs="+", default=[1.0, 2.0, 4.0])
     p.add_argument("--direct", type=float, nargs="+", default=[1.0, 2.0])
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0])
@@ -222,6 +225,7 @@ def main() -> int:
     if args.grid:
         base = GraphConfig(**{k: v for k, v in {**direct, **odo}.items() if k in GraphConfig.__dataclass_fields__},
                            kernel=args.kernel)
+        print("grid: replays from the fitted noise models above (not the defaults), scaled by --odo / --direct")
         g = grid(sets, base, args.odo, args.direct, args.k, args.along)
         with pd.option_context("display.width", 250, "display.max_columns", 30, "display.max_rows", 500):
             print(g.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
