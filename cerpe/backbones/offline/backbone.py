@@ -149,7 +149,7 @@ class OfflineGeometryBackbone:
         "dense_mask_moving": False,
         "frame_scale": True,
         "frame_scale_min_rel_sigma": 0.03,
-        "frame_scale_rate": 0.25,
+        "frame_scale_rate": 0.1,
         "frame_scale_max": 0.35,
         "frame_scale_min_pixels": 200,
         "merge_max_rot_px": 3.0,
