@@ -57,6 +57,11 @@ class View:
             ``"keyframe"``, ``"previous"`` (own frames) or ``"collaborator"`` (an image
             another robot sent); None when the caller does not say. A backbone may
             treat collaborator views differently (a costlier cross-robot matcher).
+        depth_rel_sigma: the relative sigma of ``depth_m``'s scale and low-frequency shape
+            as its depth source reports it (:attr:`MetricDepthSource.rel_sigma`: 0 for a
+            depth sensor, ~0.1 for a monocular network); None when not known. The offline
+            backbone corrects a per-frame scale only above a threshold
+            (``frame_scale_min_rel_sigma``); it never asks which source made the depth.
     """
 
     key: Hashable
@@ -65,6 +70,7 @@ class View:
     depth_m: np.ndarray | None = None
     memo: Mapping[str, Any] | None = None
     role: str | None = None
+    depth_rel_sigma: float | None = None
 
 
 @dataclass(frozen=True)

@@ -190,11 +190,13 @@ class RobotAgent(GateSide):
         kfs = self.memory.newest_first()
         # metric depth priors: each keyframe's reference, and the current frame's when it is
         # computed anyway (no keyframe yet: the scale needs it; track_previous: the next step does)
+        rel = getattr(self.depth, "rel_sigma", None)  # the depth source's own word on its scale noise
+        rel = None if rel is None else float(rel)
         if not kfs or self.config.track_previous:
-            st.view = dataclasses.replace(st.view, depth_m=self._current_depth())
+            st.view = dataclasses.replace(st.view, depth_m=self._current_depth(), depth_rel_sigma=rel)
         st.view = dataclasses.replace(st.view, role="current")
-        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo, role="keyframe")
-                             for kf in kfs]
+        views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo, role="keyframe",
+                                  depth_rel_sigma=rel) for kf in kfs]
         st.own_views = {0: (st.step, None)}
         st.own_views.update({1 + k: (kf.step, kf.T_odom_cam) for k, kf in enumerate(kfs)})
         prev = self.previous

@@ -33,6 +33,7 @@ from ...protocols import BackboneOutput, View
 from ..rgbd_align import default_conf as dense_default_conf
 from ..xfeat import ImageInputError, XFeatEncoder, check_image, shared_encoder
 from . import cross as cross_mod
+from . import framescale
 from .context import OfflineBackboneError, Pass, Recon, check_memo
 from .matching import PairMatcher, pinhole_camera, reprojection_error, splat_depth
 from .reconstruction import bootstrap_depth, place_pnp
@@ -80,6 +81,11 @@ class OfflineGeometryBackbone:
         dense_refine, dense: dense RGB-D refinement of the current pose on the prior view
             (``dense`` overrides :data:`cerpe.backbones.rgbd_align.default_conf`).
         dense_mask_moving: leave the prior view's moving pixels out of that refinement.
+        frame_scale, frame_scale_min_rel_sigma, frame_scale_rate, frame_scale_max, frame_scale_min_pixels:
+            a running per-frame depth scale carried in the memos (:mod:`.framescale`): on when the
+            current view's ``depth_rel_sigma`` is at least the minimum (a monocular prior, not a
+            depth sensor's 0); the running mean's rate per frame, the widest ratio a frame's scale
+            is measured within (a factor ``1 + max``) and the grid pixels a measurement needs.
         merge_max_rot_px, merge_max_dir_deg, merge_max_ratio_spread, merge_min_baseline_m:
             agreement the image-only views need to join a metric pass
             (:func:`.two_view.merge_image_only`).
@@ -141,6 +147,11 @@ class OfflineGeometryBackbone:
         "dense_refine": True,
         "dense": {**dense_default_conf, "stride": 8, "iterations": 12},
         "dense_mask_moving": False,
+        "frame_scale": True,
+        "frame_scale_min_rel_sigma": 0.03,
+        "frame_scale_rate": 0.1,
+        "frame_scale_max": 0.35,
+        "frame_scale_min_pixels": 200,
         "merge_max_rot_px": 3.0,
         "merge_max_dir_deg": 10.0,
         "merge_max_ratio_spread": 1.25,
@@ -200,10 +211,15 @@ class OfflineGeometryBackbone:
         feats = [self.encoder.encode(v) for v in views]
         timings["encode"] = time.perf_counter() - t0
         memos = [None] + [check_memo(v, s, f) for s, (v, f) in enumerate(zip(views, feats)) if s > 0]
+        views = list(views)
+        scale_ref = None
+        if framescale.enabled(views, self.conf):
+            scale_ref = framescale.reference_mean(views, memos)
+            views = framescale.correct_views(views, memos, scale_ref)
         p = Pass(views=views, feats=feats, Ks=[None if i is None else i.K for i in intr],
                  cams=[None if i is None else pinhole_camera(i) for i in intr],
                  low_tex=[f.grey_std < self.conf["min_texture_std"] for f in feats], conf=self.conf,
-                 matcher=self.matcher, memos=memos, timings=timings)
+                 matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref)
         own = [s for s in range(S) if not is_collab[s]]
         rec, reasons = self._solve_own(p, own)
         cross_mod.check_joint_placements(p, rec, [s for s in own if views[s].role == "collaborator"], reasons)
@@ -289,6 +305,7 @@ class OfflineGeometryBackbone:
         sub = p.subset(own)
         rec, sub_reasons = self._solve(sub)
         p.memo_out = sub.memo_out
+        p.views[0] = sub.views[0]  # its prior, rescaled to the pass's scale (:mod:`.framescale`)
         reasons = [""] * S
         for i, s in enumerate(own):
             reasons[s] = sub_reasons[i]

@@ -14,7 +14,10 @@ previous frame leaves in its memo (``BackboneOutput.memos[0]``) and comes back a
   newest first, at most ``vote_chain_hops`` (at least one) hops. The first hop is
   the constant-velocity prior; the chain reaches older keyframes that vote too;
 * ``moving``: ``[n_grid] bool`` vote-grid pixels of the view that its motion did not
-  explain (a moving object), or None.
+  explain (a moving object), or None;
+* ``log_scale`` (optional): ``(a, m)``, the view's prior's log depth scale in the robot's
+  running reference and the running mean of its recent frames (:mod:`.framescale`), or
+  None (no per-frame scale kept: a depth sensor's prior, or none measured).
 """
 from __future__ import annotations
 
@@ -86,7 +89,7 @@ def check_memo(view: View, s: int, feats: XFeatFeatures) -> Mapping[str, Any] | 
 class Pass:
     """The inputs of one pass, shared by the helpers of the package."""
 
-    views: Sequence[View]
+    views: list[View]  # view 0's prior may be rescaled during the pass (:mod:`.framescale`)
     feats: list[XFeatFeatures]
     Ks: list[np.ndarray | None]  # None: a collaborator view without intrinsics (never registered)
     cams: list[dict | None]
@@ -101,13 +104,18 @@ class Pass:
     # events of this pass: "dense-refined", "dense-refused:<reason>", "merged", "merge-refused:<reason>"
     counts: Counter = field(default_factory=Counter)
     memo_out: dict[str, Any] | None = None  # the memo of view 0, once a depth prior placed it
+    # per-frame depth scale (:mod:`.framescale`): the pass's reference log scale (None: off) and
+    # the current view's (a, m) once measured
+    scale_ref: float | None = None
+    log_scale_out: tuple[float, float] | None = None
 
     def subset(self, idx: Sequence[int]) -> "Pass":
         """A pass over views ``idx`` of this one (same matcher, timings and counters)."""
         return Pass(views=[self.views[s] for s in idx], feats=[self.feats[s] for s in idx],
                     Ks=[self.Ks[s] for s in idx], cams=[self.cams[s] for s in idx],
                     low_tex=[self.low_tex[s] for s in idx], conf=self.conf, matcher=self.matcher,
-                    memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts)
+                    memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts,
+                    scale_ref=self.scale_ref)
 
     def m(self, a: int, b: int) -> np.ndarray:
         """``[M,2]`` keypoint index pairs between views ``a`` and ``b`` (empty for low texture)."""
@@ -140,4 +148,5 @@ class Pass:
             moving.setflags(write=False)
         hops = max(int(self.conf["vote_chain_hops"]), 1)
         chain = ((self.views[d].key, T),) + self.chain(d)[:hops - 1]
-        self.memo_out = {"image": self.feats[0].fingerprint, "chain": chain, "moving": moving}
+        self.memo_out = {"image": self.feats[0].fingerprint, "chain": chain, "moving": moving,
+                         "log_scale": self.log_scale_out}

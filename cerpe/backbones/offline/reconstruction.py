@@ -20,6 +20,7 @@ import numpy as np
 
 from ...geometry import se3_inverse
 from ..rgbd_align import align_rgbd
+from . import framescale
 from .context import Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
 from .vote import choose_motion, grid_mask_image, moving_pixels
@@ -57,6 +58,11 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
             why[d] = "few-inliers"
             continue
         refine_dense(p, d, rec)
+        if p.scale_ref is not None:
+            # view 0's prior onto d's scale, measured on the refined pose: measured on the P3P pose,
+            # the scale would absorb that pose's error along the optical axis, and the dense depth
+            # term would then confirm it
+            framescale.update_current(p, d, se3_inverse(rec.T[0]))
         moving = moving_pixels(p, d, rec.T[0])
         # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
         T_c0_d = se3_inverse(rec.T.pop(0))
