@@ -53,6 +53,19 @@ GRID: dict[str, dict] = {
     "lean-ua": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True}},
     "lean-ua-grow": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True, "miss_backoff_growth": 2.0,
                                                  "miss_backoff_max_steps": 12}},
+    # replace a doubtful anchor sooner instead of asking more often (pe: a pair whose candidates wait to verify does
+    # not back off; u2: a pair without an anchor waits 2 steps, not 3; rc: ask again while the estimate that set the
+    # anchor disagreed by > 0.03 rad with what verified it, up to 2 in a row; m: rotation sigma per metre travelled)
+    "lean-pe": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_pending_exempt": True}},
+    "lean-pe-u2": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_pending_exempt": True,
+                                               "unanchored_backoff_steps": 2}},
+    "lean-pe-rc": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_pending_exempt": True, "recheck_rot_rad": 0.03,
+                                               "recheck_limit": 2}},
+    "lean-ua-rc": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True, "recheck_rot_rad": 0.03,
+                                               "recheck_limit": 2}},
+    "lean-pe-u2-rc": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_pending_exempt": True,
+                                                  "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                  "recheck_limit": 2}},
     "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
     "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
                                         "max_steps": 10}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
