@@ -42,7 +42,7 @@ GRID: dict[str, dict] = {
     "pays-webp": {"request_policy": {"mode": "pays"}, "reply_codec": "webp", "reply_quality": 75},
     "pi-j75": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 75},
     "pi-j50": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 50},
-    "lean": LEAN,  # = "lean-pe-u2-rc-l1-b2" below (LEAN since the commit that made it so); the entries below keep LEAN_V1
+    "lean": LEAN,  # = "lean-pe-u2-rc-l1" below (LEAN since the commit that made it so); the entries below keep LEAN_V1
     "lean-v1": LEAN_V1,  # LEAN before: back-off every 3 steps after 3 misses, nothing else
     "lean-colour": {**LEAN_V1, "reply_codec": "webp"},  # LEAN before the grey replies
     "lean-g60": {**LEAN_V1, "reply_quality": 60},

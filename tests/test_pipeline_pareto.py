@@ -123,7 +123,7 @@ def test_lean_preset_backs_off_and_rechecks_over_the_compressed_messages():
 
     cfg = CerpeConfig(**LEAN)
     pol = cfg.request_policy
-    assert pol.mode == "pays" and pol.miss_limit == 2 and pol.miss_backoff_steps == 3
+    assert pol.mode == "pays" and pol.miss_limit == 3 and pol.miss_backoff_steps == 3
     assert pol.unanchored_backoff_steps == 2 and pol.backoff_pending_exempt and not pol.backoff_anchored_only
     assert pol.recheck_rot_rad == 0.03 and pol.recheck_limit == 1 and pol.min_inliers == 0 and pol.rot_sigma_per_m == 0
     assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items() if k != "reply_codec")
