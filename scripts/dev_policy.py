@@ -18,11 +18,12 @@ import fnmatch
 import sys
 from pathlib import Path
 
-from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN, LEAN_POLICY
+from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN, LEAN_V1_POLICY
 from cerpe.atomicio import atomic_write_text
 from cerpe.pipeline import dev, pareto
 
 ROOT = Path(__file__).resolve().parents[1]
+LEAN_V1 = {**LEAN, "request_policy": LEAN_V1_POLICY}  # LEAN before the recheck
 # name -> CerpeConfig overrides; "paper" and "always" are the references of the check
 GRID: dict[str, dict] = {
     "paper": {"request_policy": {"mode": "gate"}},
@@ -41,18 +42,60 @@ GRID: dict[str, dict] = {
     "pays-webp": {"request_policy": {"mode": "pays"}, "reply_codec": "webp", "reply_quality": 75},
     "pi-j75": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 75},
     "pi-j50": {"request_policy": {"mode": "pays"}, "descriptor_codec": "pca-int8", "jpeg_quality": 50},
-    "lean": LEAN,
-    "lean-colour": {**LEAN, "reply_codec": "webp"},  # LEAN before the grey replies
-    "lean-g60": {**LEAN, "reply_quality": 60},
-    "lean-g90": {**LEAN, "reply_quality": 90},  # is the grey-vs-colour placement loss the codec's quality?
-    "lean-tight": {**LEAN, "request_policy": {**LEAN_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
+    "lean": LEAN,  # = "lean-pe-u2-rc-l1" below (LEAN since the commit that made it so); the entries below keep LEAN_V1
+    "lean-v1": LEAN_V1,  # LEAN before: back-off every 3 steps after 3 misses, nothing else
+    "lean-colour": {**LEAN_V1, "reply_codec": "webp"},  # LEAN before the grey replies
+    "lean-g60": {**LEAN_V1, "reply_quality": 60},
+    "lean-g90": {**LEAN_V1, "reply_quality": 90},  # is the grey-vs-colour placement loss the codec's quality?
+    "lean-tight": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
                                                "max_steps": 15}},  # spends the grey replies' bytes on fresher anchors
-    "pi-backoff": {"request_policy": LEAN_POLICY, "descriptor_codec": "pca-int8"},
+    "pi-backoff": {"request_policy": LEAN_V1_POLICY, "descriptor_codec": "pca-int8"},
     # issue 21, success: only a pair with an anchor backs off (a pair without one loses the frames it does not ask
     # for), with a constant wait (ua) or one doubling per miss up to 12 steps (ua-grow: fewer bytes on anchored misses)
-    "lean-ua": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True}},
-    "lean-ua-grow": {**LEAN, "request_policy": {**LEAN_POLICY, "backoff_anchored_only": True, "miss_backoff_growth": 2.0,
+    "lean-ua": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_anchored_only": True}},
+    "lean-ua-grow": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_anchored_only": True, "miss_backoff_growth": 2.0,
                                                  "miss_backoff_max_steps": 12}},
+    # replace a doubtful anchor sooner instead of asking more often (pe: a pair whose candidates wait to verify does
+    # not back off; u2: a pair without an anchor waits 2 steps, not 3; rc: ask again while the estimate that set the
+    # anchor disagreed by > 0.03 rad with what verified it, up to 2 in a row; m: rotation sigma per metre travelled)
+    "lean-pe": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True}},
+    "lean-pe-u2": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                               "unanchored_backoff_steps": 2}},
+    "lean-pe-rc": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True, "recheck_rot_rad": 0.03,
+                                               "recheck_limit": 2}},
+    "lean-ua-rc": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_anchored_only": True, "recheck_rot_rad": 0.03,
+                                               "recheck_limit": 2}},
+    "lean-pe-u2-rc": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                  "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                  "recheck_limit": 2}},
+    "lean-pe-rc-m": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True, "recheck_rot_rad": 0.03,
+                                                 "recheck_limit": 2, "rot_sigma_per_m": 0.005}},
+    "lean-pe-u2-rc-m": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                    "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                    "recheck_limit": 2, "rot_sigma_per_m": 0.005}},
+    "lean-pe-rc-m10": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                   "recheck_rot_rad": 0.03, "recheck_limit": 2, "rot_sigma_per_m": 0.01}},
+    # with rotation sigma per metre (m10: 0.01 rad/m; the cad robots drive 0.4-0.8 m per step), backing off after
+    # 2 misses (b2), replies at WebP quality 60 (g60)
+    "lean-pe-u2-rc-m10": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                      "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                      "recheck_limit": 2, "rot_sigma_per_m": 0.01}},
+    "lean-pe-u2-rc-b2": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "miss_limit": 2, "backoff_pending_exempt": True,
+                                                     "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                     "recheck_limit": 2}},
+    "lean-pe-u2-rc-m10-b2": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "miss_limit": 2, "backoff_pending_exempt": True,
+                                                         "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                         "recheck_limit": 2, "rot_sigma_per_m": 0.01}},
+    # fewer rechecks for margin on bytes: a looser threshold (rc04: 0.04 rad) or one recheck at most (l1)
+    "lean-pe-u2-rc04": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                    "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.04,
+                                                    "recheck_limit": 2}},
+    "lean-pe-u2-rc-l1": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_pending_exempt": True,
+                                                     "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                     "recheck_limit": 1}},
+    "lean-pe-u2-rc-l1-b2": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "miss_limit": 2, "backoff_pending_exempt": True,
+                                                        "unanchored_backoff_steps": 2, "recheck_rot_rad": 0.03,
+                                                        "recheck_limit": 1}},
     "gate-s50": {"request_policy": {"mode": "gate"}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},
     "pc-s50-tight": {"request_policy": {"mode": "pays", "max_sigma_rot_rad": 0.025, "max_sigma_pos_m": 0.15,
                                         "max_steps": 10}, **COMPRESSED_MESSAGES, "reply_scale": 0.5},

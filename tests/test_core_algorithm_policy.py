@@ -10,9 +10,11 @@ from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_w
 
 from cerpe.algorithm import AlgorithmError, CerpeConfig, Team
 from cerpe.algorithm.policy import (
+    AskLog,
     PairView,
     PolicyConfig,
     PolicyError,
+    after_request,
     backoff_steps,
     decide,
     propagation_sigma,
@@ -191,3 +193,92 @@ def test_growing_backoff_and_anchored_only_known_answers():
         PolicyConfig(miss_backoff_max_steps=-1)
     with pytest.raises(PolicyError, match="backoff_anchored_only"):
         PolicyConfig(backoff_anchored_only=1)
+
+
+NEW_RULES = {"unanchored_backoff_steps": 2, "backoff_pending_exempt": True, "recheck_rot_rad": 0.03, "recheck_limit": 2, "min_inliers": 50,
+             "rot_sigma_per_m": 0.01}
+
+
+def test_after_request_logs_misses_and_what_set_the_anchor():
+    conf = PolicyConfig(mode="pays", recheck_rot_rad=0.03)
+    log = after_request(conf, None, 4, placed=False)
+    assert log == AskLog(4, 1) and after_request(conf, log, 5, placed=False).misses == 2
+    # a placed estimate that set the anchor: misses reset, its disagreement and inliers kept
+    log = after_request(conf, log, 6, True, "verified", 0.05, 120)
+    assert (log.step, log.misses, log.anchor_rot_rad, log.anchor_inliers, log.rechecks) == (6, 0, 0.05, 120, 1)
+    log = after_request(conf, log, 7, True, "accepted", 0.04, 90)
+    assert log.rechecks == 2 and log.anchor_inliers == 90
+    # rejected or unverified: the anchor stays, and so does what set it
+    kept = after_request(conf, log, 8, True, "rejected", 0.3, 10)
+    assert (kept.anchor_rot_rad, kept.anchor_inliers, kept.rechecks, kept.misses) == (0.04, 90, 2, 0)
+    # two estimates in a row that agree end the streak
+    assert after_request(conf, log, 9, True, "accepted", 0.01, 90).rechecks == 0
+    assert after_request(PAYS, log, 9, True, "accepted", 0.5, 90).rechecks == 0  # the rule off: no streak
+    assert AskLog(3, 2, 0.1, 7, 1).view(10) == {"misses": 2, "steps_since_ask": 7, "anchor_rot_rad": 0.1,
+                                                "anchor_inliers": 7, "rechecks": 1}
+
+
+def test_recheck_weak_and_metre_rules_known_answers():
+    conf = PolicyConfig(mode="pays", recheck_rot_rad=0.03, recheck_limit=2)
+    doubt = dataclasses.replace(FRESH, anchor_rot_rad=0.05, rechecks=1)
+    assert decide(PAYS, True, doubt) == (False, "anchor-fresh")  # off by default
+    assert decide(conf, True, doubt) == (True, "recheck")
+    assert decide(conf, True, dataclasses.replace(doubt, rechecks=2)) == (True, "recheck")
+    assert decide(conf, True, dataclasses.replace(doubt, rechecks=3)) == (False, "anchor-fresh")  # limit reached
+    assert decide(conf, True, dataclasses.replace(doubt, anchor_rot_rad=0.02)) == (False, "anchor-fresh")
+    assert decide(conf, False, doubt) == (False, "gate-closed")  # only through an open gate
+    assert decide(dataclasses.replace(conf, recheck_limit=0), True, dataclasses.replace(doubt, rechecks=2)) == \
+        (False, "anchor-fresh")  # a limit of 0: one recheck
+    # the anchor's registration had few inliers (unknown: -1, never asks)
+    weak = PolicyConfig(mode="pays", min_inliers=50)
+    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=49)) == (True, "weak")
+    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=50)) == (False, "anchor-fresh")
+    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=-1)) == (False, "anchor-fresh")
+    # rotation sigma per metre: 0.01 + 0.0035 * 1 + 0.01 * 4 = 0.0535 > 0.05
+    metres = PolicyConfig(mode="pays", rot_sigma_per_m=0.01)
+    moved = dataclasses.replace(FRESH, travelled_m=4.0)
+    assert propagation_sigma(metres, moved) == pytest.approx((0.0535, 0.25))
+    assert decide(metres, True, moved) == (True, "uncertain") and decide(PAYS, True, moved) == (False, "anchor-fresh")
+    assert decide(metres, True, dataclasses.replace(FRESH, travelled_m=3.5)) == (False, "anchor-fresh")  # 0.0485
+    # a pair whose candidates wait to verify does not back off with backoff_pending_exempt
+    back = PolicyConfig(mode="pays", miss_limit=3, miss_backoff_steps=3)
+    waiting = PairView(anchored=False, pending=True, misses=3, steps_since_ask=1)
+    assert decide(back, True, waiting) == (False, "backoff")
+    assert decide(dataclasses.replace(back, backoff_pending_exempt=True), True, waiting) == (True, "no-anchor")
+    assert decide(dataclasses.replace(back, backoff_pending_exempt=True), True,
+                  dataclasses.replace(waiting, pending=False)) == (False, "backoff")
+    # a wait of its own for a pair without an anchor; an anchored pair keeps miss_backoff_steps
+    own = dataclasses.replace(back, unanchored_backoff_steps=2)
+    assert [backoff_steps(own, 3, anchored) for anchored in (False, True)] == [2, 3]
+    lost = dataclasses.replace(waiting, pending=False, steps_since_ask=2)
+    assert decide(own, True, lost) == (True, "no-anchor") and decide(back, True, lost) == (False, "backoff")
+    assert decide(own, True, dataclasses.replace(FRESH, steps_since=40, misses=3, steps_since_ask=2)) == \
+        (False, "backoff")
+    # the paper's mode reads none of them
+    assert decide(PolicyConfig(**NEW_RULES), True, doubt) == (True, "gate")
+    assert decide(PolicyConfig(**NEW_RULES), False, doubt) == (False, "gate-closed")
+    for bad in ({"recheck_rot_rad": -0.1}, {"recheck_limit": -1}, {"min_inliers": 2.5}, {"rot_sigma_per_m": float("inf")},
+                {"backoff_pending_exempt": 1}, {"unanchored_backoff_steps": -2}):
+        with pytest.raises(PolicyError, match=next(iter(bad))):
+            PolicyConfig(**bad)
+
+
+def test_gate_mode_records_are_unchanged_by_the_new_rules():
+    rows = lambda rs: [p.as_row() for res in rs for p in res.pairs]
+    _, base, _ = _run({"mode": "gate"})
+    _, same, _ = _run({"mode": "gate", **NEW_RULES})
+    for a, b in zip(rows(base), rows(same), strict=True):
+        assert a.keys() == b.keys()
+        assert all(a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]) for k in a), a["step"]
+
+
+def test_agent_rechecks_an_anchor_its_estimate_disagreed_with():
+    # the GT doubles' estimates agree to ~1e-6 rad: a threshold below that makes every anchor "disputed"
+    _, _, P = _run({"mode": "pays"})
+    _, _, R = _run({"mode": "pays", "recheck_rot_rad": 1e-12, "recheck_limit": 1})
+    assert P[8].request_skipped and R[7].anchor_verdict == "verified"
+    # verified at 7 disagreeing by more than the threshold: one recheck at 8 (accepted), then the streak
+    # (2 > limit 1) stops asking
+    assert not R[8].request_skipped and R[8].bytes_pair > 0 and R[8].anchor_verdict == "accepted"
+    assert R[9].request_skipped and R[9].bytes_pair == 0
+

@@ -117,12 +117,14 @@ def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
         assert (all(got[k] == v for k, v in value.items()) if isinstance(value, dict) else got == value), key
 
 
-def test_lean_preset_backs_off_over_the_compressed_messages():
+def test_lean_preset_backs_off_and_rechecks_over_the_compressed_messages():
     from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN
     from cerpe.algorithm import CerpeConfig
 
     cfg = CerpeConfig(**LEAN)
-    assert cfg.request_policy.mode == "pays" and cfg.request_policy.miss_limit == 3
-    assert cfg.request_policy.miss_backoff_steps == 3
+    pol = cfg.request_policy
+    assert pol.mode == "pays" and pol.miss_limit == 3 and pol.miss_backoff_steps == 3
+    assert pol.unanchored_backoff_steps == 2 and pol.backoff_pending_exempt and not pol.backoff_anchored_only
+    assert pol.recheck_rot_rad == 0.03 and pol.recheck_limit == 1 and pol.min_inliers == 0 and pol.rot_sigma_per_m == 0
     assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items() if k != "reply_codec")
     assert cfg.reply_codec == "webp-grey" and cfg.descriptor_codec == COMPRESSED_MESSAGES["descriptor_codec"]

@@ -70,7 +70,7 @@ class RobotAgent(GateSide):
         self.pairs: dict[str, PairAnchors] = {}
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
-        self.asks: dict[str, tuple[int, int]] = {}  # request policy: peer -> (last step asked, misses in a row)
+        self.asks = {}  # request policy: peer -> what its requests brought (policy.AskLog; GateSide.note_request)
         self.poses: dict[str, tuple[int, np.ndarray]] = {}
         self.last_descriptors: dict[str, tuple[int, np.ndarray]] = {}  # peer -> (step, values) last scored fresh
         self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
@@ -410,8 +410,8 @@ class RobotAgent(GateSide):
             switch = (source, T, reason, anchor_step)
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
-        if st.requested.get(other):  # what the request policy's back-off reads: did the image place?
-            self.asks[other] = (st.step, 0 if info.direct_T is not None else self.asks.get(other, (0, 0))[1] + 1)
+        if st.requested.get(other):  # what the request policy reads: did the image place, did it set the anchor?
+            self.note_request(other, info)
         best, via = st.memory_scores.get(other, (float("nan"), -1))
         return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
                           gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate_open(other),

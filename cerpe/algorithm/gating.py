@@ -13,14 +13,14 @@ import numpy as np
 
 from ..memory import Keyframe, cosine
 from ..messages import DescriptorMessage, decode
-from .policy import PairView, decide
+from .policy import AskLog, PairView, after_request, decide
 
 if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent
     from ..compress import DescriptorCodec
     from ..memory import KeyframeMemory
     from .anchors import PairAnchors
     from .config import CerpeConfig
-    from .state import StepState
+    from .state import PairInfo, StepState
 
 
 class GateSide:
@@ -33,7 +33,7 @@ class GateSide:
         memory: KeyframeMemory
         pairs: dict[str, PairAnchors]
         sigmas: dict[str, tuple[float, float]]
-        asks: dict[str, tuple[int, int]]
+        asks: dict[str, AskLog]
         odometers: dict[str, tuple[int, np.ndarray, float]]
         last_descriptors: dict[str, tuple[int, np.ndarray]]
         _kf_wire: dict[int, np.ndarray]
@@ -165,12 +165,17 @@ class GateSide:
             st.skipped[other] = why
         return ask
 
+    def note_request(self, other: str, info: PairInfo) -> None:
+        """After the pass: what the request to ``other`` brought (:func:`~cerpe.algorithm.policy.after_request`)."""
+        self.asks[other] = after_request(self.config.request_policy, self.asks.get(other), self._state().step,
+                                         info.direct_T is not None, info.verdict, info.check_rot_rad,
+                                         info.direct_inliers)
+
     def _pair_view(self, other: str, step: int) -> PairView:
         """What the request policy reads about a pair before this step's pass (anchors, odometers of
         the previous step, the graph's last sigma)."""
         pair = self.pairs.get(other)
-        last, misses = self.asks.get(other, (-(1 << 30), 0))
-        tries = {"misses": misses, "steps_since_ask": step - last}
+        tries = self.asks.get(other, AskLog()).view(step)
         if pair is None or pair.anchor is None:
             return PairView(anchored=False, pending=bool(pair and pair.candidates), **tries)
         a = pair.anchor

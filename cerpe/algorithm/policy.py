@@ -21,7 +21,19 @@ An open gate without overlap otherwise asks at every step, and those bytes buy n
 With ``backoff_anchored_only`` only a pair that has an anchor backs off: it keeps an
 estimate (its anchor propagated) while it waits, whereas a pair without one loses every
 frame it does not ask for (and an unverified candidate expires unless the next images
-verify it).
+verify it); ``unanchored_backoff_steps`` gives such a pair a wait of its own instead (the
+same growth and cap); with ``backoff_pending_exempt`` a pair whose estimates wait to be
+verified (``pending``) does not back off either.
+
+Three further rules ask for a fresh look at an anchor that may be wrong (all off by default):
+
+* ``recheck_rot_rad``: the image that set the anchor disagreed in rotation by more than
+  this with what it was checked against (the previous anchor propagated, or the candidate
+  that verified it): one of the two is wrong, so the pair asks again at the next open gate,
+  until two estimates in a row agree within it, at most ``recheck_limit`` times in a row;
+* ``min_inliers``: the registration that set the anchor had fewer inliers than this;
+* ``rot_sigma_per_m``: the propagation model's rotation sigma also grows per metre the two
+  robots travelled since the anchor (propagated rotation error follows the metres).
 
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
@@ -60,6 +72,16 @@ class PolicyConfig:
         miss_backoff_growth, miss_backoff_max_steps: the wait grows this many times per
             miss beyond ``miss_limit``, up to this many steps (1, 0: a constant wait).
         backoff_anchored_only: only a pair with an anchor backs off.
+        unanchored_backoff_steps: a pair without an anchor waits this many steps instead of
+            ``miss_backoff_steps`` (0: the same wait; ignored with ``backoff_anchored_only``).
+        backoff_pending_exempt: a pair with estimates waiting to be verified never backs off.
+        recheck_rot_rad, recheck_limit: ask again while the estimate that set the anchor
+            disagreed by more than this (rad) with what it was checked against, for at most
+            ``recheck_limit`` such estimates in a row (0: off; a limit of 0 with a threshold: 1).
+        min_inliers: ask while the anchor's registration had fewer inliers (0: off; an
+            unknown count, -1, never asks).
+        rot_sigma_per_m: growth of the propagation model's rotation sigma per metre the
+            two robots travelled since the anchor (added to the per-step growth; 0: off).
     """
 
     mode: str = "gate"
@@ -76,12 +98,18 @@ class PolicyConfig:
     miss_backoff_growth: float = 1.0
     miss_backoff_max_steps: int = 0
     backoff_anchored_only: bool = False
+    unanchored_backoff_steps: int = 0
+    backoff_pending_exempt: bool = False
+    recheck_rot_rad: float = 0.0
+    recheck_limit: int = 0
+    min_inliers: int = 0
+    rot_sigma_per_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise PolicyError(f"request_policy: mode must be one of {list(MODES)}, got {self.mode!r}")
         for name in ("max_sigma_rot_rad", "max_sigma_pos_m", "rot_sigma0_rad", "rot_sigma_per_step",
-                     "pos_sigma0_m", "pos_sigma_per_m"):
+                     "pos_sigma0_m", "pos_sigma_per_m", "recheck_rot_rad", "rot_sigma_per_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be finite and >= 0, got {v!r}")
@@ -89,10 +117,11 @@ class PolicyConfig:
                 and self.miss_backoff_growth >= 1):
             raise PolicyError(f"request_policy: miss_backoff_growth must be finite and >= 1, "
                               f"got {self.miss_backoff_growth!r}")
-        if not isinstance(self.backoff_anchored_only, bool):
-            raise PolicyError(f"request_policy: backoff_anchored_only must be true or false, "
-                              f"got {self.backoff_anchored_only!r}")
-        for name in ("max_steps", "miss_limit", "miss_backoff_steps", "miss_backoff_max_steps"):
+        for name in ("backoff_anchored_only", "backoff_pending_exempt"):
+            if not isinstance(getattr(self, name), bool):
+                raise PolicyError(f"request_policy: {name} must be true or false, got {getattr(self, name)!r}")
+        for name in ("max_steps", "miss_limit", "miss_backoff_steps", "miss_backoff_max_steps", "recheck_limit",
+                     "min_inliers", "unanchored_backoff_steps"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be an integer >= 0, got {v!r}")
@@ -111,6 +140,11 @@ class PairView:
             none, e.g. the switch back end: the propagation model is used instead).
         misses: requests in a row (the newest last) whose image placed nothing.
         steps_since_ask: steps since the last request to this peer (large: never asked).
+        anchor_rot_rad: rotation (rad) by which the estimate that set the anchor disagreed
+            with what it was checked against (NaN: unknown).
+        anchor_inliers: inliers of the registration that set the anchor (-1: unknown).
+        rechecks: placed estimates in a row that set the anchor disagreeing by more than
+            ``recheck_rot_rad`` (the rule asks while this is at most ``recheck_limit``).
     """
 
     anchored: bool
@@ -121,27 +155,75 @@ class PairView:
     sigma_pos_m: float = float("nan")
     misses: int = 0
     steps_since_ask: int = 1 << 30
+    anchor_rot_rad: float = float("nan")
+    anchor_inliers: int = -1
+    rechecks: int = 0
+
+
+@dataclass(frozen=True)
+class AskLog:
+    """What one robot remembers about its requests to one peer (the agent keeps one per peer).
+
+    Attributes:
+        step: the step of the last request.
+        misses: requests in a row whose image placed nothing.
+        anchor_rot_rad, anchor_inliers: the disagreement and inliers of the last placed
+            estimate that set the anchor (see :class:`PairView`).
+        rechecks: anchor-setting estimates in a row that disagreed by more than ``recheck_rot_rad``.
+    """
+
+    step: int = -(1 << 30)
+    misses: int = 0
+    anchor_rot_rad: float = float("nan")
+    anchor_inliers: int = -1
+    rechecks: int = 0
+
+    def view(self, step: int) -> dict:
+        """The :class:`PairView` fields it fills at ``step``."""
+        return {"misses": self.misses, "steps_since_ask": step - self.step, "anchor_rot_rad": self.anchor_rot_rad,
+                "anchor_inliers": self.anchor_inliers, "rechecks": self.rechecks}
+
+
+ANCHOR_VERDICTS = ("verified", "accepted", "replaced", "unchecked")
+
+
+def after_request(conf: PolicyConfig, log: AskLog | None, step: int, placed: bool, verdict: str = "",
+                  rot_rad: float = float("nan"), inliers: int = -1) -> AskLog:
+    """The log after a request at ``step``: did its image place, and did its estimate set the
+    anchor (``verdict``), disagreeing by ``rot_rad`` with what it was checked against."""
+    log = log or AskLog()
+    if not placed:
+        return AskLog(step, log.misses + 1, log.anchor_rot_rad, log.anchor_inliers, log.rechecks)
+    if verdict not in ANCHOR_VERDICTS:  # rejected or unverified: the anchor (if any) stays
+        return AskLog(step, 0, log.anchor_rot_rad, log.anchor_inliers, log.rechecks)
+    off = bool(conf.recheck_rot_rad) and math.isfinite(rot_rad) and rot_rad > conf.recheck_rot_rad
+    return AskLog(step, 0, float(rot_rad), int(inliers), log.rechecks + 1 if off else 0)
 
 
 def propagation_sigma(conf: PolicyConfig, view: PairView) -> tuple[float, float]:
     """``(rotation rad, position m)`` predicted sigma of the anchor propagated ``steps_since`` steps."""
-    return (conf.rot_sigma0_rad + conf.rot_sigma_per_step * max(view.steps_since, 0),
+    return (conf.rot_sigma0_rad + conf.rot_sigma_per_step * max(view.steps_since, 0)
+            + conf.rot_sigma_per_m * max(view.travelled_m, 0.0),
             conf.pos_sigma0_m + conf.pos_sigma_per_m * max(view.travelled_m, 0.0))
 
 
-def backoff_steps(conf: PolicyConfig, misses: int) -> int:
-    """Steps between requests after ``misses`` requests in a row placed nothing (0: not backing off)."""
-    if not (conf.miss_limit and conf.miss_backoff_steps) or misses < conf.miss_limit:
+def backoff_steps(conf: PolicyConfig, misses: int, anchored: bool = True) -> int:
+    """Steps between requests after ``misses`` requests in a row placed nothing (0: not backing off);
+    ``anchored`` False: a pair without an anchor (``unanchored_backoff_steps`` when set)."""
+    base = conf.miss_backoff_steps
+    if not anchored and conf.unanchored_backoff_steps and base:
+        base = conf.unanchored_backoff_steps
+    if not (conf.miss_limit and base) or misses < conf.miss_limit:
         return 0
-    wait = conf.miss_backoff_steps * conf.miss_backoff_growth ** (misses - conf.miss_limit)
-    cap = conf.miss_backoff_max_steps or conf.miss_backoff_steps
-    return int(min(max(wait, conf.miss_backoff_steps), max(cap, conf.miss_backoff_steps)))
+    wait = base * conf.miss_backoff_growth ** (misses - conf.miss_limit)
+    cap = conf.miss_backoff_max_steps or base
+    return int(min(max(wait, base), max(cap, base)))
 
 
 def _backing_off(conf: PolicyConfig, view: PairView) -> bool:
-    if conf.backoff_anchored_only and not view.anchored:
+    if (conf.backoff_anchored_only and not view.anchored) or (conf.backoff_pending_exempt and view.pending):
         return False
-    return view.steps_since_ask < backoff_steps(conf, view.misses)
+    return view.steps_since_ask < backoff_steps(conf, view.misses, view.anchored)
 
 
 def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[bool, str]:
@@ -163,6 +245,11 @@ def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[
         return True, "pending"
     if view.steps_since > conf.max_steps:
         return True, "stale"
+    if (conf.recheck_rot_rad and math.isfinite(view.anchor_rot_rad) and view.anchor_rot_rad > conf.recheck_rot_rad
+            and view.rechecks <= max(conf.recheck_limit, 1)):
+        return True, "recheck"
+    if conf.min_inliers and 0 <= view.anchor_inliers < conf.min_inliers:
+        return True, "weak"
     rot, pos = view.sigma_rot_rad, view.sigma_pos_m
     if not (math.isfinite(rot) and math.isfinite(pos)):
         rot, pos = propagation_sigma(conf, view)

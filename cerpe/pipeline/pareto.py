@@ -40,7 +40,7 @@ PARETO_SETTINGS: dict[str, dict] = {
     "always": {"request_policy": {"mode": "always"}},
     "pays": {"request_policy": PAYS},
     "pays-compressed": {"request_policy": PAYS, **COMPRESSED_MESSAGES},  # pca-int8 descriptor, WebP-75 replies
-    "lean": LEAN,  # ours at its leanest: pays + back-off from gates whose images place nothing, compressed
+    "lean": LEAN,  # ours at its leanest: pays + back-off from gates whose images place nothing + recheck, compressed
     # each further line costs about a minute of `make paper` (one encounter per synthetic setting); at most 4
 }
 PARETO_LABELS: dict[str, str] = {
@@ -48,7 +48,7 @@ PARETO_LABELS: dict[str, str] = {
     "always": "always send (image to every peer, every step)",
     "pays": "ours: request when it pays",
     "pays-compressed": "ours + compressed messages (PCA int8 descriptor, WebP 75)",
-    "lean": "ours, lean: + back-off from gates whose images do not place, grey WebP 75",
+    "lean": "ours, lean: + back-off from gates whose images do not place, recheck, grey WebP 75",
     "aliked-lightglue": "per-frame ALIKED+LightGlue (images every step)",
     "sift-ransac": "per-frame SIFT+RANSAC (images every step)",
 }
