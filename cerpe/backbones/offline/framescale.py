@@ -37,7 +37,7 @@ import numpy as np
 from ...protocols import View
 from .context import Pass
 from .matching import map_index
-from .vote import _bilinear, _blurred, _grid_points, _project
+from .vote import bilinear, blurred_greys, grid_points, project_points
 
 LogScale = tuple[float, float]  # (a, m): the frame's log scale and the running mean at the time
 
@@ -99,12 +99,12 @@ def log_ratio(p: Pass, d: int, T_0_d: np.ndarray) -> tuple[float, int]:
     c = p.conf
     D0 = np.asarray(p.views[0].depth_m, np.float64)
     H0, W0 = p.feats[0].image_hw
-    grey = _blurred(p, (d, 0), float(c["vote_blur_sigma"]))
-    vv, uu, ok, X = _grid_points(p, d, p.moving(d))
-    X0, u0, v0, ins = _project(p, 0, X, T_0_d)
+    grey = blurred_greys(p, (d, 0), float(c["vote_blur_sigma"]))
+    vv, uu, ok, X = grid_points(p, d, p.moving(d))
+    X0, u0, v0, ins = project_points(p, 0, X, T_0_d)
     meas = D0[map_index(v0[ins], D0.shape[0], H0), map_index(u0[ins], D0.shape[1], W0)]
     g_d = grey[0][vv[ok][ins], uu[ok][ins]].astype(np.float64)
-    g_0 = _bilinear(grey[1], u0[ins], v0[ins]).astype(np.float64)
+    g_0 = bilinear(grey[1], u0[ins], v0[ins]).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.log(meas / X0[ins, 2])
     use = (np.abs(g_0 - g_d) <= float(c["vote_grey_tol"])) & np.isfinite(r) \

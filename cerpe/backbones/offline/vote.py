@@ -37,20 +37,20 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
     (the moving mask), never between motions (a wrong one would widen its own)."""
     c = p.conf
     Db = np.asarray(p.views[b].depth_m, np.float64)
-    grey = _blurred(p, (a, b), float(c["vote_blur_sigma"]))
+    grey = blurred_greys(p, (a, b), float(c["vote_blur_sigma"]))
     Hb, Wb = p.feats[b].image_hw
     hb, wb = Db.shape
-    vv, uu, ok, X = _grid_points(p, a, exclude)
+    vv, uu, ok, X = grid_points(p, a, exclude)
     sel = np.flatnonzero(ok)
     g_a = grey[0][vv[sel], uu[sel]]
     inside = np.zeros((len(T_b_a), len(ok)), bool)
     consistent = np.zeros((len(T_b_a), len(ok)), bool)
     for h, T in enumerate(T_b_a):
-        Xb, ub, vb, ins = _project(p, b, X, T)
+        Xb, ub, vb, ins = project_points(p, b, X, T)
         inside[h, sel] = ins
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
         meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
-        g = _bilinear(grey[1], ub, vb)
+        g = bilinear(grey[1], ub, vb)
         grey_ok = np.abs(g - gi) <= c["vote_grey_tol"]
         s, spread = depth_scale(zi, meas, grey_ok, float(c["vote_depth_tol"]), float(c["vote_depth_scale_max"]),
                                 float(c["vote_depth_scale_search"]))
@@ -171,20 +171,20 @@ def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
     mirrored structure agrees there and nowhere else, while a true one makes the whole
     shared surface look alike."""
     c = p.conf
-    grey = _blurred(p, (a, b), float(c["vote_blur_sigma"] if blur_px is None else blur_px))
-    vv, uu, ok, X = _grid_points(p, a)
-    _, ub, vb, ins = _project(p, b, X, T_b_a)
+    grey = blurred_greys(p, (a, b), float(c["vote_blur_sigma"] if blur_px is None else blur_px))
+    vv, uu, ok, X = grid_points(p, a)
+    _, ub, vb, ins = project_points(p, b, X, T_b_a)
     n = int(ins.sum())
     if n < 2:
         return n, float("nan")
     g_a = grey[0][vv[ok][ins], uu[ok][ins]].astype(np.float64)
-    g = _bilinear(grey[1], ub[ins], vb[ins]).astype(np.float64)
+    g = bilinear(grey[1], ub[ins], vb[ins]).astype(np.float64)
     da, db = g_a - g_a.mean(), g - g.mean()
     den = float(np.sqrt((da @ da) * (db @ db)))
     return n, float(da @ db / den) if den > 0 else float("nan")
 
 
-def _blurred(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
+def blurred_greys(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
     """Grey images of ``views``, blurred with ``sigma`` px (none at 0)."""
     import cv2
 
@@ -192,7 +192,7 @@ def _blurred(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
             else grey_image(p.views[k].image) for k in views]
 
 
-def _grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
+def grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """View ``a``'s ``vote_stride`` grid: rows ``vv``, columns ``uu`` ``[n_grid]``, the mask ``ok`` of
     grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``."""
@@ -209,7 +209,7 @@ def _grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
     return vv, uu, ok, pixels_to_rays(uv, p.Ks[a]) * z[ok, None]
 
 
-def _project(p: Pass, b: int, X: np.ndarray, T_b_a: np.ndarray
+def project_points(p: Pass, b: int, X: np.ndarray, T_b_a: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points ``X`` moved by ``T_b_a`` into camera ``b``: ``(Xb, u, v, inside)`` (in front, within the image)."""
     Hb, Wb = p.feats[b].image_hw
@@ -221,7 +221,7 @@ def _project(p: Pass, b: int, X: np.ndarray, T_b_a: np.ndarray
     return Xb, ub, vb, ins
 
 
-def _bilinear(g: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def bilinear(g: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Image ``g`` sampled bilinearly at pixels ``(u, v)`` inside it."""
     h, w = g.shape[:2]
     x0, y0 = np.minimum(u.astype(np.int64), w - 2), np.minimum(v.astype(np.int64), h - 2)
