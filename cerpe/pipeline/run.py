@@ -419,6 +419,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
     every = evaluation_every(setting, manifest)
     lossy = {} if loss is None or loss.lossless else {"channel": loss}  # test doubles take no channel
     from ..backbones.depth import DepthSourceError
+    from ..threads import torch_threads
 
     depth = getattr(setting, "metric_depth", None)
     try:
@@ -432,6 +433,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
         "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
         "method_config": mconf, "code": code_hash(method),
+        "torch_threads": torch_threads(),  # a CPU convolution's last bits depend on it (cerpe.threads)
     }
     if overrides:
         config["overrides"] = overrides

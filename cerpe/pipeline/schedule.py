@@ -6,11 +6,11 @@ per-frame baseline, one Pareto setting (:mod:`cerpe.pipeline.pareto`), or the
 message-loss sweep (:mod:`cerpe.pipeline.message_loss`, which reuses the lossless
 runs of its setting, so it waits for them). Each job writes its own run folders
 exactly as a run in the main process would (seeded, fingerprinted, resumable), so
-the tables do not depend on the number of workers; only the wall time does. On a 2-core
-machine two workers gain mostly from the short jobs filling the gaps: a CERPE pass and an
-ALIKED run side by side take about as long as one after the other (clean make paper of
-b9d2f28: 267 s and 318 s together, about 170 s and 150 s alone; the two renders 176 s together,
-about 180 s in sequence). More cores, more gain (``--jobs``).
+the tables do not depend on the number of workers; only the wall time does. Every process
+runs torch on :func:`cerpe.threads.torch_threads` intra-op threads (1 unless ``CERPE_THREADS``),
+so N workers use N cores without oversubscribing them: with the 2 threads per worker of
+earlier versions, two workers on 2 cores ran a CERPE pass and an ALIKED run side by side about
+as slowly as one after the other.
 
 Jobs go to free workers longest first (a fixed estimate per kind, times the setting's
 robot-steps), each as soon as the jobs it waits for have finished. A job that fails
