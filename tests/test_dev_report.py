@@ -99,6 +99,17 @@ def test_success_after_covisibility_is_nan_without_covisible_step_or_ground_trut
     assert s["success_after_covis_pct"].isna().all() and (s["success_pct"] == 100).all()
 
 
+def test_right_pct_known_answer():
+    # 8 frames: 2 without an estimate, 4 right (0.0, 0.1, 0.29, exactly 0.3), 2 wrong (0.31, 1.2)
+    est = [None, 0.0, 0.1, 0.29, 0.3, 0.31, 1.2, None]
+    s = summarise(frame_errors(_pair_steps([0.5] * 8, [0.5] * 8, est), True), ["ego"]).set_index("ego")
+    assert s.loc["r0", "success_pct"] == pytest.approx(100 * 6 / 8)
+    assert s.loc["r0", "right_pct"] == pytest.approx(100 * 4 / 8)
+    # a method that answers every frame 1 rad wrong "succeeds" everywhere and is right nowhere
+    s = summarise(frame_errors(_pair_steps([0.5] * 4, [0.5] * 4, [1.0] * 4), True), ["ego"])
+    assert (s["success_pct"] == 100).all() and (s["right_pct"] == 0).all()
+
+
 def test_count_degradation():
     robots = pd.DataFrame({"degradations": ["anchor:inconsistent;msg:lost", np.nan, "",
                                             "anchor:inconsistent;anchor:inconsistent", "anchor:inconsistent-x"]})

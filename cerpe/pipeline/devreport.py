@@ -7,6 +7,8 @@ One row per (set, method) (:func:`method_row`):
   frames (:mod:`cerpe.pipeline.evaluate`);
 * ``success_after_covis_pct``: success over the evaluated frames at or after the pair's
   first co-visible step (ground-truth overlap >= 0.2 both ways);
+* ``right_pct``: evaluated frames with an estimate within 0.3 rad of the true rotation
+  (success counts any pose, a wrong one too);
 * ``n_direct`` / ``n_requests``: evaluated frames with a direct estimate (a placed
   collaborator view) / with an image requested (the gate open and the request policy
   asking; always, for the per-frame baselines);
@@ -33,17 +35,17 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
-from .evaluate import Run, frame_errors, gate_quality, load_run, summarise
+from .evaluate import RIGHT_ROT_RAD, Run, frame_errors, gate_quality, load_run, summarise
 from .textfmt import md_table, text_table
 
-WRONG_RAD = 0.3  # an estimate this far off in rotation is "wrong" (issue 18)
+WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong" (issue 18)
 CARRIED_MAX_STEPS = 3  # issue 18's target: no wrong estimate carried for more than this many steps
 REJECTED = "anchor:inconsistent"
 REPLACED = "anchor:replaced"
 
 REPORT_COLS: tuple[str, ...] = (
     "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
-    "success_after_covis_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
+    "success_after_covis_pct", "right_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
     "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
 GATE_COLS: tuple[str, ...] = (
     "set", "tau", "covis_roc_auc", "covis_precision", "covis_recall", "covis_n_pairs", "covis_n_positive",
@@ -104,7 +106,7 @@ def method_row(run: Run, set_name: str | None = None) -> dict:
     s = summarise(frames.assign(_all=0), ["_all"]).iloc[0] if len(frames) else None
     row = {"set": set_name or run.setting, "method": run.method}
     for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
-              "success_after_covis_pct"):
+              "success_after_covis_pct", "right_pct"):
         row[k] = float(s[k]) if s is not None else float("nan")
     row["n_frames"] = int(s["n_frames"]) if s is not None else 0
     row["n_frames_after_covis"] = int(s["n_frames_after_covis"]) if s is not None else 0
@@ -153,14 +155,14 @@ def _f(v: float, nd: int = 3) -> str:
 def _cells(r: pd.Series) -> list[str]:
     return [str(r["set"]), str(r["method"]), f"{_f(r['e_pos_m'], 3)} / {_f(r['e_pos_gt_scale_m'], 3)}",
             _f(r["e_rot_rad"]), _f(r["e_rot_median_rad"]), _f(r["success_pct"], 1),
-            _f(r["success_after_covis_pct"], 1), f"{int(r['n_direct'])} / {int(r['n_requests'])}",
+            _f(r["success_after_covis_pct"], 1), _f(r["right_pct"], 1), f"{int(r['n_direct'])} / {int(r['n_requests'])}",
             str(int(r["anchors_rejected"])),
             f"{int(r['carried_longest_steps'])} ({int(r['carried_runs_over_3'])})",
             _f(r["bytes_per_robot_step"], 0), str(int(r["n_frames"]))]
 
 
 HEADER = ["set", "method", "e_pos m (pred / GT scale)", "e_rot mean", "e_rot med", "succ %", "succ>covis %",
-          "placed / req", "rejected", "wrong carried (>3)", "B/robot/step", "frames"]
+          "right %", "placed / req", "rejected", "wrong carried (>3)", "B/robot/step", "frames"]
 GATE_HEADER = ["set", "tau", "covis AUC", "covis P", "covis R", "covis pairs (pos)", "left out",
                "ordered AUC", "ordered P", "ordered R", "ceiling"]
 
@@ -173,7 +175,7 @@ def _gate_cells(r: pd.Series) -> list[str]:
 
 
 LEGEND = ("e_rot in rad; succ>covis: success over frames at or after the pair's first step with GT overlap >= 0.2 "
-          "both ways; placed / req: evaluated frames with a direct estimate / with an image requested; rejected: "
+          f"both ways; right: frames with an estimate within {RIGHT_ROT_RAD:g} rad of the true rotation; placed / req: evaluated frames with a direct estimate / with an image requested; rejected: "
           f"'{REJECTED}' counted; wrong carried: longest run of consecutive steps of one pair more than "
           f"{WRONG_RAD} rad wrong from one anchor (runs longer than {CARRIED_MAX_STEPS} steps); B/robot/step: "
           "bytes a robot sent per step. Gate: the descriptor cosine against the co-visibility label (unordered "

@@ -18,6 +18,10 @@ the ground truth:
   step whose ground-truth overlap is at least 0.2 both ways (:data:`COVIS_POSITIVE`);
   pairs that are never co-visible, and data without overlap ground truth, give none
   (NaN): before the robots have seen the same place no method can succeed directly.
+* right (``right_pct``): the rate of frames with an estimate whose rotation is within
+  :data:`RIGHT_ROT_RAD` (0.3 rad) of the truth. Not the paper's metric, which counts any
+  pose: beside it, it tells a method that answers wrongly (a repetitive room matched one
+  cubicle off) from one that says nothing.
 
 Frames without ground truth cannot be evaluated and are left out (counted in
 ``n_no_gt``). Run folders of one (setting, method) with different configuration
@@ -40,10 +44,13 @@ from ..geometry import e_pos, e_rot_quat, gt_scale_translation
 
 log = logging.getLogger(__name__)
 
+RIGHT_ROT_RAD = 0.3  # an estimate farther off in rotation is wrong (``right_pct``; issue 18's "0.3 rad wrong")
+
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",
                       *(f"est_{c}" for c in POSE), *(f"gt_{c}" for c in POSE))
-SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct")
+SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct",
+                "right_pct")
 
 
 class EvalError(CerpeError, ValueError):
@@ -399,10 +406,13 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
     """Means of the errors over successful frames and the success rate, grouped by ``by``.
 
     ``success_after_covis_pct`` is the success rate over the frames with ``after_covis``
-    (NaN where there are none), ``n_frames_after_covis`` their number.
+    (NaN where there are none), ``n_frames_after_covis`` their number; ``right_pct`` the rate
+    of frames with an estimate within :data:`RIGHT_ROT_RAD` of the true rotation.
     """
     after = frames["after_covis"].astype(bool) if "after_covis" in frames else pd.Series(False, frames.index)
-    frames = frames.assign(_succ_ac=frames["success"].astype(float).where(after), _after=after)
+    right = frames["success"].astype(bool) & (frames["e_rot_rad"].to_numpy(float) <= RIGHT_ROT_RAD)
+    frames = frames.assign(_succ_ac=frames["success"].astype(float).where(after), _after=after,
+                           _right=right.astype(float))
     g = frames.groupby(list(by), sort=True, dropna=False)
     out = pd.DataFrame({
         "e_pos_m": g["e_pos_m"].mean(),
@@ -414,6 +424,7 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
         "n_success": g["success"].sum(),
         "success_after_covis_pct": 100.0 * g["_succ_ac"].mean(),
         "n_frames_after_covis": g["_after"].sum(),
+        "right_pct": 100.0 * g["_right"].mean(),
     })
     return out.reset_index()
 
@@ -536,7 +547,8 @@ def main(args: argparse.Namespace) -> int:
     print("Errors are means over frames with an estimate; frames without one count as failures "
           "(success_pct). e_pos_m is NaN for methods without metric scale. success_after_covis_pct: "
           f"success over the frames at or after the pair's first step with GT overlap >= {COVIS_POSITIVE:g} "
-          "both ways (NaN without overlap ground truth or such a step).")
+          f"both ways (NaN without overlap ground truth or such a step). right_pct: frames with an estimate "
+          f"within {RIGHT_ROT_RAD:g} rad of the true rotation (not the paper's metric).")
     if args.csv:
         atomic_write_text(args.csv, table.to_csv(index=False))
         print(f"written: {args.csv}")

@@ -27,9 +27,10 @@ def main_results(ctx: "PaperContext") -> pd.DataFrame:
     """Table I, long form: one row per (setting, method) with the paper's metrics.
 
     Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
-    n_frames, success_after_covis_pct, status``. ``success_after_covis_pct`` (success over the
-    frames at or after the pair's first co-visible step, :mod:`cerpe.pipeline.evaluate`) is
-    not in the paper's layout (Markdown, LaTeX). ``status`` is ``ok``, ``not available offline``,
+    n_frames, success_after_covis_pct, right_pct, status``. ``success_after_covis_pct`` (success
+    over the frames at or after the pair's first co-visible step) and ``right_pct`` (frames with an
+    estimate within 0.3 rad of the true rotation; :mod:`cerpe.pipeline.evaluate`) are not in the
+    paper's layout (Markdown, LaTeX). ``status`` is ``ok``, ``not available offline``,
     ``not supplied`` or ``error``; metrics are NaN unless ``ok``. ``df.attrs["caption"]``
     is the caption (:func:`table_caption`) the Markdown and LaTeX layouts print.
     """
@@ -42,7 +43,8 @@ def main_results(ctx: "PaperContext") -> pd.DataFrame:
     for e in ctx.settings:
         for m in TABLE_METHODS:
             row = {"setting": e.name, "method": m, "e_pos_m": np.nan, "e_pos_gt_scale_m": np.nan,
-                   "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0, "success_after_covis_pct": np.nan}
+                   "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0, "success_after_covis_pct": np.nan,
+                   "right_pct": np.nan}
             if e.status != "ok":
                 row["status"] = f"{e.status}: {e.detail}" if e.detail else e.status
             elif m in UNAVAILABLE:
@@ -50,7 +52,7 @@ def main_results(ctx: "PaperContext") -> pd.DataFrame:
             elif (e.name, m) in summ.index:
                 s = summ.loc[(e.name, m)]
                 row.update({k: float(s[k]) for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct",
-                                                     "success_after_covis_pct")})
+                                                     "success_after_covis_pct", "right_pct")})
                 row["n_frames"] = int(s["n_frames"])
                 row["status"] = "ok"
             else:
