@@ -13,7 +13,10 @@ Usage::
    across the line between the cameras median / 1.1774 (Rayleigh), along it median |error| /
    0.6745, relative to the distance; then floors and gains on ``rel`` in quadrature over the
    kinds (``direct_*``, ``direct_depth_*``), and the observed against the predicted sigmas per
-   kind; samples more than 0.5 rad off are left out (gross errors are the kernel's job).
+   kind; samples more than 0.5 rad off are left out (gross errors are the kernel's job). Estimates
+   without a ``rel`` (no metric depth) give ``direct_depth_rel_unknown`` (rotation, across) and their own
+   along-line gain ``direct_depth_along_unknown``; the along-line gains per kind are also given on top
+   of the shipped floors (``graphdev.along_gains_on_floors``: the ones ``GraphConfig`` can take as is).
 2. Odometry increments of every robot against ground truth (synthetic sets and real sets
    with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
    single steps (least squares on squared errors, own-odometry failures and jumps above
@@ -51,6 +54,7 @@ from cerpe.pipeline.graphdev import (  # noqa: E402
     MAXWELL_MEDIAN,
     ORACLES,
     GraphDevError,
+    along_gains_on_floors,
     depth_rel_sigma,
     direct_samples,
     fit_direct_kinds,
@@ -142,7 +146,8 @@ def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float 
     f = {n: getattr(conf, n) * odo for n in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad",
                                              "odo_trans_per_step", "odo_trans_per_m")}
     f.update({n: getattr(conf, n) * direct for n in ("direct_rot_rad", "direct_trans_m", "direct_trans_rel",
-                                                     "direct_depth_rot", "direct_depth_across", "direct_depth_along")})
+                                                     "direct_depth_rot", "direct_depth_across", "direct_depth_along",
+                                                     "direct_depth_along_unknown")})
     if along is not None:
         f["direct_along_factor"] = along
     return dataclasses.replace(conf, **f, kernel_k=k)
@@ -209,6 +214,9 @@ def main() -> int:
     print("sets:", ", ".join(d.name for d in sets))
     direct = fit_direct(sets, args.stat)
     print("direct estimates:", json.dumps({k: v for k, v in direct.items() if k not in ("per_set", "kinds")}, indent=1))
+    direct["along_gains_on_shipped_floors"] = along_gains_on_floors(direct, GraphConfig())
+    print("along-line gains on the shipped floors (rel: gain; 'unknown': on direct_depth_rel_unknown):",
+          json.dumps(direct["along_gains_on_shipped_floors"]))
     print("per depth kind (rel: the depth source's relative scale sigma; observed, the fit's and the defaults' "
           "sigmas; across/along per metre):")
     K, c = pd.DataFrame(direct["kinds"]), GraphConfig()
