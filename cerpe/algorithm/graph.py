@@ -124,8 +124,8 @@ class GraphConfig:
     direct_along_factor: float = 2.0
     direct_depth_rot: float = 0.05
     direct_depth_across: float = 0.0
-    direct_depth_along: float = 0.4
-    direct_depth_along_unknown: float = 0.4
+    direct_depth_along: float = 0.1
+    direct_depth_along_unknown: float = 1.5
     direct_depth_rel_unknown: float = 0.3
     direct_inliers_ref: float = 0.0
     direct_inliers_clip: float = 3.0
