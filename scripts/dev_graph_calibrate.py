@@ -101,7 +101,8 @@ def fit_direct(sets: list[Path], stat: str = "median") -> dict:
 
 def fit_odometry(sets: list[Path]) -> dict:
     """Odometry noise from every set (one model: per-depth-kind gains were measured worse, see the
-    commit), and the ratio of observed to modelled error over longer windows per depth kind ``rel``."""
+    commit), and the ratio of observed to modelled error over longer windows per depth kind ``rel``, under
+    the fit and under the shipped model (``shipped_*``)."""
     from cerpe.pipeline.run import load_manifest_setting
 
     rows = []
@@ -128,18 +129,26 @@ def fit_odometry(sets: list[Path]) -> dict:
            "odo_rot_per_rad": float(np.sqrt(cr[2])), "odo_trans_per_step": float(np.sqrt(ct[0])),
            "odo_trans_per_m": float(np.sqrt(ct[1]))}
     growth = []
+    shipped = dataclasses.asdict(GraphConfig())
     for (rel, w), g in O[~O["failed"]].groupby(["rel", "window"]):
-        # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
-        var_r = w * fit["odo_rot_per_step"] ** 2 + ((fit["odo_rot_per_m"] * g["dist_m"]) ** 2
-                                                    + (fit["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
-        var_t = w * fit["odo_trans_per_step"] ** 2 + (fit["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
-        growth.append({"rel": float(rel), "window": int(w), "n": int(len(g)),
-                       "rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
-                       "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
-                       "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t))
-                                                   / (MAXWELL_MEDIAN / np.sqrt(3)))})
+        row = {"rel": float(rel), "window": int(w), "n": int(len(g)),
+               "trans_median_m": float(g["trans_err_m"].median()), "trans_rms_m": float(np.sqrt(np.mean(g["trans_err_m"] ** 2)))}
+        for tag, c in (("", fit), ("shipped_", shipped)):  # the fit above and GraphConfig's defaults
+            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c).items()})
+        growth.append(row)
     fails = O[(O["window"] == 1)]
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
+
+
+def _odo_ratios(g: pd.DataFrame, w: int, c: dict) -> dict:
+    """Observed over modelled odometry error of ``w``-step windows ``g`` under the odometry model ``c`` (1: calibrated)."""
+    # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
+    var_r = w * c["odo_rot_per_step"] ** 2 + ((c["odo_rot_per_m"] * g["dist_m"]) ** 2
+                                              + (c["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
+    var_t = w * c["odo_trans_per_step"] ** 2 + (c["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
+    return {"rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
+            "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
+            "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t)) / (MAXWELL_MEDIAN / np.sqrt(3)))}
 
 
 def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float | None = None) -> GraphConfig:
