@@ -13,7 +13,10 @@ Usage::
    across the line between the cameras median / 1.1774 (Rayleigh), along it median |error| /
    0.6745, relative to the distance; then floors and gains on ``rel`` in quadrature over the
    kinds (``direct_*``, ``direct_depth_*``), and the observed against the predicted sigmas per
-   kind; samples more than 0.5 rad off are left out (gross errors are the kernel's job).
+   kind; samples more than 0.5 rad off are left out (gross errors are the kernel's job). Estimates
+   without a ``rel`` (no metric depth) give ``direct_depth_rel_unknown`` (rotation, across) and their own
+   along-line gain ``direct_depth_along_unknown``; the along-line gains per kind are also given on top
+   of the shipped floors (``graphdev.along_gains_on_floors``: the ones ``GraphConfig`` can take as is).
 2. Odometry increments of every robot against ground truth (synthetic sets and real sets
    with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
    single steps (least squares on squared errors, own-odometry failures and jumps above
@@ -51,6 +54,7 @@ from cerpe.pipeline.graphdev import (  # noqa: E402
     MAXWELL_MEDIAN,
     ORACLES,
     GraphDevError,
+    along_gains_on_floors,
     depth_rel_sigma,
     direct_samples,
     fit_direct_kinds,
@@ -97,7 +101,8 @@ def fit_direct(sets: list[Path], stat: str = "median") -> dict:
 
 def fit_odometry(sets: list[Path]) -> dict:
     """Odometry noise from every set (one model: per-depth-kind gains were measured worse, see the
-    commit), and the ratio of observed to modelled error over longer windows per depth kind ``rel``."""
+    commit), and the ratio of observed to modelled error over longer windows per depth kind ``rel``, under
+    the fit and under the shipped model (``shipped_*``)."""
     from cerpe.pipeline.run import load_manifest_setting
 
     rows = []
@@ -124,25 +129,34 @@ def fit_odometry(sets: list[Path]) -> dict:
            "odo_rot_per_rad": float(np.sqrt(cr[2])), "odo_trans_per_step": float(np.sqrt(ct[0])),
            "odo_trans_per_m": float(np.sqrt(ct[1]))}
     growth = []
+    shipped = dataclasses.asdict(GraphConfig())
     for (rel, w), g in O[~O["failed"]].groupby(["rel", "window"]):
-        # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
-        var_r = w * fit["odo_rot_per_step"] ** 2 + ((fit["odo_rot_per_m"] * g["dist_m"]) ** 2
-                                                    + (fit["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
-        var_t = w * fit["odo_trans_per_step"] ** 2 + (fit["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
-        growth.append({"rel": float(rel), "window": int(w), "n": int(len(g)),
-                       "rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
-                       "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
-                       "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t))
-                                                   / (MAXWELL_MEDIAN / np.sqrt(3)))})
+        row = {"rel": float(rel), "window": int(w), "n": int(len(g)),
+               "trans_median_m": float(g["trans_err_m"].median()), "trans_rms_m": float(np.sqrt(np.mean(g["trans_err_m"] ** 2)))}
+        for tag, c in (("", fit), ("shipped_", shipped)):  # the fit above and GraphConfig's defaults
+            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c).items()})
+        growth.append(row)
     fails = O[(O["window"] == 1)]
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
+
+
+def _odo_ratios(g: pd.DataFrame, w: int, c: dict) -> dict:
+    """Observed over modelled odometry error of ``w``-step windows ``g`` under the odometry model ``c`` (1: calibrated)."""
+    # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
+    var_r = w * c["odo_rot_per_step"] ** 2 + ((c["odo_rot_per_m"] * g["dist_m"]) ** 2
+                                              + (c["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
+    var_t = w * c["odo_trans_per_step"] ** 2 + (c["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
+    return {"rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
+            "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
+            "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t)) / (MAXWELL_MEDIAN / np.sqrt(3)))}
 
 
 def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float | None = None) -> GraphConfig:
     f = {n: getattr(conf, n) * odo for n in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad",
                                              "odo_trans_per_step", "odo_trans_per_m")}
     f.update({n: getattr(conf, n) * direct for n in ("direct_rot_rad", "direct_trans_m", "direct_trans_rel",
-                                                     "direct_depth_rot", "direct_depth_across", "direct_depth_along")})
+                                                     "direct_depth_rot", "direct_depth_across", "direct_depth_along",
+                                                     "direct_depth_along_unknown")})
     if along is not None:
         f["direct_along_factor"] = along
     return dataclasses.replace(conf, **f, kernel_k=k)
@@ -209,6 +223,9 @@ def main() -> int:
     print("sets:", ", ".join(d.name for d in sets))
     direct = fit_direct(sets, args.stat)
     print("direct estimates:", json.dumps({k: v for k, v in direct.items() if k not in ("per_set", "kinds")}, indent=1))
+    direct["along_gains_on_shipped_floors"] = along_gains_on_floors(direct, GraphConfig())
+    print("along-line gains on the shipped floors (rel: gain; 'unknown': on direct_depth_rel_unknown):",
+          json.dumps(direct["along_gains_on_shipped_floors"]))
     print("per depth kind (rel: the depth source's relative scale sigma; observed, the fit's and the defaults' "
           "sigmas; across/along per metre):")
     K, c = pd.DataFrame(direct["kinds"]), GraphConfig()

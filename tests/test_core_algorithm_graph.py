@@ -275,7 +275,7 @@ def test_depth_sources_report_their_scale_sigma():
 def test_direct_covariance_carries_the_depth_kind():
     conf = GraphConfig(direct_rot_rad=0.002, direct_trans_m=0.01, direct_trans_rel=0.005, direct_along_factor=1.5,
                        direct_depth_rot=0.05, direct_depth_across=0.3, direct_depth_along=1.0,
-                       direct_depth_rel_unknown=0.5)
+                       direct_depth_along_unknown=1.0, direct_depth_rel_unknown=0.5)
     rng = np.random.default_rng(0)
     T = random_se3(rng, 1.0)
     T[:3, 3] = 8.0 * T[:3, 3] / np.linalg.norm(T[:3, 3])  # the other camera 8 m away
@@ -290,15 +290,44 @@ def test_direct_covariance_carries_the_depth_kind():
         u /= np.linalg.norm(u)
         assert u @ C[3:, 3:] @ u == pytest.approx(across**2)
         assert graph_mod.usable_cov(C)
-    # a monocular prior's estimate is looser along the line than a sensor's, by its depth's scale sigma
+    # a monocular prior's estimate is looser than a sensor's, by its depth's scale sigma
     mono = graph_mod.direct_cov(GraphConfig(), DirectEstimate(0, T, depth_rel_sigma=MONO_REL))
     sensor = graph_mod.direct_cov(GraphConfig(), DirectEstimate(0, T, depth_rel_sigma=0.0))
-    assert np.sqrt(w @ mono[3:, 3:] @ w) > 1.1 * np.sqrt(w @ sensor[3:, 3:] @ w)
+    assert np.sqrt(w @ mono[3:, 3:] @ w) > np.sqrt(w @ sensor[3:, 3:] @ w)
     assert np.sqrt(mono[0, 0]) > 1.1 * np.sqrt(sensor[0, 0])
     # with no depth gains the model is the one before depth kinds (isotropic across, a factor along)
     old = GraphConfig(direct_depth_rot=0.0, direct_depth_across=0.0, direct_depth_along=0.0, direct_along_factor=2.0)
     C = graph_mod.direct_cov(old, DirectEstimate(0, T, depth_rel_sigma=MONO_REL))
     assert w @ C[3:, 3:] @ w == pytest.approx((2.0 * (old.direct_trans_m + 8.0 * old.direct_trans_rel)) ** 2)
+
+
+def test_along_gain_per_depth_kind():
+    # known answers: the along-line sigma of an estimate 10 m away per depth kind, with the floors
+    # along_factor (trans_m + trans_rel d) = 2 (0 + 0.01 * 10) = 0.2 m; a reported rel uses direct_depth_along
+    # (sensor 0, dataset 0.01, monocular prior 0.1), none uses direct_depth_along_unknown on rel_unknown
+    conf = GraphConfig(direct_rot_rad=0.002, direct_trans_m=0.0, direct_trans_rel=0.01, direct_along_factor=2.0,
+                       direct_depth_rot=0.05, direct_depth_across=0.0, direct_depth_along=0.5,
+                       direct_depth_along_unknown=4.0, direct_depth_rel_unknown=0.3)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 10.0]
+    w = np.array([0.0, 0.0, 1.0])
+    for rel, gain, along in ((0.0, 0.5, 0.2), (0.01, 0.5, np.hypot(0.2, 0.05)), (0.1, 0.5, np.hypot(0.2, 0.5)),
+                             (None, 4.0, np.hypot(0.2, 12.0)), (float("nan"), 4.0, np.hypot(0.2, 12.0)),
+                             (-1.0, 4.0, np.hypot(0.2, 12.0))):
+        assert graph_mod.along_gain(conf, rel) == gain
+        C = graph_mod.direct_cov(conf, DirectEstimate(0, T, depth_rel_sigma=rel))
+        assert np.sqrt(w @ C[3:, 3:] @ w) == pytest.approx(along)
+        assert np.sqrt(C[3, 3]) == pytest.approx(0.1)  # across: the floor only (no across gain)
+    # the unknown kind's along gain leaves its rotation and across sigmas alone (rel_unknown sets those)
+    a, b = (graph_mod.direct_cov(dataclasses.replace(conf, direct_depth_along_unknown=g), DirectEstimate(0, T))
+            for g in (0.0, 4.0))
+    np.testing.assert_allclose(a[:5, :5], b[:5, :5])
+    assert np.sqrt(a[0, 0]) == pytest.approx(np.hypot(0.002, 0.05 * 0.3))
+    # the mono gain does not move the unknown kind, and vice versa
+    c = graph_mod.direct_cov(dataclasses.replace(conf, direct_depth_along=9.0), DirectEstimate(0, T))
+    np.testing.assert_allclose(c, b)
+    with pytest.raises(GraphError, match="direct_depth_along_unknown"):
+        GraphConfig(direct_depth_along_unknown=-0.1)
 
 
 # the noise model of cerpe-graph before depth kinds (commit a50f8ce's calibration, one model for every depth)

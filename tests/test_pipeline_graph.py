@@ -198,7 +198,7 @@ def test_direct_noise_fit_recovers_hand_made_covariances_per_depth_kind():
     # and its per-kind predicted sigmas match the observed ones
     from cerpe.algorithm.graph import DirectEstimate, GraphConfig, direct_cov
     from cerpe.geometry import make_se3, random_se3, se3_to_tq_xyzw, so3_exp
-    from cerpe.pipeline.graphdev import direct_samples, fit_direct_kinds
+    from cerpe.pipeline.graphdev import along_gains_on_floors, direct_samples, fit_direct_kinds
 
     true = GraphConfig(direct_rot_rad=0.003, direct_trans_m=0.004, direct_trans_rel=0.006, direct_along_factor=1.0,
                        direct_depth_rot=0.05, direct_depth_across=0.25, direct_depth_along=1.0)
@@ -209,7 +209,8 @@ def test_direct_noise_fit_recovers_hand_made_covariances_per_depth_kind():
         for _ in range(n):
             G = random_se3(rng, 1.0)
             G[:3, 3] *= rng.uniform(1.0, 12.0) / np.linalg.norm(G[:3, 3])
-            C = direct_cov(true if np.isfinite(rel) else dataclasses.replace(true, direct_depth_rel_unknown=0.4),
+            C = direct_cov(true if np.isfinite(rel) else
+                           dataclasses.replace(true, direct_depth_rel_unknown=0.4, direct_depth_along_unknown=2.5),
                            DirectEstimate(0, G, depth_rel_sigma=None if np.isnan(rel) else rel))
             x = rng.multivariate_normal(np.zeros(6), C)
             gt.append(G)
@@ -225,7 +226,14 @@ def test_direct_noise_fit_recovers_hand_made_covariances_per_depth_kind():
                       ("direct_depth_across", 0.1), ("direct_depth_along", 0.1)):
         assert fit[name] == pytest.approx(getattr(true, name), rel=tol), name
     assert fit["direct_along_factor"] == pytest.approx(1.0, abs=0.15)
-    assert fit["direct_depth_rel_unknown"] == pytest.approx(0.4, rel=0.15)  # what the no-depth estimates had
+    # what the no-depth estimates had: rel from their rotation and across errors, their own along gain on it
+    assert fit["direct_depth_rel_unknown"] == pytest.approx(0.4, rel=0.15)
+    assert fit["direct_depth_along_unknown"] == pytest.approx(2.5, rel=0.15)
+    # the gains on other floors: the mono kind's along sigma hypot(0.006, 0.1) per metre on a 0.02 floor
+    gains = along_gains_on_floors(fit, dataclasses.replace(true, direct_trans_rel=0.01, direct_along_factor=2.0))
+    assert gains[0.1] == pytest.approx(np.sqrt(0.006**2 + 0.1**2 - 0.02**2) / 0.1, rel=0.1)
+    assert gains["unknown"] == pytest.approx(np.sqrt(0.006**2 + 1.0**2 - 0.02**2) / true.direct_depth_rel_unknown, rel=0.15)
+    assert along_gains_on_floors(fit, dataclasses.replace(true, direct_trans_rel=1.0))[0.1] == 0.0
     for k in fit["kinds"]:
         for q in ("rot", "across_rel", "along_rel"):
             assert k[f"pred_{q}"] == pytest.approx(k[q], rel=0.1), (k["rel"], q)

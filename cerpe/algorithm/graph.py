@@ -20,15 +20,13 @@ solved: the estimate at step t is the newest node's estimate moved by both odome
 covariance the node's marginal plus the walk since (a filter's prediction). Poses are
 re-centred on the first node's ``X_i``, ``X_j`` so lever arms are distances travelled.
 
-Solved incrementally with GTSAM's ``IncrementalFixedLagSmoother`` (iSAM2 over the last
-``window_nodes`` nodes, older ones marginalised): an update costs the same after an
-hour as after a minute. Covariances are ``[6,6]`` over ``[rotation, translation]`` of a
-right perturbation (:mod:`cerpe.geometry`, "pose covariances").
+Solved incrementally with GTSAM's ``IncrementalFixedLagSmoother`` (iSAM2 over the last ``window_nodes``
+nodes, older ones marginalised): an update costs the same after an hour as after a minute. Covariances
+are ``[6,6]`` over ``[rotation, translation]`` of a right perturbation (:mod:`cerpe.geometry`).
 
-Bad input never raises out of :meth:`PairGraph.step`: a degenerate covariance, a direct
-estimate whose poses the graph does not have (out of order), a solver that throws or does
-not converge are returned as degradation names (:data:`GRAPH_DEGRADATIONS`) and the last
-good estimate is kept.
+Bad input never raises out of :meth:`PairGraph.step`: a degenerate covariance, a direct estimate whose
+poses the graph does not have (out of order), a solver that throws or does not converge are returned as
+degradation names (:data:`GRAPH_DEGRADATIONS`) and the last good estimate is kept.
 """
 from __future__ import annotations
 
@@ -79,9 +77,11 @@ class GraphConfig:
     mostly along the line of sight). The metric depth the estimate stands on adds its own part:
     with ``r`` its relative scale sigma (:attr:`DirectEstimate.depth_rel_sigma`, reported by the
     depth source; ``direct_depth_rel_unknown`` when it reports none), ``direct_depth_rot r`` to the
-    rotation, ``direct_depth_across r |t|`` across and ``direct_depth_along r |t|`` along the line
-    (each added in quadrature), so a monocular prior (5-10 %) and a depth sensor (< 1 %) get their
-    own sigmas from one model; with
+    rotation, ``direct_depth_across r |t|`` across and ``g r |t|`` along the line (each added in
+    quadrature), so a monocular prior (5-10 %) and a depth sensor (< 1 %) get their own sigmas from
+    one model. The along gain ``g`` is per depth kind (:func:`along_gain`): ``direct_depth_along``
+    when the source reports ``r`` (sensor 0, dataset 0.01, monocular prior), ``direct_depth_along_unknown``
+    when it reports none (no metric depth: the distance is the backbone's own scale); with
     ``direct_inliers_ref > 0`` both are scaled by ``sqrt(direct_inliers_ref / inliers)``
     clipped to ``[1/direct_inliers_clip, direct_inliers_clip]``; estimates that anchor
     verification left unverified or rejected are scaled by ``unverified_scale`` /
@@ -117,14 +117,15 @@ class GraphConfig:
     odo_lost_trans: float = 0.15
     odo_jump_rad: float = 1.0
     # direct estimates: the floors (all a depth sensor's estimates get) as calibrated before depth kinds; the
-    # gains on the depth source's rel_sigma from dev runs of the mono-sim sets (see the commit that set them)
+    # gains on the depth source's rel_sigma per depth kind from dev runs (see the commits that set them)
     direct_rot_rad: float = 0.004
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
     direct_along_factor: float = 2.0
     direct_depth_rot: float = 0.05
     direct_depth_across: float = 0.0
-    direct_depth_along: float = 0.4
+    direct_depth_along: float = 0.1
+    direct_depth_along_unknown: float = 1.5
     direct_depth_rel_unknown: float = 0.3
     direct_inliers_ref: float = 0.0
     direct_inliers_clip: float = 3.0
@@ -147,7 +148,8 @@ class GraphConfig:
         for name in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad", "odo_trans_per_step",
                      "odo_trans_per_m", "odo_lost_rot", "odo_lost_trans", "odo_jump_rad", "direct_rot_rad", "direct_trans_m",
                      "direct_trans_rel", "direct_inliers_ref", "min_sigma", "max_sigma_rot_rad", "direct_depth_rot",
-                     "direct_depth_across", "direct_depth_along", "direct_depth_rel_unknown"):
+                     "direct_depth_across", "direct_depth_along", "direct_depth_along_unknown",
+                     "direct_depth_rel_unknown"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
@@ -187,11 +189,10 @@ class DirectEstimate:
 
 @dataclass
 class GraphEstimate:
-    """What the graph says at one step: ``T_cj_ci`` and its ``[6,6]`` covariance (None before the
-    first node, and once an unconfirmed graph expired: ``expired``), the step of its newest node,
-    whether this step's direct estimate became one, and the degradations of this step (names of
-    :data:`GRAPH_DEGRADATIONS`). ``uninformative``: ``T_cj_ci`` withheld because its predicted
-    rotation sigma is above ``GraphConfig.max_sigma_rot_rad`` (``cov`` is still given)."""
+    """What the graph says at one step: ``T_cj_ci`` and its ``[6,6]`` covariance (None before the first node,
+    and once an unconfirmed graph expired: ``expired``), the step of its newest node, whether this step's
+    direct estimate became one, and the degradations of this step (names of :data:`GRAPH_DEGRADATIONS`).
+    ``uninformative``: ``T_cj_ci`` withheld, its predicted rotation sigma above ``max_sigma_rot_rad``."""
 
     T_cj_ci: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -206,9 +207,19 @@ def _diag(rot_sigma: float, trans_sigma: float) -> np.ndarray:
     return np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
 
 
+def _known(rel: float | None) -> bool:  # a depth source's reported scale sigma (not None, finite, >= 0)
+    return rel is not None and bool(np.isfinite(rel)) and rel >= 0
+
+
 def _rel(conf: GraphConfig, rel: float | None) -> float:
     """A depth source's relative scale sigma, ``direct_depth_rel_unknown`` when it gave none."""
-    return conf.direct_depth_rel_unknown if rel is None or not np.isfinite(rel) or rel < 0 else float(rel)
+    return float(rel) if _known(rel) else conf.direct_depth_rel_unknown
+
+
+def along_gain(conf: GraphConfig, rel: float | None) -> float:
+    """The along-line gain on the depth scale sigma of an estimate whose depth source reported ``rel``
+    (None, NaN or negative: none): ``direct_depth_along``, else ``direct_depth_along_unknown``."""
+    return conf.direct_depth_along if _known(rel) else conf.direct_depth_along_unknown
 
 
 def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0) -> np.ndarray:
@@ -241,7 +252,7 @@ def direct_cov(conf: GraphConfig, est: DirectEstimate) -> np.ndarray:
     r = _rel(conf, est.depth_rel_sigma)
     across = conf.direct_trans_m + dist * np.hypot(conf.direct_trans_rel, conf.direct_depth_across * r)
     along = np.hypot(conf.direct_along_factor * (conf.direct_trans_m + conf.direct_trans_rel * dist),
-                     conf.direct_depth_along * r * dist)
+                     along_gain(conf, est.depth_rel_sigma) * r * dist)
     cov = _diag(f * float(np.hypot(conf.direct_rot_rad, conf.direct_depth_rot * r)), f * across)
     if dist > 0 and along != across:
         w = T[:3, :3].T @ T[:3, 3] / dist  # the line between the cameras, in camera i (the perturbation's frame)
@@ -268,9 +279,7 @@ def usable_cov(cov: np.ndarray | None) -> bool:
 def _inv(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (inputs here are checked poses: no validation, it runs every step)."""
     out = np.eye(4)
-    R = T[:3, :3]
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
+    out[:3, :3], out[:3, 3] = T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]
     return out
 
 
@@ -309,8 +318,7 @@ def _log_batch(T: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _Node:
-    """A node of the window as the consensus check and a rebuild need it: its key, the offset its
-    direct estimate measured with its covariance, and the walk from the previous node."""
+    """A node of the window (consensus check, rebuild): key, measured offset, its covariance, walk since the last."""
 
     key: int
     O_meas: np.ndarray

@@ -268,10 +268,12 @@ def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "med
     :func:`direct_samples` rows with a ``rel`` column (the depth source's relative scale sigma, NaN:
     none): floors and gains on ``rel`` fitted in quadrature over the depth kinds (one ``rel`` value
     each, at least ``min_kind`` estimates, gross ones left out), the absolute floor ``direct_trans_m``
-    from cameras closer than :data:`MIN_REL_DIST_M` (else 1 mm), ``direct_depth_rel_unknown`` as the
-    ``rel`` that predicts the along-line error of estimates without one. Returns the
-    :class:`~cerpe.algorithm.graph.GraphConfig` fields and ``kinds``: per kind the observed and
-    predicted sigmas (the calibration's figures)."""
+    from cameras closer than :data:`MIN_REL_DIST_M` (else 1 mm); for estimates without a ``rel`` (no
+    metric depth) ``direct_depth_rel_unknown`` as the ``rel`` that predicts their rotation and across-line
+    errors (the mean of both where both gains are > 0) and ``direct_depth_along_unknown`` as the along-line
+    gain on it that predicts their along-line error (:func:`~cerpe.algorithm.graph.along_gain`). Returns
+    the :class:`~cerpe.algorithm.graph.GraphConfig` fields, ``unknown`` (the no-depth estimates'
+    observed sigmas, None without them) and ``kinds``: per kind the observed and predicted sigmas."""
     good = samples[samples["rot_err_rad"] < GROSS_ROT_RAD]
     near = good[good["dist_m"] < MIN_REL_DIST_M]
     a = max(float(np.median(near["perp_m"]) / RAYLEIGH_MEDIAN) if len(near) >= 10 else 0.0, 1e-3)
@@ -290,10 +292,30 @@ def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "med
            "direct_along_factor": along_factor, "direct_depth_rot": g_rot, "direct_depth_across": g_across,
            "direct_depth_along": g_along}
     unknown = good[~np.isfinite(good["rel"])]
-    u = kind_sigmas(unknown, a, stat=stat)["along_rel"] if len(unknown) else np.nan
-    if np.isfinite(u) and g_along > 0:
-        fit["direct_depth_rel_unknown"] = float(np.sqrt(max(u**2 - (along_factor * c) ** 2, 0.0)) / g_along)
+    U = kind_sigmas(unknown, a, stat=stat) if len(unknown) else None
+    if U is not None:
+        r_u = [np.sqrt(max(U[q] ** 2 - c0**2, 0.0)) / g for q, c0, g in (("rot", rot0, g_rot), ("across_rel", c, g_across))
+               if g > 0 and np.isfinite(U[q])]
+        if r_u and np.mean(r_u) > 0:
+            fit["direct_depth_rel_unknown"] = float(np.mean(r_u))
+            if np.isfinite(U["along_rel"]):
+                fit["direct_depth_along_unknown"] = float(np.sqrt(max(U["along_rel"] ** 2 - (along_factor * c) ** 2, 0.0))
+                                                          / fit["direct_depth_rel_unknown"])
     K["pred_rot"] = np.hypot(rot0, g_rot * r)
     K["pred_across_rel"] = np.hypot(c, g_across * r)
     K["pred_along_rel"] = np.hypot(along_factor * c, g_along * r)
-    return {**fit, "n": int(len(samples)), "n_used": int(len(good)), "kinds": K.to_dict("records")}
+    return {**fit, "n": int(len(samples)), "n_used": int(len(good)), "unknown": U, "kinds": K.to_dict("records")}
+
+
+def along_gains_on_floors(fit: dict, conf: GraphConfig) -> dict:
+    """The along-line gains per depth kind that :func:`fit_direct_kinds`'s observed sigmas ask for on top of
+    ``conf``'s floors (``direct_along_factor direct_trans_rel`` per metre) rather than the fitted ones:
+    ``{rel: gain}`` for the kinds with ``rel > 0`` and ``"unknown"`` on ``conf.direct_depth_rel_unknown``;
+    0 where the floor alone already predicts at least the observed along-line error."""
+    floor = conf.direct_along_factor * conf.direct_trans_rel
+    out = {float(k["rel"]): float(np.sqrt(max(k["along_rel"] ** 2 - floor**2, 0.0)) / k["rel"])
+           for k in fit["kinds"] if k["rel"] > 0 and np.isfinite(k["along_rel"])}
+    U = fit.get("unknown")
+    if U is not None and np.isfinite(U["along_rel"]) and conf.direct_depth_rel_unknown > 0:
+        out["unknown"] = float(np.sqrt(max(U["along_rel"] ** 2 - floor**2, 0.0)) / conf.direct_depth_rel_unknown)
+    return out
