@@ -108,17 +108,18 @@ def _cols(prefix: str, T) -> list[float]:
 
 
 def replay_pair(rows, metric: bool, cfg: CerpeConfig):
-    """Yield ``(row, verdict, reported T or None, its anchor step or -1, source)`` per step of one
-    ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``."""
+    """Yield ``(row, verdict, reported T or None, its anchor step or -1, source, candidates dropped)`` per
+    step of one ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``."""
     pa = PairAnchors(cfg.anchor_config())
     for r in rows:
-        t, rep, verdict, src_step, source = r["step"], None, "", -1, "none"
+        t, rep, verdict, src_step, source, dropped = r["step"], None, "", -1, "none", 0
         if cfg.verify_anchors:
             pa.track(t, r["X_i"], r["X_j"])
         if r["direct"]:
             est = anchor(r, metric)
             if cfg.verify_anchors:
-                verdict = pa.offer(est).verdict
+                check = pa.offer(est)
+                verdict, dropped = check.verdict, len(check.dropped)
             else:
                 pa.anchor, verdict = est, "unchecked"
             if verdict != "rejected" and (verdict != "unverified" or cfg.report_unverified):
@@ -127,7 +128,7 @@ def replay_pair(rows, metric: bool, cfg: CerpeConfig):
             a, _ = pa.carried(t)
             if a is not None:
                 rep, src_step, source = a.propagated(r["X_i"], r["X_j"]), a.step, "propagated"
-        yield r, verdict, rep, src_step, source
+        yield r, verdict, rep, src_step, source, dropped
 
 
 def run_config(run_path: Path, **overrides) -> CerpeConfig:
@@ -147,17 +148,20 @@ def replay_report(run_path: Path, cfg: CerpeConfig, name: str | None = None) -> 
 
     run = load_run(run_path, allow_partial=True)
     steps = run.steps.copy()
+    steps[["source", "anchor_verdict"]] = steps[["source", "anchor_verdict"]].astype(object)  # all NaN in some runs
     est_cols = [f"est_{n}" for n in POSE]
+    dropped = 0
     for enc, ego, other, rows, metric in load(run_path):
         sel = steps.index[(steps.encounter.astype(str) == enc) & (steps.ego == ego) & (steps.other == other)]
         by_step = dict(zip(steps.loc[sel, "step"].astype(int), sel))
-        for r, verdict, rep, src_step, source in replay_pair(rows, metric, cfg):
+        for r, verdict, rep, src_step, source, n_dropped in replay_pair(rows, metric, cfg):
+            dropped += n_dropped
             i = by_step[r["step"]]
             steps.loc[i, est_cols] = _cols("est", rep)
             steps.loc[i, ["source", "anchor_step", "anchor_verdict"]] = [source, src_step, verdict]
     run.steps = steps
     row = method_row(run, name)
-    row["anchors_rejected"] = int((steps["anchor_verdict"] == "rejected").sum())  # not the recorded degradations
+    row["anchors_rejected"] = int((steps["anchor_verdict"] == "rejected").sum()) + dropped  # not the recorded ones
     row["anchors_replaced"] = int((steps["anchor_verdict"] == "replaced").sum())
     return row, steps
 
@@ -186,7 +190,7 @@ def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
     for run in runs:
         for enc, ego, other, rows, metric in load(run):
             carried_from: dict[int, int] = {}
-            for r, verdict, rep, src_step, _ in replay_pair(rows, metric, cfg):
+            for r, verdict, rep, src_step, _, _ in replay_pair(rows, metric, cfg):
                 t = r["step"]
                 e = err(rep, r["gt"])
                 ep = float(np.linalg.norm(rep[:3, 3] - r["gt"][:3, 3])) if rep is not None else np.nan

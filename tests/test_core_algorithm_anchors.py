@@ -8,6 +8,7 @@ from cerpe.algorithm.anchors import (
     Anchor,
     AnchorConfig,
     PairAnchors,
+    consensus,
     consistent,
     disagreement,
     tolerance,
@@ -249,3 +250,82 @@ def test_an_odometry_jump_makes_the_pair_forget_its_anchor_and_candidates():
     pa = PairAnchors(CONF, anchor=p.est(0))
     pa.track(5, p.X("i", 5), p.X("j", 5))
     assert pa.track(6, p.X("i", 6), jumped) == 0.0 and pa.anchor is not None
+
+
+def moved(p: Pair, t: int, d) -> Anchor:
+    """Step ``t``'s estimate with camera i placed ``d`` metres off in the world: right rotation, wrong
+    translation; estimates moved by one ``d`` agree with each other after propagation."""
+    e = p.est(t)
+    G = make_se3(np.eye(3), np.asarray(d, float))
+    e.T_cj_ci = paper_T_ij(G @ p.W["i"][t], p.W["j"][t])
+    return e
+
+
+def test_moved_estimates_keep_the_rotation_and_agree_with_each_other_only():
+    p = Pair(16)
+    r, t = disagreement(p.est(2), moved(p, 3, (15.0, 0.0, 0.0)))
+    assert r < 1e-7 and t == pytest.approx(15.0)
+    r, t = disagreement(moved(p, 2, (15.0, 0.0, 0.0)), moved(p, 5, (15.0, 0.0, 0.0)))
+    assert r < 1e-7 and t < 1e-6
+
+
+def test_a_translation_outlier_with_the_right_rotation_is_rejected_and_blocks_nothing():
+    """Two right estimates and one 15 m off in translation with the right rotation: the two verify
+    each other (verify_support 1), the outlier is dropped (rejected), even with verify_fraction 1."""
+    import dataclasses
+
+    p = Pair(17)
+    for fraction in (0.0, 1.0):
+        pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=fraction))
+        assert pa.offer(p.est(2)).verdict == "unverified"
+        check = pa.offer(moved(p, 3, (15.0, 0.0, 0.0)))
+        assert check.verdict == "unverified" and check.trans_m == pytest.approx(15.0)
+        check = pa.offer(p.est(4))
+        assert check.verdict == "verified" and check.against == 2 and check.dropped == (3,), fraction
+        assert pa.anchor.step == 4 and not pa.candidates
+    # an outlier in rotation does count against the group: 1 of 2 others agree, below 1.0
+    pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=1.0))
+    assert [pa.offer(e).verdict for e in (p.est(2), p.est(3, rot(0.5)), p.est(4))] == ["unverified"] * 3
+
+
+def test_translation_outliers_do_not_block_a_group_under_the_default_support_and_fraction():
+    """verify_support 2, verify_fraction 0.5 (the defaults): one right estimate, three 15 m off each a
+    different way (right rotation), two right ones: the newest right one is verified against the right
+    ones, the three outliers are rejected. Before, 2 agreeing of 5 candidates (0.4 < 0.5) verified nothing."""
+    import dataclasses
+
+    p = Pair(18)
+    pa = PairAnchors(dataclasses.replace(CONF, verify_support=2, verify_fraction=0.5))
+    offers = [p.est(2), moved(p, 3, (15.0, 0.0, 0.0)), moved(p, 4, (-15.0, 0.0, 0.0)),
+              moved(p, 5, (0.0, 15.0, 0.0)), p.est(6)]
+    assert [pa.offer(e).verdict for e in offers] == ["unverified"] * 5
+    check = pa.offer(p.est(7))
+    assert check.verdict == "verified" and check.against == 6 and check.dropped == (3, 4, 5)
+    assert pa.anchor.step == 7 and not pa.candidates
+
+
+def test_two_groups_as_large_verify_nothing_until_one_grows():
+    """Two right estimates and two that agree with each other 15 m off: two hypotheses, nothing
+    verified; a third right one decides (verify_support 1). Indices into the pool, oldest first."""
+    p = Pair(19)
+    d = (0.0, 0.0, 15.0)
+    pool = [p.est(2), moved(p, 3, d), moved(p, 4, d), p.est(5)]
+    assert consensus(CONF, pool) is None
+    assert consensus(CONF, [*pool, p.est(6)]) == [0, 3, 4]
+    assert consensus(CONF, pool[:3]) == [1, 2]  # {3, 4}: larger than {2}
+
+
+def test_an_estimate_that_completes_the_rotation_support_is_rejected_and_the_group_verified():
+    """verify_support 1, verify_fraction 0.6: right estimates at 2 and 4 with one 0.5 rad off between
+    (1 of 2 others agree in rotation: too few); a 15 m translation outlier with the right rotation
+    makes it 2 of 3: the group {2, 4} verifies, its newest is the anchor, the outlier is rejected
+    against it and step 3 is dropped."""
+    import dataclasses
+
+    p = Pair(20)
+    pa = PairAnchors(dataclasses.replace(CONF, verify_fraction=0.6))
+    assert [pa.offer(e).verdict for e in (p.est(2), p.est(3, rot(0.5)), p.est(4))] == ["unverified"] * 3
+    check = pa.offer(moved(p, 5, (15.0, 0.0, 0.0)))
+    assert check.verdict == "rejected" and check.against == 4 and check.dropped == (3,)
+    assert check.rot_rad < 1e-6 and check.trans_m == pytest.approx(15.0)
+    assert pa.anchor.step == 4 and pa.carried(5) == (pa.anchor, True)

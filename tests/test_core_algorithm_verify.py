@@ -252,3 +252,23 @@ def test_verify_anchors_false_is_the_papers_switching():
     P = pair(results, "r0", "r1")
     assert gt_error(world, P[27])[0] > 0.45 and gt_error(world, P[28])[0] < 0.1
     assert not any(d.startswith("anchor:") for res in results for r in res.robots for d in r.degradations)
+
+
+def test_a_translation_outlier_among_the_first_estimates_is_dropped_and_counted():
+    """r0's pass at step 6 places r1's image 15 m off in the world with the right rotation: it joins no
+    group (5, 7, 8 agree), the group verifies at step 8 (anchor_verify_support 2) and step 6 is
+    counted as rejected (``anchor:inconsistent``) then; everything reported after is right."""
+    world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
+    G = make_se3(np.eye(3), np.array([15.0, 0.0, 0.0]))
+    W = world.pose(("r1", 6, "jpeg"))
+    _, results = run(world, perturb=lambda cur, via, key: se3_inverse(W) @ G @ W if key == ("r1", 6, "jpeg") else None)
+    P = pair(results, "r0", "r1")
+    assert [P[t].anchor_verdict for t in range(5, 10)] == ["unverified"] * 3 + ["verified", "accepted"]
+    assert gt_error(world, P[6])[0] < 1e-5 and gt_error(world, P[6])[1] > 5.0  # reported unverified
+    assert P[8].reason == "" and max(gt_error(world, P[8])) < 1e-5
+    assert degradations(results, "r0")["anchor:inconsistent"] == 1
+    assert "anchor:inconsistent" in next(r for r in results[8].robots if r.robot == "r0").degradations
+    assert degradations(results, "r1")["anchor:inconsistent"] == 0
+    for t in range(8, 40):
+        if P[t].source != "none":
+            assert max(gt_error(world, P[t])) < 1e-5, t

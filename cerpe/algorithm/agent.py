@@ -493,6 +493,8 @@ class RobotAgent(GateSide):
                 info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
                 if check.verdict == "replaced":
                     self.degrade("anchor:replaced")
+                for _ in check.dropped:  # unverified candidates the group that verified left out
+                    self.degrade("anchor:inconsistent")
                 if check.verdict == "unverified" and not self.config.report_unverified:
                     return "none", None, "unverified-held", -1  # nothing agrees with it yet
                 if check.verdict != "rejected":

@@ -7,8 +7,14 @@ starts from) only when something independent agrees with it:
   within a tolerance that grows with the steps since that anchor and with the
   distance both robots travelled since (odometry drifts);
 * with no anchor yet: a second estimate of the same step through another own
-  view (two registrations that agree), or ``verify_support`` recent unverified
-  candidates propagated to this step, at least ``verify_fraction`` of them.
+  view (two registrations that agree), or the recent unverified candidates: the
+  largest group of them (with the estimate) that agree pairwise in rotation AND
+  translation, each carried to the newer one's step with both odometries
+  (:func:`consensus`), of ``verify_support`` + 1 estimates or more; the
+  estimates that agree with all of it in rotation must be at least
+  ``verify_fraction`` of the recent ones. Its newest member becomes the anchor
+  and the candidates outside it are rejected (a translation outlier with the
+  right rotation cannot block estimates that agree).
 
 An estimate that disagrees with the anchor is *rejected* (the pair keeps the
 anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
@@ -46,11 +52,14 @@ class AnchorConfig:
     an error in rotation or scale moves a far camera further). Two estimates of one
     step through different own views (two registrations) agree within
     ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
-    without such a second registration, ``verify_support`` earlier candidates must
-    agree with an estimate to verify it, and at least ``verify_fraction`` of the
-    candidates of the last ``candidate_steps`` steps (estimates that keep disagreeing
-    with each other verify nothing). ``report_unverified``: whether an estimate
-    nothing has verified yet is reported (and carried, see :meth:`PairAnchors.carried`).
+    without such a second registration, the estimates of the last ``candidate_steps``
+    steps verify the largest group of them that agree pairwise (rotation and
+    translation) when it has ``verify_support`` + 1 members and the estimates that
+    agree with all of it in rotation are at least ``verify_fraction`` of the others
+    (estimates that keep disagreeing with each other verify nothing; one off only in
+    translation does not count against a group; see :func:`consensus`).
+    ``report_unverified``: whether an estimate nothing has verified yet is reported
+    (and carried, see :meth:`PairAnchors.carried`).
     ``max_odo_rot_step`` (> 0): when either robot's odometry turns by more than this
     per step, the pair forgets its anchor and candidates (see :meth:`PairAnchors.track`).
     """
@@ -123,19 +132,73 @@ def consistent(conf: AnchorConfig, old: Anchor, new: Anchor) -> tuple[bool, floa
     return bool(rot <= rot_tol and trans <= trans_tol), rot, trans
 
 
+def _cliques(adj: np.ndarray) -> list[frozenset[int]]:
+    """The maximal cliques of the undirected graph ``adj`` (Bron-Kerbosch with pivoting)."""
+    nb = [set(np.flatnonzero(row).tolist()) - {v} for v, row in enumerate(adj)]
+    out: list[frozenset[int]] = []
+
+    def grow(r: set[int], p: set[int], x: set[int]) -> None:
+        if not p and not x:
+            out.append(frozenset(r))
+            return
+        u = max(p | x, key=lambda v: len(p & nb[v]))
+        for v in sorted(p - nb[u]):
+            grow(r | {v}, p & nb[v], x & nb[v])
+            p, x = p - {v}, x | {v}
+
+    grow(set(), set(range(len(adj))), set())
+    return out
+
+
+def consensus(conf: AnchorConfig, pool: Sequence[Anchor]) -> list[int] | None:
+    """Which of ``pool`` (estimates without an anchor, oldest first) verify each other: indices, or None.
+
+    Every two are compared with the older carried to the newer's poses
+    (:func:`consistent`: rotation, and translation within a tolerance that grows
+    with the distance between the cameras and the metres travelled between the
+    two). The group is the largest set that agree pairwise in both (of equal ones,
+    the one with the newest member; None when another as large shares no member
+    with it: two hypotheses). It verifies when it has ``verify_support`` + 1
+    members or more, and the estimates that agree in rotation with all of it
+    (members included) are at least ``verify_fraction`` of the others: an estimate
+    off in translation but with the right rotation neither joins the group nor
+    blocks it; one off in rotation counts against it.
+    """
+    n = len(pool)
+    full, rot = np.eye(n, dtype=bool), np.eye(n, dtype=bool)
+    for b in range(n):
+        for a in range(b):
+            old, new = (pool[a], pool[b]) if pool[a].step <= pool[b].step else (pool[b], pool[a])
+            r, t = disagreement(old, new)
+            rot_tol, trans_tol = tolerance(conf, old, new)
+            rot[a, b] = rot[b, a] = r <= rot_tol
+            full[a, b] = full[b, a] = rot[a, b] and t <= trans_tol
+    cliques = sorted(_cliques(full), key=lambda c: (len(c), max(c)), reverse=True)
+    group = cliques[0]
+    if len(group) < 2 or any(len(c) == len(group) and not c & group for c in cliques[1:]):
+        return None
+    if len(group) - 1 < conf.verify_support:
+        return None
+    support = sum(bool(rot[k, list(group)].all()) for k in range(n)) - 1  # members and rotation-only agreement
+    return sorted(group) if support >= conf.verify_fraction * (n - 1) else None
+
+
 @dataclass
 class Check:
     """What :meth:`PairAnchors.offer` decided about one estimate.
 
     ``against``: step of what it was compared with (the anchor, a candidate, the
     same step for a second registration), -1 when nothing; ``rot_rad``,
-    ``trans_m``: the disagreement with it (NaN when nothing was compared).
+    ``trans_m``: the disagreement with it (NaN when nothing was compared);
+    ``dropped``: steps of the unverified candidates a verified group rejected
+    (counted as rejected estimates).
     """
 
     verdict: Verdict
     against: int = -1
     rot_rad: float = float("nan")
     trans_m: float = float("nan")
+    dropped: tuple[int, ...] = ()
 
 
 @dataclass
@@ -173,8 +236,10 @@ class PairAnchors:
 
         With an anchor: accepted when consistent with it, else rejected (or, the
         ``replace_after``-th agreeing rejection, it replaces the anchor). Without:
-        verified when one of ``others`` agrees with it or a recent candidate
-        propagated to it does, else kept as a candidate (unverified).
+        verified when one of ``others`` agrees with it or it is the newest of the
+        group the recent candidates verify (:func:`consensus`); rejected when that
+        group leaves it out (its newest member becomes the anchor); else kept as a
+        candidate (unverified).
         """
         if self.anchor is not None:
             return self._against_anchor(est)
@@ -185,13 +250,19 @@ class PairAnchors:
                 self._set(est)
                 return Check("verified", est.step, rot, trans)
         self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]
+        pool = [*self.candidates, est]
+        group = consensus(self.conf, pool)
+        if group is not None:
+            new = pool[group[-1]]
+            dropped = tuple(c.step for k, c in enumerate(self.candidates) if k not in group)
+            self._set(new)
+            if new is est:  # compared with the newest other member of its group
+                _, rot, trans = consistent(self.conf, pool[group[-2]], est)
+                return Check("verified", pool[group[-2]].step, rot, trans, dropped)
+            _, rot, trans = consistent(self.conf, new, est)  # the estimate is outside the group
+            return Check("rejected", new.step, rot, trans, dropped)
         checks = [(c, *consistent(self.conf, c, est)) for c in reversed(self.candidates)]  # newest first
         support = [x for x in checks if x[1]]
-        if support and len(support) >= self.conf.verify_support and \
-                len(support) >= self.conf.verify_fraction * len(checks):
-            c, _, rot, trans = support[0]
-            self._set(est)
-            return Check("verified", c.step, rot, trans)
         self.candidates.append(est)
         if not checks:
             return Check("unverified")

@@ -134,12 +134,16 @@ class CerpeConfig:
             ``none``, reason ``unverified-held``) until something agrees with it.
         anchor_candidate_steps: how many steps an unverified estimate (or a rejected
             one) stays available to verify a later one.
-        anchor_verify_support: without an anchor and without a second registration, how
-            many earlier unverified estimates (of the last ``anchor_candidate_steps``
-            steps) must agree with a direct estimate to verify it.
-        anchor_verify_fraction: and at least this fraction of those recent unverified
-            estimates (0: any number; estimates that keep disagreeing with each other
-            verify nothing).
+        anchor_verify_support: without an anchor and without a second registration, the
+            largest group of the recent unverified estimates (of the last
+            ``anchor_candidate_steps`` steps, the new one included) that agree pairwise in
+            rotation and translation verifies when it has this many members besides its
+            newest, which becomes the anchor; the others are rejected
+            (:func:`cerpe.algorithm.anchors.consensus`).
+        anchor_verify_fraction: and when the recent estimates that agree with all of the
+            group in rotation are at least this fraction of the others (0: any number;
+            estimates that keep disagreeing with each other verify nothing; one off only
+            in translation does not count against a group).
         registration_agree_rot_rad, registration_agree_trans_m: two registrations of
             one step through different own views agree (and verify each other) within
             these (the translation tolerance grows by ``anchor_trans_rel`` per metre
