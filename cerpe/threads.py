@@ -4,7 +4,7 @@ Why one setting, and why 1 by default: a convolution or attention on the CPU giv
 results that differ in the last bits with the number of intra-op threads (ALIKED
 keypoints and LightGlue matches of the same images hash differently at 1 and 2
 threads), and those bits can flip a RANSAC or gate decision. With one fixed count the
-tables are the same on every machine and for any ``cerpe paper --jobs N``; parallelism
+tables do not depend on the number of cores or on ``cerpe paper --jobs N``; parallelism
 comes from worker processes instead. It is also faster here: two 2-thread workers on
 2 cores oversubscribe them (16 ALIKED+LightGlue images: 57 s per worker side by side,
 26 s at 1 thread each).
