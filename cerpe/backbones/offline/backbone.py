@@ -78,6 +78,9 @@ class OfflineGeometryBackbone:
         vote_views, vote_chain_hops: older views that vote, reached through at most that
             many hops of the memos' motion chains.
         mask_moving: pixels a view's motion did not explain do not vote for the next one.
+        mask_moving_retest: ... unless a motion that lost the vote with at least this fraction
+            of the winner's votes explains them (:func:`.vote.moving_pixels`; 0: off, the
+            default: at 0.9 it left the co-moving first steps of the CAD dev sets as they were).
         dense_refine, dense: dense RGB-D refinement of the current pose on the prior view
             (``dense`` overrides :data:`cerpe.backbones.rgbd_align.default_conf`).
         dense_mask_moving: leave the prior view's moving pixels out of that refinement.
@@ -144,6 +147,7 @@ class OfflineGeometryBackbone:
         "vote_views": 2,
         "vote_chain_hops": 12,
         "mask_moving": True,
+        "mask_moving_retest": 0.0,
         "dense_refine": True,
         "dense": {**dense_default_conf, "stride": 8, "iterations": 12},
         "dense_mask_moving": False,

@@ -108,6 +108,9 @@ class Pass:
     # the current view's (a, m) once measured
     scale_ref: float | None = None
     log_scale_out: tuple[float, float] | None = None
+    # the motion hypotheses of view 0 on its prior view that lost the vote (T_cur_prior), set
+    # when the vote decided its placement (:func:`.reconstruction.place_pnp`)
+    rivals: list[np.ndarray] = field(default_factory=list)
 
     def subset(self, idx: Sequence[int]) -> "Pass":
         """A pass over views ``idx`` of this one (same matcher, timings and counters)."""

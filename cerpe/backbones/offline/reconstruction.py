@@ -23,7 +23,7 @@ from ..rgbd_align import align_rgbd
 from . import framescale
 from .context import Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
-from .vote import choose_motion, grid_mask_image, moving_pixels
+from .vote import grid_mask_image, moving_pixels, total_votes
 
 
 def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
@@ -53,6 +53,7 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
         # otherwise standing still (a sequence starts at rest: no velocity known yet)
         chain = p.chain(d) if c["motion_prior"] else ()
         prior = chain[0][1] if chain else np.eye(4)
+        p.rivals = []
         if not place_pnp(p, 0, (d,), rec, min_inliers=int(c["min_inliers"]), hypotheses=int(c["motion_hypotheses"]),
                          ref_depth=d, px=float(c["depth_pnp_px"]), priors=[prior]):
             why[d] = "few-inliers"
@@ -63,7 +64,7 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
             # the scale would absorb that pose's error along the optical axis, and the dense depth
             # term would then confirm it
             framescale.update_current(p, d, se3_inverse(rec.T[0]))
-        moving = moving_pixels(p, d, rec.T[0])
+        moving = moving_pixels(p, d, rec.T[0], [se3_inverse(T) for T in p.rivals])
         # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
         T_c0_d = se3_inverse(rec.T.pop(0))
         p.remember(d, T_c0_d, moving)
@@ -170,7 +171,12 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     T_s_f, inl = hyps[0]
     if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
         # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
-        T_s_f, inl = hyps[choose_motion(p, ref_depth, [T_h for T_h, _ in hyps])]
+        votes = total_votes(p, ref_depth, [T_h for T_h, _ in hyps])
+        pick = int(np.argmax(votes))
+        T_s_f, inl = hyps[pick]
+        # the motions that lost a close vote (ref_depth's points into view 0), for the moving mask
+        close = float(c["mask_moving_retest"]) * float(votes[pick])
+        p.rivals = [T_h for h, (T_h, _) in enumerate(hyps) if h != pick and close > 0 and votes[h] >= close]
     rec.T[s] = se3_inverse(T_s_f)
     rec.obs[s] = (pt[inl], kp[inl])
     return True

@@ -125,20 +125,44 @@ def chained_views(p: Pass, d: int) -> list[tuple[int, np.ndarray]]:
 def choose_motion(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> int:
     """Index of the motion (camera-``d`` points into the current camera) with the most votes
     of view ``d`` and of the views its chain reaches."""
+    return int(np.argmax(total_votes(p, d, T_0_d)))
+
+
+def total_votes(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
+    """``[len(T_0_d)]`` votes of view ``d`` and of the views its chain reaches for each motion."""
     votes = motion_votes(p, d, T_0_d)
     for k, T_d_k in chained_views(p, d):
         votes = votes + motion_votes(p, k, [T @ T_d_k for T in T_0_d])
-    return int(np.argmax(votes))
+    return votes
 
 
-def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray) -> np.ndarray | None:
+def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray, rivals: Sequence[np.ndarray] = ()) -> np.ndarray | None:
     """``[n_grid] bool``: the current view's grid pixels that the chosen motion ``T_d_0``
     (current-camera points into camera ``d``) does not explain against view ``d`` (a moving
-    object, mostly); None when ``mask_moving`` is off or the current view has no prior."""
+    object, mostly); None when ``mask_moving`` is off or the current view has no prior.
+
+    Pixels that one of ``rivals`` explains (the motions that lost the vote with at least
+    ``mask_moving_retest`` times the winner's votes, same convention; strict tolerances) are
+    left out of the mask (counted ``moving-mask-retested``): after a close vote they may be
+    the static scene rather than an object, and a mask silences its pixels in every later
+    vote. When an object moving with the camera fills the view (a vehicle driving ahead) the
+    vote can pick its motion (standing still); the static scene is then what that motion does
+    not explain, and masking it locks the wrong motion in while the object stays in view.
+    What no candidate explains (an object that just entered the view) stays masked. The
+    retest is symmetric: after a close vote that the camera's motion won, an object's own
+    motion among the rivals keeps the object's pixels voting too (hence only close votes)."""
     if not p.conf["mask_moving"] or p.views[0].depth_m is None:
         return None
-    inside, consistent = consistency(p, 0, d, [T_d_0], spread_k=float(p.conf["vote_moving_spread_k"]))
-    return inside[0] & ~consistent[0]
+    spread_k = float(p.conf["vote_moving_spread_k"])
+    inside, consistent = consistency(p, 0, d, [T_d_0], spread_k=spread_k)
+    moving = inside[0] & ~consistent[0]
+    if len(rivals) and moving.any():
+        _, other = consistency(p, 0, d, list(rivals))
+        explained = moving & other.any(axis=0)
+        if explained.any():
+            p.counts["moving-mask-retested"] += 1
+            moving &= ~explained
+    return moving
 
 
 def grid_mask_image(grid: np.ndarray, image_hw: tuple[int, int], stride: int) -> np.ndarray:
