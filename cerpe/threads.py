@@ -5,9 +5,8 @@ results that differ in the last bits with the number of intra-op threads (ALIKED
 keypoints and LightGlue matches of the same images hash differently at 1 and 2
 threads), and those bits can flip a RANSAC or gate decision. With one fixed count the
 tables do not depend on the number of cores or on ``cerpe paper --jobs N``; parallelism
-comes from worker processes instead. It is also faster here: two 2-thread workers on
-2 cores oversubscribe them (16 ALIKED+LightGlue images: 57 s per worker side by side,
-26 s at 1 thread each).
+comes from worker processes instead, which costs nothing here: two ALIKED+LightGlue runs of
+the SUN3D dev set on ``make paper``'s two workers took 133 s at 2 threads each and 125 s at 1.
 
 ``CERPE_THREADS`` (environment) or a model's ``num_threads`` conf key overrides it,
 e.g. for one robot's online process on a many-core computer.
