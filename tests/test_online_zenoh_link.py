@@ -240,6 +240,11 @@ def test_two_robots_requesting_from_each_other_do_not_deadlock(team_of):
 
     def ask(r, p):
         out[r] = team[r].request(0, {p: ImageRequest(team.roster.index(r), 0, team.roster.index(p)).encode()}, 10.0)
+        # queries are answered inside the link's waits: a robot whose own replies came first goes on
+        # calling the link (the engine's next gather), modelled here by polling until the other is done
+        t_end = time.monotonic() + 10.0
+        while p not in out and time.monotonic() < t_end:
+            team[r].poll(0.05)
 
     ths = [threading.Thread(target=ask, args=pair) for pair in (("r0", "r1"), ("r1", "r0"))]
     for th in ths:

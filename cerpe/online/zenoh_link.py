@@ -493,6 +493,7 @@ class ZenohLink:
                 self.stats["wire_bytes_request"] += len(frame) + len(w.HEADER)
         t0 = time.perf_counter()
         self._wait(lambda: all(st["ok"] or st["done"] for st in state.values()), deadline)
+        self._serve_queries()  # a peer's query that came in with our last reply: answered now, not next wait
         with self._cond:
             self.stats["wait_s"] += time.perf_counter() - t0
             got = {p: self._check_reply(p, req, state[p]["ok"], state[p]["err"]) for p, req in reqs.items()}
