@@ -104,6 +104,17 @@ class GraphConfig:
     vote: if ``consensus_ratio`` times as many of them (and at least ``consensus_min_support``; 0
     disables it) agree with the new one as with the graph's estimate (those agreeing with both do
     not vote), the window is solved afresh from the new one.
+
+    Silent odometry drift: an odometry that under-reports the motion without flagging it moves the
+    true offset between the odometry frames step after step, so the innovations of the confirmed
+    direct estimates (translation of the measured offset against the graph's before the update, in
+    the ego's odometry frame) grow one way, whereas estimates sharing a correlated error stay a
+    constant distance off. When ``drift_after`` of them in a row (0: never; unconfirmed ones neither
+    count nor break the run) each point within ``drift_cos`` (cosine) of the one before and are
+    longer than it, and the newest one's chi-square (6 dof, its covariance plus the graph's marginal
+    and walk) exceeds ``drift_chi2``, the walk into each of them gets ``drift_inflate`` times the
+    growth of its innovation as translation sigma and the window is solved afresh from the newest
+    one; the next confirmed estimate off the same way (cosine, chi-square) is followed at once.
     """
 
     # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
@@ -137,6 +148,11 @@ class GraphConfig:
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
     consensus_ratio: float = 1.5
+    # silent odometry drift: chosen on the dev-* runs (graph replays of all eight; only cad-s2002 changes)
+    drift_after: int = 3
+    drift_cos: float = 0.8
+    drift_chi2: float = 12.59
+    drift_inflate: float = 2.0
     max_unverified_steps: int = 2
     max_sigma_rot_rad: float = 0.5
     max_iterations: int = 30
@@ -154,15 +170,17 @@ class GraphConfig:
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
         for name in ("direct_inliers_clip", "direct_along_factor", "unverified_scale", "rejected_scale", "kernel_k",
-                     "converge_tol", "consensus_gate_chi2", "consensus_ratio",
+                     "converge_tol", "consensus_gate_chi2", "consensus_ratio", "drift_chi2", "drift_inflate",
                      "relinearize_threshold"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise GraphError(f"graph config: {name} must be finite and > 0, got {v}")
+        if not (np.isfinite(self.drift_cos) and -1.0 <= self.drift_cos < 1.0):
+            raise GraphError(f"graph config: drift_cos must be finite in [-1, 1), got {self.drift_cos}")
         if self.kernel not in KERNELS:
             raise GraphError(f"graph config: kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
         for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0),
-                          ("max_unverified_steps", 0)):
+                          ("drift_after", 0), ("max_unverified_steps", 0)):
             v = getattr(self, name)
             if int(v) != v or v < low:
                 raise GraphError(f"graph config: {name} must be an integer >= {low}, got {v}")
@@ -412,6 +430,9 @@ class PairGraph:
         self.n_nodes = 0
         self.n_reseeds = 0  # windows solved afresh from a new direct estimate (consensus)
         self.confirmed = False  # a node's direct estimate was confirmed by anchor verification
+        self.n_drifts = 0  # windows re-solved to follow a silent odometry drift
+        self._innov: list[tuple[int, np.ndarray]] = []  # (node key, translation innovation): the run growing one way
+        self._drifting: np.ndarray | None = None  # unit direction of the drift being followed (None: none)
         self._direct_step = -1  # the newest step with a direct estimate (a node or not)
 
     # ------------------------------------------------------------------ frames
@@ -450,6 +471,7 @@ class PairGraph:
         """A fresh smoother holding only the last good node (Gaussian prior at its estimate and marginal)."""
         self._solver = None
         self._nodes = []
+        self._innov, self._drifting = [], None  # innovations were against the window it drops
         if self._O is None:
             return
         try:
@@ -486,6 +508,13 @@ class PairGraph:
         if self._solver is None and self._O is not None:
             self._restart()  # after a failure: continue from the last good node
         linked = self._solver is not None and self._O is not None
+        innov = None  # (translation innovation, its chi-square) against the graph before this estimate
+        if linked and direct.verdict in CONFIRMED and self.conf.drift_after > 0:
+            r = _log(_inv(self._O) @ O_meas)
+            try:
+                innov = (r[3:].copy(), float(r @ np.linalg.solve(cov_O + self._P + Q, r)))
+            except np.linalg.LinAlgError:
+                innov = None
         try:
             if self._solver is None:
                 self._solver = _Solver(self.conf)
@@ -509,6 +538,7 @@ class PairGraph:
         self.confirmed = self.confirmed or direct.verdict in CONFIRMED
         if linked:
             O, P = self._consensus(O, _sym(P))
+            O, P = self._drift(O, _sym(P), innov)
         self._key, self._node_step, self._O, self._P = key, step, O, _sym(P)
         self._Q = np.zeros((6, 6))
         self.n_nodes += 1
@@ -553,6 +583,56 @@ class PairGraph:
             return O, P
         self._solver = solver
         self.n_reseeds += 1
+        return O2, _sym(P2)
+
+    def _drift(self, O: np.ndarray, P: np.ndarray, innov: tuple[np.ndarray, float] | None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The window re-solved with its walks opened when the innovations of confirmed direct estimates
+        grow one way (a silent odometry drift, see :class:`GraphConfig`); else ``(O, P)``. ``innov``:
+        the newest estimate's translation innovation and chi-square (None: unconfirmed, leaves the run)."""
+        c = self.conf
+        if innov is None:
+            return O, P
+        r, d2 = innov
+        nr = float(np.linalg.norm(r))
+        key = self._nodes[-1].key
+        if self._drifting is not None:  # following a detected drift: off the same way again -> follow at once
+            if nr > 0 and float(self._drifting @ r) / nr > c.drift_cos and d2 > c.drift_chi2:
+                run = [(key, r)]
+            else:
+                self._drifting, self._innov = None, [(key, r)]
+                return O, P
+        else:
+            run = self._innov + [(key, r)]
+            if len(run) >= 2:
+                a = run[-2][1]
+                na = float(np.linalg.norm(a))
+                if not (na > 0 and nr > na and float(a @ r) / (na * nr) > c.drift_cos):
+                    run = [run[-1]]
+            self._innov = run
+            if len(run) < c.drift_after or d2 <= c.drift_chi2:
+                return O, P
+        grown, prev = {}, np.zeros(3)
+        for k, rk in run:  # each walk into a run's node opened by the growth of the innovation
+            grown[k], prev = c.drift_inflate * float(np.linalg.norm(rk - prev)), rk
+        nodes = []
+        for n in self._nodes:
+            if n.key in grown:
+                w = n.walk.copy()
+                w[3:, 3:] += np.eye(3) * grown[n.key] ** 2
+                n = _Node(n.key, n.O_meas, n.cov, w)
+            nodes.append(n)
+        try:
+            solver = _Solver(c)
+            O2, P2, converged = solver.rebuild(nodes, nodes[-1].O_meas)
+        except Exception as exc:  # noqa: BLE001 -- GTSAM raises plain RuntimeErrors; keep the incremental result
+            log.debug("graph drift rebuild failed: %s", exc)
+            return O, P
+        if not (converged and np.all(np.isfinite(O2)) and usable_cov(_sym(P2))):
+            return O, P
+        self._solver, self._nodes = solver, nodes
+        self._drifting, self._innov = r / max(nr, 1e-12), []
+        self.n_drifts += 1
         return O2, _sym(P2)
 
     def _recover(self, first: bool) -> None:
