@@ -264,14 +264,14 @@ def quadrature_fit(rel: np.ndarray, sigma: np.ndarray, n: np.ndarray) -> tuple[f
 
 
 def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "median") -> dict:
-    """The direct estimates' noise model (:func:`~cerpe.algorithm.graph.direct_cov`) from
+    """The direct estimates' noise model (:func:`~cerpe.algorithm.graph_model.direct_cov`) from
     :func:`direct_samples` rows with a ``rel`` column (the depth source's relative scale sigma, NaN:
     none): floors and gains on ``rel`` fitted in quadrature over the depth kinds (one ``rel`` value
     each, at least ``min_kind`` estimates, gross ones left out), the absolute floor ``direct_trans_m``
     from cameras closer than :data:`MIN_REL_DIST_M` (else 1 mm); for estimates without a ``rel`` (no
     metric depth) ``direct_depth_rel_unknown`` as the ``rel`` that predicts their rotation and across-line
     errors (the mean of both where both gains are > 0) and ``direct_depth_along_unknown`` as the along-line
-    gain on it that predicts their along-line error (:func:`~cerpe.algorithm.graph.along_gain`). Returns
+    gain on it that predicts their along-line error (:func:`~cerpe.algorithm.graph_model.along_gain`). Returns
     the :class:`~cerpe.algorithm.graph.GraphConfig` fields, ``unknown`` (the no-depth estimates'
     observed sigmas, None without them) and ``kinds``: per kind the observed and predicted sigmas."""
     good = samples[samples["rot_err_rad"] < GROSS_ROT_RAD]
