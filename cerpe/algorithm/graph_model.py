@@ -103,7 +103,11 @@ class GraphConfig:
     odo_jump_rad: float = 1.0
     # direct estimates: the floors (all a depth sensor's estimates get) as calibrated before depth kinds; the
     # gains on the depth source's rel_sigma per depth kind from dev runs (see the commits that set them)
-    direct_rot_rad: float = 0.004
+    # direct_rot_rad with kernel_k (chosen together, issue 20, graph replays of the eight dev-* runs): at 0.004
+    # and k 3 the dev direct rotation errors (median 0.005, p90 0.026 rad) made every estimate a 10-30 sigma
+    # outlier to every other, so the Cauchy kernel kept whichever it started from (indoor-s1: a first,
+    # unverified estimate 0.69 m off held for nine steps); 0.006 with k 2 lets them pull on each other
+    direct_rot_rad: float = 0.006
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
     direct_along_factor: float = 2.0
@@ -117,7 +121,7 @@ class GraphConfig:
     unverified_scale: float = 1.0
     rejected_scale: float = 1.0
     kernel: str = "cauchy"
-    kernel_k: float = 3.0
+    kernel_k: float = 2.0
     window_nodes: int = 20
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
@@ -129,7 +133,7 @@ class GraphConfig:
     drift_inflate: float = 2.0
     max_unverified_steps: int = 2
     max_sigma_rot_rad: float = 0.5
-    max_iterations: int = 30
+    max_iterations: int = 100
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
     min_sigma: float = 1e-6
