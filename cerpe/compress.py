@@ -30,7 +30,6 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -108,7 +107,8 @@ class Projection:
 
 
 def default_projection_path() -> Path:
-    return Path(str(resources.files("cerpe").joinpath("data", PROJECTION_FILE)))
+    """The shipped projection file, found from this file (see :func:`cerpe.backbones.descriptor.data_path`)."""
+    return Path(__file__).resolve().parent / "data" / PROJECTION_FILE
 
 
 def fit_projection(X: np.ndarray, k: int = 384, random_dims: int = 512, pq_m: int = 448, seed: int = 0) -> Projection:

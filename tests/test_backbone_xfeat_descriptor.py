@@ -1,6 +1,8 @@
 """XFeat encoder (weights, cache, errors) and the SALAD-style descriptor (size, invariances, gate safety)."""
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -252,3 +254,15 @@ def test_keep_freed_memory_on_glibc():
     assert xfeat.XFeatEncoder.default_conf["keep_heap"]
     assert xfeat.keep_freed_memory() is glibc and xfeat.keep_freed_memory() is glibc
     assert xfeat._HEAP_KEPT is glibc
+
+
+def test_shipped_data_is_found_beside_a_folder_named_cerpe(tmp_path):
+    # a run folder called "cerpe" in the working directory (`cerpe run --out cerpe`) makes `cerpe` a namespace
+    # package under the editable install; the shipped centres and projection must still be found
+    (tmp_path / "cerpe").mkdir()
+    code = ("from cerpe.backbones.descriptor import CENTRES_FILE, data_path, load_centres\n"
+            "from cerpe.compress import default_projection_path\n"
+            "assert data_path(CENTRES_FILE).is_file() and default_projection_path().is_file()\n"
+            "load_centres()\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]

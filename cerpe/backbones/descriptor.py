@@ -46,7 +46,6 @@ import json
 import logging
 import time
 import zlib
-from importlib import resources
 from pathlib import Path
 from typing import Any, Hashable
 
@@ -68,8 +67,10 @@ class DescriptorError(BackboneError):
 
 
 def data_path(name: str) -> Path:
-    """Path of a file shipped in ``cerpe/data``."""
-    return Path(str(resources.files("cerpe").joinpath("data", name)))
+    """Path of a file shipped in ``cerpe/data``, found from this file (not ``importlib.resources``: with
+    the editable install, a folder named ``cerpe`` in the working directory, e.g. a run folder, makes
+    ``cerpe`` a namespace package whose resources are that folder)."""
+    return Path(__file__).resolve().parents[1] / "data" / name
 
 
 def load_centres(path: str | Path | None = None) -> dict[str, np.ndarray]:
