@@ -134,6 +134,11 @@ class BackboneOutput:
             single other views of the pass, most inliers first (offline backbone:
             collaborator views). Empty for backbones that place all views jointly
             (VGGT); the algorithm then uses ``T_frame_cam`` alone.
+        support: ``[S]`` per view, the verified correspondences that placed it in
+            ``T_frame_cam`` (offline backbone: its 2D-3D inliers in the joint pass; a
+            view placed through a registration: that registration's inliers), -1 where
+            unknown or unplaced. The algorithm records a joint-pass direct estimate's
+            support as its inliers (the graph's per-estimate noise can read it).
     """
 
     T_frame_cam: np.ndarray
@@ -148,9 +153,14 @@ class BackboneOutput:
     reference: int | None = None
     memos: list[Mapping[str, Any] | None] = field(default_factory=list)
     registrations: dict[int, list[Registration]] = field(default_factory=dict)
+    support: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         S = len(self.valid)
+        if not self.support:
+            self.support = [-1] * S
+        elif len(self.support) != S:
+            raise BackboneError(f"BackboneOutput: {len(self.support)} support counts for {S} views")
         if self.T_frame_cam.shape != (S, 4, 4):
             raise BackboneError(f"BackboneOutput: T_frame_cam {self.T_frame_cam.shape} for {S} views")
         if len(self.depth) != S or len(self.depth_conf) != S:

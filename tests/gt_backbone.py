@@ -184,14 +184,18 @@ class GTBackbone:
         perturb: optional ``(current_key, via_key, view_key) -> [4,4] or None``: a
             wrong placement injected on the right of the view's true pose (metres);
             ``via_key`` is None for ``T_frame_cam`` and the own view for a registration.
+        support: optional ``(current_key, view_key) -> int``: ``BackboneOutput.support`` of
+            each placed view (None: left unknown, -1).
     """
 
     def __init__(self, world: World, unit_range: tuple[float, float] = (0.2, 5.0), rot_noise_rad: float = 0.0,
                  trans_noise: float = 0.0, invalid_keys: Sequence[Hashable] = (),
                  invalid: Callable[[Hashable, Hashable], bool] | None = None, seed: int = 0,
                  claim_metric: bool = False, register: Callable[[Hashable, Hashable], int] | None = None,
-                 perturb: Callable[[Hashable, Hashable | None, Hashable], np.ndarray | None] | None = None) -> None:
+                 perturb: Callable[[Hashable, Hashable | None, Hashable], np.ndarray | None] | None = None,
+                 support: Callable[[Hashable, Hashable], int] | None = None) -> None:
         self.world = world
+        self.support = support
         self.register, self.perturb = register, perturb
         self.claim_metric = claim_metric
         self.unit_range = unit_range
@@ -224,8 +228,11 @@ class GTBackbone:
             Ts[:3, 3] *= unit
             T[s], valid[s] = Ts, True
             reasons.append("")
+        support = [] if self.support is None else \
+            [int(self.support(views[0].key, v.key)) if valid[s] else -1 for s, v in enumerate(views)]
         return BackboneOutput(T, valid, depth, conf, [v.intrinsics for v in views], reasons,
-                              metric_unit=self.claim_metric, registrations=self._registrations(views, unit))
+                              metric_unit=self.claim_metric, registrations=self._registrations(views, unit),
+                              support=support)
 
     def _pose(self, current: Hashable, via: Hashable | None, key: Hashable) -> np.ndarray:
         P = None if self.perturb is None else self.perturb(current, via, key)

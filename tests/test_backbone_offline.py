@@ -148,6 +148,7 @@ def test_unrelated_images_fail_matching(room, backbone):
     out = backbone.infer([v0, v1])
     assert not out.valid[1] and out.reasons[1] in ("few-matches", "few-inliers")
     assert np.all(np.isfinite(out.T_frame_cam[out.valid]))
+    assert out.support[1] == -1  # unplaced: no support
 
 
 @pytest.mark.parametrize("value", [0, 128, 255])
@@ -206,6 +207,8 @@ def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone)
     T_gt = G.se3_inverse(Tw[1]) @ Tw[0]  # camera of view 1 in the current camera (the pass frame)
     assert np.linalg.norm(out.T_frame_cam[1][:3, 3] - T_gt[:3, 3]) < 0.01  # metres, no scale step
     assert G.rotation_angle(out.T_frame_cam[1][:3, :3].T @ T_gt[:3, :3]) < np.radians(0.2)
+    # the 2D-3D inliers that placed view 1 (what a direct estimate through the pass reports)
+    assert out.support[1] >= backbone.conf["min_pnp_inliers"]
     # pure rotation has no parallax for the essential matrix, but the prior places it
     img, depth = room.render(pose((0.2, 0, 0.5)))
     r0 = View(("q", 0), img, K, depth_m=depth)

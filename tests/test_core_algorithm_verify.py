@@ -181,6 +181,19 @@ def test_two_registrations_that_agree_verify_at_once():
     assert P[6].anchor_verdict == "unverified" and P[7].anchor_verdict == "verified"  # steps 5, 6 propagated
 
 
+def test_a_joint_pass_estimate_carries_the_support_that_placed_the_collaborator():
+    """Without registrations the direct estimate comes through the joint pass; its inliers are the
+    backbone's ``support`` of the collaborator view (-1 where the backbone gives none)."""
+    world = make_world(2, 14, seed=3)
+    _, results = run(world, support=lambda cur, key: 60 + cur[1] if len(key) == 3 else 500)
+    P = pair(results, "r0", "r1")
+    direct = [t for t in P if P[t].source == "direct"]
+    assert direct and all(P[t].direct_via == -1 and P[t].direct_inliers == 60 + t for t in direct)
+    _, results = run(world)
+    P = pair(results, "r0", "r1")
+    assert all(P[t].direct_inliers == -1 for t in P if P[t].source == "direct")
+
+
 def test_registration_through_an_older_own_view_is_composed_through_the_pass_or_the_odometry():
     """Only older own views register the collaborator: the estimate goes through them; through the
     joint pass when it placed them with the current view, else through the robot's own odometry."""

@@ -527,7 +527,7 @@ class RobotAgent(GateSide):
 
     def _direct_estimates(self, st: StepState, other: str) -> tuple[list[tuple[int, int, np.ndarray, int]], str]:
         """This step's direct estimates for ``other``: ``([(pass index of via, its step or -1, T_cj_ci, inliers)],
-        reason)`` (inliers -1 through the joint pass).
+        reason)`` (through the joint pass: the view's ``BackboneOutput.support``, -1 unknown).
 
         Through the collaborator's registrations against single own views, most
         inliers first, when the backbone gives them; else through the joint pass
@@ -547,7 +547,8 @@ class RobotAgent(GateSide):
                 return [], "own-view-not-placed"
             if not np.isfinite(st.scale):
                 return [], "no-scale"
-            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale), -1)], ""
+            n = int(out.support[k]) if k < len(out.support) else -1
+            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale), n)], ""
         if not np.isfinite(st.scale):
             return [], "no-scale"
         ests = []

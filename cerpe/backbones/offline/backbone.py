@@ -230,15 +230,18 @@ class OfflineGeometryBackbone:
         T = np.full((S, 4, 4), np.nan)
         valid = np.zeros(S, bool)
         valid[0] = True
+        support = [-1] * S  # the 2D-3D inliers that placed each view (BackboneOutput.support)
         if rec is None:
             T[0] = np.eye(4)
         else:
             for s, Ts in rec.T.items():
                 T[s] = Ts
                 valid[s] = True
+                if s in rec.obs:
+                    support[s] = len(rec.obs[s][0])
         collab = [s for s in range(S) if is_collab[s]]
         regs, why = cross_mod.register_collaborators(p, rec, own, collab, self.learned)
-        cross_mod.place_collaborators(regs, T, valid)
+        cross_mod.place_collaborators(regs, T, valid, support)
         for s in collab:
             # registered only through views this pass did not place: the algorithm composes those itself
             reasons[s] = "" if valid[s] else "via-unplaced" if s in regs else why.get(s, "no-reference")
@@ -251,7 +254,7 @@ class OfflineGeometryBackbone:
         return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
                               intrinsics=list(intr), reasons=reasons, timings_s=timings,
                               metric_unit=metric, reference=reference,
-                              memos=[p.memo_out] + [None] * (S - 1), registrations=regs,
+                              memos=[p.memo_out] + [None] * (S - 1), registrations=regs, support=support,
                               extra={"cross_learned_pairs": float(p.counts["cross-learned-pairs"])})
 
     def _cross_on(self, views: Sequence[View]) -> bool:
@@ -298,7 +301,7 @@ class OfflineGeometryBackbone:
             out, T_frame_cam=T, valid=valid, depth=pick(out.depth, empty), depth_conf=pick(out.depth_conf, empty),
             intrinsics=pick(out.intrinsics, lambda v: v.intrinsics), reasons=[bad.get(s) or out.reasons[new[s]] for s in range(S)],
             memos=pick(out.memos, lambda v: None) if out.memos else [], registrations=regs,
-            reference=None if out.reference is None else keep[out.reference])
+            support=pick(out.support, lambda v: -1), reference=None if out.reference is None else keep[out.reference])
 
     def _solve_own(self, p: Pass, own: list[int]) -> tuple[Recon | None, list[str]]:
         """:meth:`_solve` over the own views ``own`` (all views when there is no collaborator),

@@ -312,12 +312,16 @@ def check_joint_placements(p: Pass, rec: Any, collab: Sequence[int], reasons: li
             reasons[k] = REASON_APPEARANCE
 
 
-def place_collaborators(regs: Mapping[int, Sequence[Registration]], T: np.ndarray, valid: np.ndarray) -> None:
+def place_collaborators(regs: Mapping[int, Sequence[Registration]], T: np.ndarray, valid: np.ndarray,
+                        support: list[int] | None = None) -> None:
     """Each registered collaborator's pose in the pass frame through its best registration whose
-    view the pass placed: ``T[k] = T[via] @ T_via_k`` (in place; others stay invalid)."""
+    view the pass placed: ``T[k] = T[via] @ T_via_k`` (in place; others stay invalid); with
+    ``support``, ``support[k]`` becomes that registration's inliers."""
     for k, rs in regs.items():
         for r in rs:
             if valid[r.via] and r.via != k:
                 T[k] = T[r.via] @ r.T_via_cam
                 valid[k] = True
+                if support is not None:
+                    support[k] = int(r.inliers)
                 break
