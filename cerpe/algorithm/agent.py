@@ -547,8 +547,8 @@ class RobotAgent(GateSide):
                 return [], "own-view-not-placed"
             if not np.isfinite(st.scale):
                 return [], "no-scale"
-            n = int(out.support[k]) if k < len(out.support) else -1
-            return [(0, -1, direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale), n)], ""
+            T = direct_relative(out.T_frame_cam[0], out.T_frame_cam[k], st.scale)
+            return [(0, -1, T, int(out.support[k]))], ""  # BackboneOutput checks one support per view
         if not np.isfinite(st.scale):
             return [], "no-scale"
         ests = []

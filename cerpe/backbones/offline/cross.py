@@ -317,15 +317,14 @@ def check_joint_placements(p: Pass, rec: Any, collab: Sequence[int], reasons: li
 
 
 def place_collaborators(regs: Mapping[int, Sequence[Registration]], T: np.ndarray, valid: np.ndarray,
-                        support: list[int] | None = None) -> None:
+                        support: list[int]) -> None:
     """Each registered collaborator's pose in the pass frame through its best registration whose
-    view the pass placed: ``T[k] = T[via] @ T_via_k`` (in place; others stay invalid); with
-    ``support``, ``support[k]`` becomes that registration's inliers."""
+    view the pass placed: ``T[k] = T[via] @ T_via_k`` and ``support[k]`` that registration's
+    inliers (in place; others stay invalid)."""
     for k, rs in regs.items():
         for r in rs:
             if valid[r.via] and r.via != k:
                 T[k] = T[r.via] @ r.T_via_cam
                 valid[k] = True
-                if support is not None:
-                    support[k] = int(r.inliers)
+                support[k] = int(r.inliers)
                 break
