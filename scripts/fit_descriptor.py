@@ -16,6 +16,14 @@ descriptors by default, --features dense for the dense map) and their mean. Fit 
 
 Writes cerpe/data/xfeat_salad_centres.npz (atomically) with fields centres [m,64],
 mean [64] and provenance (source, n_images, seed, num_clusters).
+
+--descriptor-mean instead describes the images with the shipped centres and default
+settings (no centring) and writes the mean of those unit descriptors, [dim], the vector
+the descriptor subtracts (its `centring`), to cerpe/data/xfeat_salad_mean.npz. The
+shipped file was made from the same renders as the centres, every frame:
+
+    python scripts/fit_descriptor.py --descriptor-mean --synth indoor-team:1001 indoor-team:1002 \
+        indoor-team:1003 cad-intersection:1001 cad-intersection:1002 cad-intersection:1003 --frames 16 --every 1 --limit 1000
 """
 from __future__ import annotations
 
@@ -69,6 +77,30 @@ def _images_from_glob(pattern: str, limit: int):
         yield p, load_rgb(p, what=p)
 
 
+def _fit_mean(images, a: argparse.Namespace, source: str) -> int:
+    """Mean of the uncentred unit descriptors of ``images`` -> ``a.out`` (``mean [dim]`` + provenance)."""
+    from cerpe.backbones.descriptor import XFeatSaladDescriptor
+    from cerpe.protocols import View
+
+    desc = XFeatSaladDescriptor({"centring": "none", "thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
+    D = []
+    for name, img in tqdm(images, desc="descriptor", unit="img"):
+        h, w = img.shape[:2]
+        K = np.array([[w, 0, w / 2], [0, w, h / 2], [0, 0, 1]], float)  # unused by the descriptor
+        if "low-texture" not in desc.flags(View(name, img, K)):
+            D.append(desc.describe(View(name, img, K)))
+    if not D:
+        print("fit_descriptor: no textured images found", file=sys.stderr)
+        return 2
+    dst = Path(a.out)
+    tmp = dst.with_name(dst.stem + ".tmp.npz")
+    np.savez(tmp, mean=np.mean(D, axis=0).astype(np.float32), source=np.array(source), n_images=np.array(len(D)),
+             dim=np.array(desc.dim), centres_file="shipped (cerpe/data/xfeat_salad_centres.npz)")
+    os.replace(tmp, dst)
+    print(f"fit_descriptor: {len(D)} images -> mean descriptor [{desc.dim}], wrote {dst} ({dst.stat().st_size} B)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = ap.add_mutually_exclusive_group(required=True)
@@ -84,8 +116,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-keypoints", type=int, default=1024, help="keypoints per image (sparse)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--source-note", default="", help="free text stored as provenance")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "cerpe" / "data" / "xfeat_salad_centres.npz"))
+    ap.add_argument("--descriptor-mean", action="store_true",
+                    help="fit the descriptor's mean (its centring) instead of the centres")
+    ap.add_argument("--out", default=None,
+                    help="output .npz (default: cerpe/data/xfeat_salad_centres.npz, or xfeat_salad_mean.npz "
+                         "with --descriptor-mean)")
     a = ap.parse_args(argv)
+    data_dir = Path(__file__).resolve().parents[1] / "cerpe" / "data"
+    a.out = a.out or str(data_dir / ("xfeat_salad_mean.npz" if a.descriptor_mean else "xfeat_salad_centres.npz"))
 
     from cerpe.backbones.descriptor import fit_centres
     from cerpe.backbones.xfeat import XFeatEncoder
@@ -97,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
         it = _images_from_manifest(a.manifest, a.every, a.limit)
     else:
         it = _images_from_glob(a.images, a.limit)
+    source = ("cerpe.synth.render_encounter " + " ".join(a.synth)) if a.synth else (a.manifest or a.images)
+    if a.descriptor_mean:
+        return _fit_mean(it, a, f"{source} {a.source_note}".strip())
     def local(feats):  # [64, n] either way: fit_centres flattens all but the first axis
         return feats.descriptors[: a.max_keypoints].T if a.features == "sparse" else feats.dense
 
@@ -105,7 +146,6 @@ def main(argv: list[str] | None = None) -> int:
         print("fit_descriptor: no images found", file=sys.stderr)
         return 2
     out = fit_centres(maps, num_clusters=a.clusters, seed=a.seed)
-    source = ("cerpe.synth.render_encounter " + " ".join(a.synth)) if a.synth else (a.manifest or a.images)
     dst = Path(a.out)
     tmp = dst.with_name(dst.stem + ".tmp.npz")
     np.savez(tmp, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),

@@ -33,8 +33,8 @@ def descriptor(encoder, room, tmp_path_factory):
             for i in range(4)]
     path = tmp_path_factory.mktemp("centres") / "c.npz"
     np.savez(path, **fit_centres(maps, num_clusters=16, seed=0))
-    return XFeatSaladDescriptor({"centres": str(path), "thresholds": {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}},
-                                encoder=encoder)
+    return XFeatSaladDescriptor({"centres": str(path), "centring": "none",
+                                 "thresholds": {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}}, encoder=encoder)
 
 
 def test_features_shapes_and_cache(encoder, room):
@@ -144,6 +144,47 @@ def test_centres_file_errors(tmp_path):
     np.savez(tmp_path / "nan.npz", centres=np.full((4, 64), np.nan), mean=np.zeros(64))
     with pytest.raises(DescriptorError, match="finite"):
         load_centres(tmp_path / "nan.npz")
+
+
+def test_descriptor_mean_file_errors_name_file_and_field(tmp_path, descriptor, encoder):
+    """A mean of another size (other centres), a truncated or missing file, NaNs: errors naming the file
+    and the field, raised when the descriptor is built, never at the first describe."""
+    from cerpe.backbones.descriptor import DescriptorError, XFeatSaladDescriptor, load_descriptor_mean
+
+    with pytest.raises(DescriptorError, match="not found.*centring: none"):
+        load_descriptor_mean(tmp_path / "missing.npz", 8)
+    (tmp_path / "trunc.npz").write_bytes(b"PK\x03\x04garbage")
+    with pytest.raises(DescriptorError, match="trunc.npz"):
+        load_descriptor_mean(tmp_path / "trunc.npz", 8)
+    np.savez(tmp_path / "nomean.npz", centres=np.ones(8))
+    with pytest.raises(DescriptorError, match="nomean.npz lacks field 'mean'"):
+        load_descriptor_mean(tmp_path / "nomean.npz", 8)
+    np.savez(tmp_path / "nan.npz", mean=np.full(8, np.nan))
+    with pytest.raises(DescriptorError, match="nan.npz.*'mean'.*non-finite"):
+        load_descriptor_mean(tmp_path / "nan.npz", 8)
+    # the shipped mean (8192 values) with this fixture's 16 centres (5120): refused by name
+    with pytest.raises(DescriptorError, match="xfeat_salad_mean.npz.*5120"):
+        XFeatSaladDescriptor({**descriptor.conf, "centring": "shipped"}, encoder=encoder)
+
+
+def test_centring_subtracts_the_mean_and_renormalises(tmp_path, descriptor, encoder, room):
+    """With a mean file, describe() is the unit vector of (uncentred descriptor - mean): the cosine of two
+    views is that of their deviations from the mean; the shipped file fits the shipped centres."""
+    from cerpe.backbones.descriptor import XFeatSaladDescriptor
+
+    imgs = [room.render(pose((0.2 * i, 0, 0.1 * i), (0, 20 * i, 0)))[0] for i in range(3)]
+    raw = [descriptor.describe(View(("m", i), im, K)) for i, im in enumerate(imgs)]
+    mu = np.mean(raw, axis=0).astype(np.float32)
+    np.savez(tmp_path / "mu.npz", mean=mu)
+    cen = XFeatSaladDescriptor({**descriptor.conf, "centring": str(tmp_path / "mu.npz")}, encoder=encoder)
+    got = [cen.describe(View(("m", i), im, K)) for i, im in enumerate(imgs)]
+    for r, g in zip(raw, got):
+        assert abs(np.linalg.norm(g) - 1) < 1e-5
+        assert np.allclose(g, (r - mu) / np.linalg.norm(r - mu), atol=1e-5)
+    # deviations from the mean of three views point apart: their cosines drop below the raw ones
+    assert got[0] @ got[1] < raw[0] @ raw[1] and got[0] @ got[2] < raw[0] @ raw[2]
+    shipped = XFeatSaladDescriptor()
+    assert shipped.descriptor_mean is not None and shipped.descriptor_mean.shape == (shipped.dim,)
 
 
 def test_fit_centres_recovers_clusters():

@@ -119,3 +119,32 @@ def test_calibration_script_on_the_fixture_suite(tmp_path):
         after = f["any_step"]["after"]
         assert after["n_positive"] == 0 or after["recall"] >= 0.8
     assert "tau" in done.stdout and "R@P80" in done.stdout and (tmp_path / "samples.csv").is_file()
+
+
+def test_descriptor_cache_is_reused_only_for_the_same_descriptor(tmp_path):
+    """describe_setting's cache: the same descriptor reads it back; another setting or another
+    subtracted mean describes anew (a stale cache would score the gate with old descriptors)."""
+    from types import SimpleNamespace
+
+    from cerpe.pipeline.descriptor_codecs import describe_setting
+
+    class Desc:
+        def __init__(self, conf, mean):
+            self.conf, self.descriptor_mean, self.dim, self.calls = conf, mean, 4, 0
+
+        def describe(self, view):
+            self.calls += 1
+            return np.full(4, view.key[1] + self.conf["b"], np.float32)
+
+    robot = SimpleNamespace(robot_id="r0", intrinsics=np.eye(3), image=lambda t: np.zeros((8, 8, 3), np.uint8))
+    setting = SimpleNamespace(encounters=[SimpleNamespace(name="e0", robots=[robot], n_steps=3)])
+    cache = tmp_path / "c.npz"
+    a = Desc({"b": 1.0}, np.zeros(4, np.float32))
+    first = describe_setting(a, setting, cache, progress=False)
+    again = Desc({"b": 1.0}, np.zeros(4, np.float32))
+    assert np.array_equal(describe_setting(again, setting, cache, progress=False)[0], first[0]) and again.calls == 0
+    other_conf = Desc({"b": 2.0}, np.zeros(4, np.float32))
+    assert describe_setting(other_conf, setting, cache, progress=False)[0][0, 0, 0] == 2.0 and other_conf.calls == 3
+    other_mean = Desc({"b": 2.0}, np.ones(4, np.float32))
+    describe_setting(other_mean, setting, cache, progress=False)
+    assert other_mean.calls == 3

@@ -17,18 +17,36 @@ from .calibrate import cross_scene_negatives, largest_tau_with_recall, pair_samp
 from .evaluate import roc_auc
 
 
+def descriptor_fingerprint(desc: Any) -> str:
+    """CRC32 of what a descriptor's values depend on: its settings and fitted arrays (centres, mean,
+    the subtracted mean descriptor). A cache written by another descriptor is not reused."""
+    import zlib
+
+    conf = {k: v for k, v in getattr(desc, "conf", {}).items() if k not in ("thresholds", "cache_size")}
+    crc = zlib.crc32(repr(sorted(conf.items())).encode())
+    for name in ("centres", "mean", "descriptor_mean"):
+        arr = getattr(desc, name, None)
+        if arr is not None:
+            crc = zlib.crc32(np.ascontiguousarray(arr, np.float32).tobytes(), crc)
+    return f"{crc:08x}"
+
+
 def describe_setting(desc: Any, setting: Any, cache: Path | None = None, every: int = 1,
                      progress: bool = True) -> list[np.ndarray]:
     """``[N, T, dim] float32`` raw descriptors of every robot frame (every ``every``-th step; others
-    zero) of each encounter of ``setting``, cached in ``cache`` (``.npz``, one array per encounter)."""
+    zero) of each encounter of ``setting``, cached in ``cache`` (``.npz``, one array per encounter,
+    reused only when written by the same descriptor: :func:`descriptor_fingerprint`)."""
     from tqdm import tqdm
 
     from ..protocols import View
 
+    fingerprint = descriptor_fingerprint(desc)
     if cache is not None and cache.is_file():
         with np.load(cache) as z:
-            if len(z.files) == len(setting.encounters):
-                return [z[f"e{k}"] for k in range(len(z.files))]
+            arrays = [f for f in z.files if f.startswith("e")]
+            same = "fingerprint" in z.files and str(z["fingerprint"]) == fingerprint
+            if same and len(arrays) == len(setting.encounters):
+                return [z[f"e{k}"] for k in range(len(arrays))]
     out = []
     for enc in setting.encounters:
         D = np.zeros((len(enc.robots), enc.n_steps, int(desc.dim)), np.float32)
@@ -40,7 +58,7 @@ def describe_setting(desc: Any, setting: Any, cache: Path | None = None, every: 
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(cache.stem + ".tmp.npz")
-        np.savez(tmp, **{f"e{k}": D for k, D in enumerate(out)})
+        np.savez(tmp, fingerprint=np.array(fingerprint), **{f"e{k}": D for k, D in enumerate(out)})
         tmp.replace(cache)
     return out
 
