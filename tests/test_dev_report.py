@@ -110,6 +110,27 @@ def test_right_pct_known_answer():
     assert (s["success_pct"] == 100).all() and (s["right_pct"] == 0).all()
 
 
+def test_e_pos_on_reference_frames_known_answer():
+    """Means over the reference method's frames only (those the method also reports); a method
+    answering between them is not charged for it; a set without the reference gets NaN."""
+    from cerpe.pipeline.evaluate import e_pos_on_reference_frames
+
+    def rows(method, steps, errs, setting="s"):
+        return pd.DataFrame({"setting": setting, "method": method, "encounter": "e", "step": steps, "ego": "r0",
+                             "other": "r1", "e_pos_m": errs})
+
+    f = pd.concat([rows("cerpe-wo-em", [0, 3, 6], [0.1, 0.2, np.nan]),  # step 6: no estimate
+                   rows("cerpe", [0, 1, 2, 3, 6], [0.3, 5.0, 5.0, 0.5, 0.7]),  # 1, 2 propagated: left out
+                   rows("graph", [3], [0.4]),  # reports on one reference frame only
+                   rows("cerpe", [0], [9.0], setting="other")], ignore_index=True)
+    out = e_pos_on_reference_frames(f).set_index(["setting", "method"])
+    assert out.loc[("s", "cerpe-wo-em"), "e_pos_on_ref_frames_m"] == pytest.approx(0.15)
+    assert out.loc[("s", "cerpe"), "e_pos_on_ref_frames_m"] == pytest.approx(0.4)  # steps 0 and 3
+    assert out.loc[("s", "cerpe"), "n_ref_frames"] == 2
+    assert out.loc[("s", "graph"), "e_pos_on_ref_frames_m"] == pytest.approx(0.4)
+    assert np.isnan(out.loc[("other", "cerpe"), "e_pos_on_ref_frames_m"]) and out.loc[("other", "cerpe"), "n_ref_frames"] == 0
+
+
 def test_count_degradation():
     robots = pd.DataFrame({"degradations": ["anchor:inconsistent;msg:lost", np.nan, "",
                                             "anchor:inconsistent;anchor:inconsistent", "anchor:inconsistent-x"]})
@@ -166,6 +187,9 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
     cerpe = t[t["method"] == "cerpe"].iloc[0]  # (at 160x120 it places few views: plumbing, not accuracy)
     assert cerpe["anchors_rejected"] >= 0 and cerpe["bytes_per_robot_step"] > 0
     assert (t["n_frames_after_covis"] > 0).all() and t["success_after_covis_pct"].notna().all()
+    woem = t[t["method"] == "cerpe-wo-em"].iloc[0]  # on its own frames it is its own mean
+    assert woem["e_pos_on_woem_frames_m"] == pytest.approx(woem["e_pos_m"], nan_ok=True)
+    assert base["e_pos_on_woem_frames_m"].isna().all()  # no metric scale: no predicted-scale e_pos
     assert len(res["gate"]) == 1 and np.isfinite(res["gate"]["tau"].iloc[0])
     out = tmp / "out"
     for name in ("report.csv", "report.md", "report_gate.csv", "report-before.csv", "report-before.md"):

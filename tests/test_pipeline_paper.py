@@ -42,6 +42,8 @@ def test_main_results_table(ctx):
     # every pair overlaps 0.5 both ways from step 0: success after co-visibility is the success rate
     assert "success_after_covis_pct" in df.columns
     assert row.success_after_covis_pct == pytest.approx(100 * 6 / 8)
+    # no w/o EM run in this context: nothing to compare on its frames, NaN rather than a made-up figure
+    assert "e_pos_on_woem_frames_m" in df.columns and np.isnan(row.e_pos_on_woem_frames_m)
     sift = df[(df.setting == "toy") & (df.method == "sift-ransac")].iloc[0]
     assert np.isnan(sift.e_pos_m) and np.isfinite(sift.e_pos_gt_scale_m)
     assert (df[df.method.isin(["nope", "co-visnet"]) & (df.setting == "toy")].status == "not available offline").all()

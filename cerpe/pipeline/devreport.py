@@ -5,6 +5,9 @@ One row per (set, method) (:func:`method_row`):
 * ``e_pos_m`` / ``e_pos_gt_scale_m`` (predicted scale / ground-truth scale), ``e_rot_rad``
   mean and ``e_rot_median_rad``, ``success_pct``: the paper's metrics over the evaluated
   frames (:mod:`cerpe.pipeline.evaluate`);
+* ``e_pos_on_woem_frames_m``: ``e_pos_m`` over the frames where CERPE w/o EM of the same
+  set reports (its accepted direct estimates): the methods on the same frames
+  (:func:`~cerpe.pipeline.evaluate.e_pos_on_reference_frames`; issue 20's ratio like for like);
 * ``success_after_covis_pct``: success over the evaluated frames at or after the pair's
   first co-visible step (ground-truth overlap >= 0.2 both ways);
 * ``right_pct``: evaluated frames with an estimate within 0.3 rad of the true rotation
@@ -35,7 +38,8 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
-from .evaluate import RIGHT_ROT_RAD, Run, frame_errors, gate_quality, load_run, summarise
+from .evaluate import (REFERENCE_METHOD, RIGHT_ROT_RAD, Run, e_pos_on_reference_frames, frame_errors, gate_quality,
+                       load_run, summarise)
 from .textfmt import md_table, text_table
 
 WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong" (issue 18)
@@ -44,7 +48,7 @@ REJECTED = "anchor:inconsistent"
 REPLACED = "anchor:replaced"
 
 REPORT_COLS: tuple[str, ...] = (
-    "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
+    "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_pos_on_woem_frames_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
     "success_after_covis_pct", "right_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
     "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
 GATE_COLS: tuple[str, ...] = (
@@ -104,7 +108,7 @@ def method_row(run: Run, set_name: str | None = None) -> dict:
     """The report's figures (:data:`REPORT_COLS`) of one run folder."""
     frames = frame_errors(run.steps, run.metric_scale, run.every)
     s = summarise(frames.assign(_all=0), ["_all"]).iloc[0] if len(frames) else None
-    row = {"set": set_name or run.setting, "method": run.method}
+    row = {"set": set_name or run.setting, "method": run.method, "e_pos_on_woem_frames_m": float("nan")}
     for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
               "success_after_covis_pct", "right_pct"):
         row[k] = float(s[k]) if s is not None else float("nan")
@@ -137,14 +141,23 @@ def gate_row(run: Run, set_name: str | None = None) -> dict:
 
 def report(runs: Iterable[tuple[str, Path]]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``(table, gate)`` over ``(set name, run folder)`` pairs: :func:`method_row` for every
-    run, :func:`gate_row` for every run of a method with a gate (``cerpe``)."""
-    rows, gates = [], []
+    run (with ``e_pos_on_woem_frames_m`` over the set's CERPE w/o EM frames), :func:`gate_row`
+    for every run of a method with a gate (``cerpe``)."""
+    rows, gates, frames = [], [], []
     for name, path in runs:
         run = load_run(path)
         rows.append(method_row(run, name))
+        f = frame_errors(run.steps, run.metric_scale, run.every)
+        frames.append(f.assign(set=name, method=run.method))
         if run.method == "cerpe":
             gates.append(gate_row(run, name))
-    return pd.DataFrame(rows, columns=list(REPORT_COLS)), pd.DataFrame(gates, columns=list(GATE_COLS))
+    table = pd.DataFrame(rows, columns=list(REPORT_COLS))
+    if frames and len(table):
+        same = e_pos_on_reference_frames(pd.concat(frames, ignore_index=True), REFERENCE_METHOD, by=("set",))
+        same = same.set_index(["set", "method"])["e_pos_on_ref_frames_m"]
+        idx = pd.MultiIndex.from_frame(table[["set", "method"]])
+        table["e_pos_on_woem_frames_m"] = same.reindex(idx).to_numpy(float)
+    return table, pd.DataFrame(gates, columns=list(GATE_COLS))
 
 
 # --------------------------------------------------------------------------- formatting
@@ -154,14 +167,14 @@ def _f(v: float, nd: int = 3) -> str:
 
 def _cells(r: pd.Series) -> list[str]:
     return [str(r["set"]), str(r["method"]), f"{_f(r['e_pos_m'], 3)} / {_f(r['e_pos_gt_scale_m'], 3)}",
-            _f(r["e_rot_rad"]), _f(r["e_rot_median_rad"]), _f(r["success_pct"], 1),
+            _f(r["e_pos_on_woem_frames_m"]), _f(r["e_rot_rad"]), _f(r["e_rot_median_rad"]), _f(r["success_pct"], 1),
             _f(r["success_after_covis_pct"], 1), _f(r["right_pct"], 1), f"{int(r['n_direct'])} / {int(r['n_requests'])}",
             str(int(r["anchors_rejected"])),
             f"{int(r['carried_longest_steps'])} ({int(r['carried_runs_over_3'])})",
             _f(r["bytes_per_robot_step"], 0), str(int(r["n_frames"]))]
 
 
-HEADER = ["set", "method", "e_pos m (pred / GT scale)", "e_rot mean", "e_rot med", "succ %", "succ>covis %",
+HEADER = ["set", "method", "e_pos m (pred / GT scale)", "e_pos on w/o EM frames", "e_rot mean", "e_rot med", "succ %", "succ>covis %",
           "right %", "placed / req", "rejected", "wrong carried (>3)", "B/robot/step", "frames"]
 GATE_HEADER = ["set", "tau", "covis AUC", "covis P", "covis R", "covis pairs (pos)", "left out",
                "ordered AUC", "ordered P", "ordered R", "ceiling"]
@@ -174,7 +187,8 @@ def _gate_cells(r: pd.Series) -> list[str]:
             _f(r["roc_auc_ceiling"])]
 
 
-LEGEND = ("e_rot in rad; succ>covis: success over frames at or after the pair's first step with GT overlap >= 0.2 "
+LEGEND = ("e_pos on w/o EM frames: e_pos (predicted scale) over the frames where CERPE w/o EM reports, "
+          "the methods on the same frames; e_rot in rad; succ>covis: success over frames at or after the pair's first step with GT overlap >= 0.2 "
           f"both ways; right: frames with an estimate within {RIGHT_ROT_RAD:g} rad of the true rotation; placed / req: evaluated frames with a direct estimate / with an image requested; rejected: "
           f"'{REJECTED}' counted; wrong carried: longest run of consecutive steps of one pair more than "
           f"{WRONG_RAD} rad wrong from one anchor (runs longer than {CARRIED_MAX_STEPS} steps); B/robot/step: "

@@ -429,6 +429,41 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
     return out.reset_index()
 
 
+REFERENCE_METHOD = "cerpe-wo-em"  # reports only its accepted direct estimates
+FRAME_KEY = ("encounter", "step", "ego", "other")
+
+
+def e_pos_on_reference_frames(frames: pd.DataFrame, reference: str = REFERENCE_METHOD,
+                              by: Sequence[str] = ("setting",)) -> pd.DataFrame:
+    """Each method's mean ``e_pos_m`` over the frames where ``reference`` reports a position.
+
+    Methods that report on different frames are not compared by their own means: CERPE w/o EM
+    answers only where a direct estimate was accepted, CERPE and the graph also between them
+    (propagated, farther from the last measurement). Over the reference's frames (those the
+    method reports too) they are compared like for like.
+
+    Args:
+        frames: :func:`frame_errors` rows with ``method`` and the ``by`` columns.
+
+    Returns:
+        ``by + [method, e_pos_on_ref_frames_m, n_ref_frames]``: NaN and 0 where the group has
+        no ``reference`` run or the method reports on none of its frames.
+    """
+    by, key = list(by), [*by, *FRAME_KEY]
+    cols = [*by, "method", "e_pos_on_ref_frames_m", "n_ref_frames"]
+    if frames.empty or not set(key) <= set(frames.columns):
+        return pd.DataFrame(columns=cols)
+    pos = frames[np.isfinite(pd.to_numeric(frames["e_pos_m"], errors="coerce"))]
+    ref = pos.loc[pos["method"] == reference, key].drop_duplicates()
+    on = pos.merge(ref, on=key, how="inner")
+    g = on.groupby([*by, "method"], sort=True)["e_pos_m"]
+    out = pd.DataFrame({"e_pos_on_ref_frames_m": g.mean(), "n_ref_frames": g.size()}).reset_index()
+    every = frames[[*by, "method"]].drop_duplicates()
+    out = every.merge(out, on=[*by, "method"], how="left")
+    out["n_ref_frames"] = out["n_ref_frames"].fillna(0).astype(int)
+    return out[cols].reset_index(drop=True)
+
+
 SIGMA_COLS = {"position": ("e_pos_m", "sigma_pos_m"), "rotation": ("e_rot_rad", "sigma_rot_rad")}
 
 

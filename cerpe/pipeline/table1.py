@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from ..atomicio import AtomicIOError, atomic_write_text, read_json
-from .evaluate import evaluate_runs, summarise
+from .evaluate import e_pos_on_reference_frames, evaluate_runs, summarise
 from .methods import CERPE_METHODS, EXTENSION_METHODS, METHOD_LABELS, UNAVAILABLE
 
 if TYPE_CHECKING:
@@ -27,24 +27,27 @@ def main_results(ctx: "PaperContext") -> pd.DataFrame:
     """Table I, long form: one row per (setting, method) with the paper's metrics.
 
     Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
-    n_frames, success_after_covis_pct, right_pct, status``. ``success_after_covis_pct`` (success
-    over the frames at or after the pair's first co-visible step) and ``right_pct`` (frames with an
-    estimate within 0.3 rad of the true rotation; :mod:`cerpe.pipeline.evaluate`) are not in the
-    paper's layout (Markdown, LaTeX). ``status`` is ``ok``, ``not available offline``,
+    n_frames, success_after_covis_pct, right_pct, e_pos_on_woem_frames_m, status``.
+    ``success_after_covis_pct`` (success over the frames at or after the pair's first co-visible
+    step), ``right_pct`` (frames with an estimate within 0.3 rad of the true rotation) and
+    ``e_pos_on_woem_frames_m`` (``e_pos_m`` over the frames where CERPE w/o EM reports:
+    :func:`~cerpe.pipeline.evaluate.e_pos_on_reference_frames`) are not in the paper's layout
+    (Markdown, LaTeX). ``status`` is ``ok``, ``not available offline``,
     ``not supplied`` or ``error``; metrics are NaN unless ``ok``. ``df.attrs["caption"]``
     is the caption (:func:`table_caption`) the Markdown and LaTeX layouts print.
     """
     ok = [p for p in ctx.run_dirs.values() if (p / "run.json").exists()]
-    summ = pd.DataFrame()
+    summ, same = pd.DataFrame(), pd.Series(dtype=float)
     if ok:
         f, _ = evaluate_runs(ok)
         summ = summarise(f, ["setting", "method"]).set_index(["setting", "method"])
+        same = e_pos_on_reference_frames(f).set_index(["setting", "method"])["e_pos_on_ref_frames_m"]
     rows = []
     for e in ctx.settings:
         for m in TABLE_METHODS:
             row = {"setting": e.name, "method": m, "e_pos_m": np.nan, "e_pos_gt_scale_m": np.nan,
                    "e_rot_rad": np.nan, "success_pct": np.nan, "n_frames": 0, "success_after_covis_pct": np.nan,
-                   "right_pct": np.nan}
+                   "right_pct": np.nan, "e_pos_on_woem_frames_m": np.nan}
             if e.status != "ok":
                 row["status"] = f"{e.status}: {e.detail}" if e.detail else e.status
             elif m in UNAVAILABLE:
@@ -54,6 +57,7 @@ def main_results(ctx: "PaperContext") -> pd.DataFrame:
                 row.update({k: float(s[k]) for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct",
                                                      "success_after_covis_pct", "right_pct")})
                 row["n_frames"] = int(s["n_frames"])
+                row["e_pos_on_woem_frames_m"] = float(same.get((e.name, m), np.nan))
                 row["status"] = "ok"
             else:
                 row["status"] = "error: run missing (see log)"
