@@ -22,9 +22,10 @@ from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_w
 
 
 def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozenset(), replace: dict | None = None,
-         rel: float | None = None):
+         rel: float | None = None, dt_s: float | None = None):
     """Run a PairGraph over a simulated stream (its direct estimates placed on depth of relative scale
-    sigma ``rel``, None: unknown); returns (graph, [GraphEstimate per step])."""
+    sigma ``rel``, None: unknown; steps ``dt_s`` apart, None: no stamps); returns (graph, [GraphEstimate
+    per step])."""
     g = PairGraph(conf)
     out = []
     last_j = None
@@ -36,7 +37,7 @@ def feed(stream, conf: GraphConfig | None = None, skip_pose_j: set[int] = frozen
         else:
             d = DirectEstimate(t, stream.direct[t], depth_rel_sigma=rel) if t in stream.direct else None
         out.append(g.step(t, stream.X_i[t], None if last_j is None else last_j[1], -1 if last_j is None else last_j[0],
-                          d))
+                          d, stamp_s=None if dt_s is None else t * dt_s))
     return g, out
 
 
@@ -64,6 +65,40 @@ def test_adjoint_is_gtsams_and_parent_covariance_matches_sampling():
     np.testing.assert_allclose(pose_cov_in_parent(T, C), emp, atol=3e-5)
     pos, rot = pose_cov_sigmas(C)
     assert pos == pytest.approx(np.sqrt(np.trace(C[3:, 3:]))) and rot == pytest.approx(np.sqrt(np.trace(C[:3, :3])))
+
+
+def test_an_implausible_speed_change_counts_as_a_failed_odometry_step():
+    conf = GraphConfig()
+    T = make_se3(np.eye(3), np.array([0.3, 0.0, 0.0]))
+    base = odometry_cov(conf, T, 1)
+    assert np.allclose(odometry_cov(conf, T, 1, speed_change_mps2=0.9 * conf.odo_max_accel_mps2), base)
+    lost = odometry_cov(conf, T, 1, lost_steps=1)
+    assert np.allclose(odometry_cov(conf, T, 1, speed_change_mps2=1.1 * conf.odo_max_accel_mps2), lost)
+    assert np.allclose(odometry_cov(GraphConfig(odo_max_accel_mps2=0.0), T, 1, speed_change_mps2=1e3), base)
+
+
+def test_an_odometry_catching_up_faster_than_1g_opens_the_walk_for_the_next_estimate():
+    # dev cad seed 2002 (e02): r1's odometry under-reported its motion behind a co-moving car, then one step
+    # 0.39 m and 0.07 rad wrong (far under odo_jump_rad); the graph kept the old offset, 0.06 rad off,
+    # through the one direct estimate after it (here 0.12 rad against estimates of 0.01 rad noise)
+    s = simulate_pair(seed=6, n_steps=40, speed_m=0.05, odo_rot=0.0005, odo_trans=0.001,
+                      direct_steps=list(range(2, 17, 2)) + [17], direct_rot=0.01, direct_trans=0.02)
+    s.X_j[17:] = s.X_j[17:] @ make_se3(so3_exp(np.array([0.0, 0.12, 0.0])), np.array([0.39, 0.0, 0.0]))
+    base = dict(direct_rot_rad=0.01, direct_trans_m=0.02, direct_trans_rel=0.0, direct_along_factor=1.0,
+                direct_depth_rel_unknown=0.0)
+    errs = {}
+    for name, conf, dt in (("off", GraphConfig(**base, odo_max_accel_mps2=0.0), 0.1),
+                           ("no stamps", GraphConfig(**base), None), ("on", GraphConfig(**base), 0.1)):
+        _, out = feed(s, conf, dt_s=dt)
+        errs[name] = [float(e_rot(out[t].T_cj_ci, s.truth[t])) for t in range(17, 40)]
+    assert min(errs["off"]) > 0.08 and min(errs["no stamps"]) > 0.08  # the old offset is kept
+    assert max(errs["on"]) < 3 * 0.01  # 3.9 m/s in one 0.1 s step from 0.05 m/step: the walk opens there
+    # a steady robot (0.05 m per 0.1 s step, noise 1 mm) never trips it: the same estimates as without it
+    s = simulate_pair(seed=6, n_steps=40, speed_m=0.05, odo_rot=0.0005, odo_trans=0.001,
+                      direct_steps=list(range(2, 40, 4)), direct_rot=0.01, direct_trans=0.02)
+    _, a = feed(s, GraphConfig(**base), dt_s=0.1)
+    _, b = feed(s, GraphConfig(**base, odo_max_accel_mps2=0.0), dt_s=0.1)
+    assert all(np.array_equal(x.T_cj_ci, y.T_cj_ci) for x, y in zip(a, b) if x.T_cj_ci is not None)
 
 
 def test_odometry_covariance_grows_with_steps_and_distance():

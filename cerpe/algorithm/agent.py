@@ -441,7 +441,7 @@ class RobotAgent(GateSide):
                   DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
                                  depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
         res = graph.step(st.step, self.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
-                         direct, own_ok=st.ego_status in ("ok", "first"))
+                         direct, own_ok=st.ego_status in ("ok", "first"), stamp_s=st.stamp_s)
         st.timings["graph"] += time.perf_counter() - t0
         for what in res.degradations:
             self.degrade(what)

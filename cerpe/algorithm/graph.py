@@ -170,6 +170,8 @@ class PairGraph:
         self._last_i: tuple[int, np.ndarray] | None = None
         self._last_j: tuple[int, np.ndarray] | None = None
         self._lost = 0  # steps of failed own odometry not yet in the walk
+        self._stamps: dict[int, float] = {}  # step -> stamp (s) of the ego's recent steps (both robots' clock)
+        self._speed: dict[int, float] = {}  # last increment's speed (m/s): 0 ego, 1 other
         self._Q = np.zeros((6, 6))  # random walk of O since the newest node, in O's tangent there
         self._key = -1
         self._node_step = -1
@@ -190,6 +192,16 @@ class PairGraph:
         return _inv(self._ref[which]) @ X
 
     # ------------------------------------------------------------------ odometry
+    def _speed_change(self, which: int, inc: np.ndarray, s0: int, s1: int) -> float:
+        """How fast (m/s^2) the speed of increment ``inc`` (steps ``s0 -> s1``) changed from the robot's
+        previous one; 0 where a stamp is missing. Keeps the new speed."""
+        t0, t1 = self._stamps.get(s0), self._stamps.get(s1)
+        if t0 is None or t1 is None or not t1 > t0:
+            return 0.0
+        v = float(np.linalg.norm(inc[:3, 3])) / (t1 - t0)
+        prev, self._speed[which] = self._speed.get(which), v
+        return 0.0 if prev is None else abs(v - prev) / (t1 - t0)
+
     def _walk_i(self, step: int, X_i: np.ndarray, own_ok: bool) -> None:
         if not own_ok:
             self._lost += 1
@@ -197,7 +209,8 @@ class PairGraph:
         if self._O is None or last is None or step <= last[0]:
             self._lost = 0 if self._O is None else self._lost
             return
-        S = odometry_cov(self.conf, _inv(last[1]) @ X_i, step - last[0], self._lost)
+        inc = _inv(last[1]) @ X_i
+        S = odometry_cov(self.conf, inc, step - last[0], self._lost, self._speed_change(0, inc, last[0], step))
         self._lost = 0
         A = se3_adjoint(self._local(X_i, 0))
         self._Q = _sym(self._Q + A @ S @ A.T)
@@ -209,7 +222,8 @@ class PairGraph:
         self._last_j = (int(step), np.array(X_j, dtype=np.float64))
         if self._O is None or last is None:
             return
-        S = odometry_cov(self.conf, _inv(last[1]) @ X_j, step - last[0])
+        inc = _inv(last[1]) @ X_j
+        S = odometry_cov(self.conf, inc, step - last[0], 0, self._speed_change(1, inc, last[0], step))
         A = se3_adjoint(_inv(self._O) @ self._local(X_j, 1))
         self._Q = _sym(self._Q + A @ S @ A.T)
 
@@ -393,7 +407,7 @@ class PairGraph:
 
     # ------------------------------------------------------------------ the step
     def step(self, step: int, X_i: np.ndarray, X_j: np.ndarray | None = None, X_j_step: int = -1,
-             direct: DirectEstimate | None = None, own_ok: bool = True) -> GraphEstimate:
+             direct: DirectEstimate | None = None, own_ok: bool = True, stamp_s: float | None = None) -> GraphEstimate:
         """Take in this step's poses (and direct estimate), return the graph's estimate.
 
         Args:
@@ -404,12 +418,19 @@ class PairGraph:
             direct: this step's direct estimate of ``T_cj_ci``, if any.
             own_ok: False when the ego robot's odometry failed at this step (``X_i`` kept
                 without an estimate): the walk gets ``odo_lost_*`` for it.
+            stamp_s: the step's time (s; the team's steps share a clock). With it an increment
+                whose speed changes faster than ``odo_max_accel_mps2`` counts as a failed step.
 
         Returns:
             :class:`GraphEstimate`: None pose before the first node; never raises for bad
             numbers (they come back as degradations).
         """
         out = GraphEstimate()
+        if stamp_s is not None and np.isfinite(stamp_s):
+            self._stamps[int(step)] = float(stamp_s)
+            if len(self._stamps) > 64:  # the last few steps are all an increment can span
+                for k in sorted(self._stamps)[:-32]:
+                    del self._stamps[k]
         self._walk_i(step, X_i, own_ok)
         if X_j is not None:
             self._walk_j(int(X_j_step), X_j)

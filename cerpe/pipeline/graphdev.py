@@ -77,11 +77,14 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     src, anchor, s_pos, s_rot = [], [], np.full(len(steps), np.nan), np.full(len(steps), np.nan)
     verdicts = steps["anchor_verdict"].fillna("").astype(str) if "anchor_verdict" in steps else [""] * len(steps)
     inliers = steps["direct_inliers"].fillna(-1).astype(int) if "direct_inliers" in steps else [-1] * len(steps)
+    stamps = (pd.to_numeric(steps["stamp_s"], errors="coerce").to_numpy(float) if "stamp_s" in steps
+              else np.full(len(steps), np.nan))
     for k, t in enumerate(steps["step"].astype(int)):
         direct = (DirectEstimate(t, T_dir[k], int(inliers[k]), str(verdicts[k]), depth_rel_sigma=rel_sigma)
                   if np.all(np.isfinite(T_dir[k])) else None)
         xj = X_j.get(t)
-        res = graph.step(t, X_i[t], xj, t if xj is not None else -1, direct, own_ok=not failed.get(t, False))
+        res = graph.step(t, X_i[t], xj, t if xj is not None else -1, direct, own_ok=not failed.get(t, False),
+                         stamp_s=float(stamps[k]))
         if res.T_cj_ci is None:
             src.append("none")
             anchor.append(-1)
