@@ -99,6 +99,15 @@ def test_an_odometry_catching_up_faster_than_1g_opens_the_walk_for_the_next_esti
     _, a = feed(s, GraphConfig(**base), dt_s=0.1)
     _, b = feed(s, GraphConfig(**base, odo_max_accel_mps2=0.0), dt_s=0.1)
     assert all(np.array_equal(x.T_cj_ci, y.T_cj_ci) for x, y in zip(a, b) if x.T_cj_ci is not None)
+    # nor does odometry noise at 30 Hz (1 cm per step jitters the speed by 0.3 m/s, 9 m/s^2 per 33 ms, often
+    # more): the noise margin (odo_accel_noise_sigmas per-step sigmas) keeps it from reading as acceleration
+    s = simulate_pair(seed=6, n_steps=40, speed_m=0.012, odo_rot=0.0005, odo_trans=0.01,
+                      direct_steps=list(range(2, 40, 4)), direct_rot=0.01, direct_trans=0.02)
+    _, a = feed(s, GraphConfig(**base), dt_s=1 / 30)
+    _, b = feed(s, GraphConfig(**base, odo_max_accel_mps2=0.0), dt_s=1 / 30)
+    assert all(np.array_equal(x.T_cj_ci, y.T_cj_ci) for x, y in zip(a, b) if x.T_cj_ci is not None)
+    _, c = feed(s, GraphConfig(**base, odo_accel_noise_sigmas=0.0), dt_s=1 / 30)  # without the margin it would
+    assert any(not np.array_equal(x.T_cj_ci, y.T_cj_ci) for x, y in zip(c, b) if x.T_cj_ci is not None)
 
 
 def test_odometry_covariance_grows_with_steps_and_distance():

@@ -193,14 +193,19 @@ class PairGraph:
 
     # ------------------------------------------------------------------ odometry
     def _speed_change(self, which: int, inc: np.ndarray, s0: int, s1: int) -> float:
-        """How fast (m/s^2) the speed of increment ``inc`` (steps ``s0 -> s1``) changed from the robot's
-        previous one; 0 where a stamp is missing. Keeps the new speed."""
+        """The acceleration (m/s^2) increment ``inc`` (steps ``s0 -> s1``) implies beyond odometry noise:
+        its length against the robot's previous speed kept, less ``odo_accel_noise_sigmas`` times the
+        per-step translation sigma, over its duration squared; 0 where a stamp is missing (keeps the
+        new speed)."""
         t0, t1 = self._stamps.get(s0), self._stamps.get(s1)
         if t0 is None or t1 is None or not t1 > t0:
             return 0.0
-        v = float(np.linalg.norm(inc[:3, 3])) / (t1 - t0)
-        prev, self._speed[which] = self._speed.get(which), v
-        return 0.0 if prev is None else abs(v - prev) / (t1 - t0)
+        dt, d = t1 - t0, float(np.linalg.norm(inc[:3, 3]))
+        prev, self._speed[which] = self._speed.get(which), d / dt
+        if prev is None:
+            return 0.0
+        miss = abs(d - prev * dt) - self.conf.odo_accel_noise_sigmas * self.conf.odo_trans_per_step
+        return max(miss, 0.0) / dt**2
 
     def _walk_i(self, step: int, X_i: np.ndarray, own_ok: bool) -> None:
         if not own_ok:
