@@ -128,7 +128,8 @@ def test_e_pos_on_reference_frames_known_answer():
     assert out.loc[("s", "cerpe"), "e_pos_on_ref_frames_m"] == pytest.approx(0.4)  # steps 0 and 3
     assert out.loc[("s", "cerpe"), "n_ref_frames"] == 2
     assert out.loc[("s", "graph"), "e_pos_on_ref_frames_m"] == pytest.approx(0.4)
-    assert np.isnan(out.loc[("other", "cerpe"), "e_pos_on_ref_frames_m"]) and out.loc[("other", "cerpe"), "n_ref_frames"] == 0
+    other = out.loc[("other", "cerpe")]
+    assert np.isnan(other["e_pos_on_ref_frames_m"]) and other["n_ref_frames"] == 0
 
 
 def test_count_degradation():

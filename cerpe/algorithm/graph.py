@@ -195,10 +195,11 @@ class PairGraph:
     def _speed_change(self, which: int, inc: np.ndarray, s0: int, s1: int) -> float:
         """The acceleration (m/s^2) increment ``inc`` (steps ``s0 -> s1``) implies beyond odometry noise:
         its length against the robot's previous speed kept, less ``odo_accel_noise_sigmas`` times the
-        per-step translation sigma, over its duration squared; 0 where a stamp is missing (keeps the
-        new speed)."""
+        per-step translation sigma, over its duration squared; 0 where a stamp is missing (then the
+        next increment is not judged either). Keeps the new speed."""
         t0, t1 = self._stamps.get(s0), self._stamps.get(s1)
         if t0 is None or t1 is None or not t1 > t0:
+            self._speed.pop(which, None)  # the next increment has no speed to be judged against
             return 0.0
         dt, d = t1 - t0, float(np.linalg.norm(inc[:3, 3]))
         prev, self._speed[which] = self._speed.get(which), d / dt

@@ -130,9 +130,9 @@ def load_descriptor_mean(path: str | Path | None, dim: int) -> np.ndarray:
     except Exception as exc:
         raise DescriptorError(f"descriptor mean: cannot read {path} (truncated or corrupt?): {exc}") from None
     if mu.shape != (dim,) or not np.all(np.isfinite(mu)):
+        got = f"{mu.shape[0]}" + ("" if np.all(np.isfinite(mu)) else " non-finite")
         raise DescriptorError(f"descriptor mean: {path}: field 'mean' must be {dim} finite values (this "
-                              f"descriptor's size), got {mu.shape[0]}{'' if np.all(np.isfinite(mu)) else ' non-finite'};"
-                              f" refit it for these centres/token or set centring: none")
+                              f"descriptor's size), got {got}; refit it for these centres/token or set centring: none")
     return mu
 
 
