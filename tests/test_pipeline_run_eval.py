@@ -114,6 +114,18 @@ def test_tum_roundtrip_matches_steps(tmp_path, manifest, fake_method):
         np.testing.assert_allclose(T[k], enc.gt_T_cj_ci(t, 1, 0), atol=1e-7)
 
 
+def test_csv_keeps_epoch_stamps_to_the_nanosecond():
+    """steps.csv / robots.csv: an epoch stamp (TUM's 1305031102.175303936) reads back within 1 us, not
+    rounded to 10 s as 9 significant digits would; a missing stamp stays missing; other floats keep 9 digits."""
+    import io
+
+    text = rp._csv_text([{"step": 0, "stamp_s": 1305031102.175303936, "x": 1 / 3},
+                         {"step": 1, "stamp_s": float("nan"), "x": 2.0}])
+    back = pd.read_csv(io.StringIO(text))
+    assert abs(back["stamp_s"][0] - 1305031102.175303936) < 1e-6 and np.isnan(back["stamp_s"][1])
+    assert back["x"][0] == pytest.approx(1 / 3, rel=1e-8) and "0.333333333" in text
+
+
 def test_resume_skips_finished_and_recomputes_unfinished(tmp_path, manifest, fake_method, monkeypatch):
     s = _setting()
     out = rp.run_method(manifest, "sift-ransac", tmp_path / "run", setting=s, progress=False)

@@ -291,9 +291,15 @@ def _gt_cols(T: np.ndarray | None) -> dict[str, float]:
 
 
 def _csv_text(rows: list[dict]) -> str:
+    """Rows as CSV: values to 9 significant digits, ``stamp_s`` to the nanosecond (an epoch stamp has
+    10 digits before the point: ``%.9g`` kept it to 10 s)."""
     import pandas as pd
 
-    return pd.DataFrame(rows).to_csv(index=False, float_format="%.9g")
+    df = pd.DataFrame(rows)
+    if "stamp_s" in df:
+        stamps = pd.to_numeric(df["stamp_s"], errors="coerce").to_numpy(float)
+        df["stamp_s"] = [f"{v:.9f}" if np.isfinite(v) else "" for v in stamps]
+    return df.to_csv(index=False, float_format="%.9g")
 
 
 def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp: str,
