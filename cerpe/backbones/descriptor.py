@@ -80,6 +80,22 @@ def data_path(name: str) -> Path:
     return Path(__file__).resolve().parents[1] / "data" / name
 
 
+def _read_npz(path: Path, what: str, fields: tuple[str, ...], hint: str) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path``; :class:`DescriptorError` naming the file (and the
+    field) when it is missing (with ``hint``), unreadable, or lacks one of ``fields``."""
+    if not path.is_file():
+        raise DescriptorError(f"{what}: file not found: {path} ({hint})")
+    try:
+        with np.load(path) as z:
+            data = {k: np.asarray(z[k]) for k in z.files}
+    except Exception as exc:
+        raise DescriptorError(f"{what}: cannot read {path} (truncated or corrupt?): {exc}") from None
+    for name in fields:
+        if name not in data:
+            raise DescriptorError(f"{what}: {path} lacks field {name!r}")
+    return data
+
+
 def load_centres(path: str | Path | None = None) -> dict[str, np.ndarray]:
     """Load ``centres [m,64]`` and ``mean [64]`` from the shipped (or given) ``.npz``.
 
@@ -87,17 +103,7 @@ def load_centres(path: str | Path | None = None) -> dict[str, np.ndarray]:
         DescriptorError: naming the file and the missing/bad field.
     """
     path = Path(path) if path else data_path(CENTRES_FILE)
-    if not path.is_file():
-        raise DescriptorError(
-            f"descriptor centres: file not found: {path} (run scripts/fit_descriptor.py to create it)")
-    try:
-        with np.load(path) as z:
-            data = {k: np.asarray(z[k]) for k in z.files}
-    except Exception as exc:
-        raise DescriptorError(f"descriptor centres: cannot read {path} (truncated or corrupt?): {exc}") from None
-    for name in ("centres", "mean"):
-        if name not in data:
-            raise DescriptorError(f"descriptor centres: {path} lacks field {name!r}")
+    data = _read_npz(path, "descriptor centres", ("centres", "mean"), "run scripts/fit_descriptor.py to create it")
     c, mu = data["centres"].astype(np.float32), data["mean"].astype(np.float32).ravel()
     if c.ndim != 2 or c.shape[1] != 64 or mu.shape != (64,) or not np.all(np.isfinite(c)) or not np.all(np.isfinite(mu)):
         raise DescriptorError(
@@ -117,18 +123,9 @@ def load_descriptor_mean(path: str | Path | None, dim: int) -> np.ndarray:
             fitted for other centres or another token).
     """
     path = Path(path) if path else data_path(MEAN_FILE)
-    if not path.is_file():
-        raise DescriptorError(f"descriptor mean: file not found: {path} (run scripts/fit_descriptor.py "
-                              f"--descriptor-mean, or set centring: none)")
-    try:
-        with np.load(path) as z:
-            if "mean" not in z.files:
-                raise DescriptorError(f"descriptor mean: {path} lacks field 'mean'")
-            mu = np.asarray(z["mean"], np.float32).ravel()
-    except DescriptorError:
-        raise
-    except Exception as exc:
-        raise DescriptorError(f"descriptor mean: cannot read {path} (truncated or corrupt?): {exc}") from None
+    data = _read_npz(path, "descriptor mean", ("mean",),
+                     "run scripts/fit_descriptor.py --descriptor-mean, or set centring: none")
+    mu = data["mean"].astype(np.float32).ravel()
     if mu.shape != (dim,) or not np.all(np.isfinite(mu)):
         got = f"{mu.shape[0]}" + ("" if np.all(np.isfinite(mu)) else " non-finite")
         raise DescriptorError(f"descriptor mean: {path}: field 'mean' must be {dim} finite values (this "

@@ -104,9 +104,11 @@ def count_degradation(robots: pd.DataFrame, name: str) -> int:
     return int(sum(str(v).split(";").count(name) for v in robots["degradations"].dropna()))
 
 
-def method_row(run: Run, set_name: str | None = None) -> dict:
-    """The report's figures (:data:`REPORT_COLS`) of one run folder."""
-    frames = frame_errors(run.steps, run.metric_scale, run.every)
+def method_row(run: Run, set_name: str | None = None, frames: pd.DataFrame | None = None) -> dict:
+    """The report's figures (:data:`REPORT_COLS`) of one run folder (``frames``: its
+    :func:`frame_errors`, computed here when not given)."""
+    if frames is None:
+        frames = frame_errors(run.steps, run.metric_scale, run.every)
     s = summarise(frames.assign(_all=0), ["_all"]).iloc[0] if len(frames) else None
     row = {"set": set_name or run.setting, "method": run.method, "e_pos_on_woem_frames_m": float("nan")}
     for k in ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "e_rot_median_rad", "success_pct",
@@ -146,8 +148,8 @@ def report(runs: Iterable[tuple[str, Path]]) -> tuple[pd.DataFrame, pd.DataFrame
     rows, gates, frames = [], [], []
     for name, path in runs:
         run = load_run(path)
-        rows.append(method_row(run, name))
         f = frame_errors(run.steps, run.metric_scale, run.every)
+        rows.append(method_row(run, name, f))
         frames.append(f.assign(set=name, method=run.method))
         if run.method == "cerpe":
             gates.append(gate_row(run, name))
