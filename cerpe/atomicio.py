@@ -19,8 +19,8 @@ import numpy as np
 
 from .errors import CerpeError
 
-__all__ = ["AtomicIOError", "atomic_write_bytes", "atomic_write_text", "atomic_write_json", "check_file_target",
-           "ensure_dir", "json_default", "read_json"]
+__all__ = ["AtomicIOError", "atomic_write_bytes", "atomic_write_text", "atomic_write_json", "atomic_write_npz",
+           "check_file_target", "ensure_dir", "json_default", "read_json"]
 
 
 class AtomicIOError(CerpeError, ValueError):
@@ -88,6 +88,17 @@ def atomic_write_bytes(path: Path | str, data: bytes, durable: bool = True) -> N
 
 def atomic_write_text(path: Path | str, text: str, durable: bool = True) -> None:
     atomic_write_bytes(path, text.encode("utf-8"), durable)
+
+
+def atomic_write_npz(path: Path | str, **arrays: Any) -> None:
+    """``np.savez(path, **arrays)``, atomically (the archive built in memory, then
+    :func:`atomic_write_bytes`): a reader never sees half an archive, a failure is an
+    :class:`AtomicIOError` naming the file. ``path`` is written as given (no ``.npz`` added)."""
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def json_default(o: Any) -> Any:

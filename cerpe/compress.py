@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from .atomicio import atomic_write_npz
 from .errors import CerpeError
 from .messages import CODED_DESCRIPTOR_DTYPES, DescriptorMessage
 
@@ -154,13 +155,11 @@ def save_projection(proj: Projection, path: str | Path, **meta: Any) -> Path:
     PQ centroids as float16: a quarter / half the size; the codebook id is that of the file as
     reloaded) with ``meta`` (provenance) as JSON."""
     path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.npz")
     scale = np.maximum(np.abs(proj.components).max(axis=1), 1e-30).astype(np.float32) / 127.0
     q = np.clip(np.round(proj.components / scale[:, None]), -127, 127).astype(np.int8)
-    np.savez(tmp, components_int8=q, components_scale=scale, random_dims=np.int64(proj.random_dims),
+    atomic_write_npz(path, components_int8=q, components_scale=scale, random_dims=np.int64(proj.random_dims),
              random_seed=np.int64(proj.random_seed), pq_centroids=proj.pq_centroids.astype(np.float16),
              thresholds=np.array(json.dumps(proj.thresholds)), meta=np.array(json.dumps({**proj.meta, **meta})))
-    tmp.replace(path)
     return path
 
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import os
 import sys
 from pathlib import Path
 
@@ -79,6 +78,7 @@ def _images_from_glob(pattern: str, limit: int):
 
 def _fit_mean(images, a: argparse.Namespace, source: str) -> int:
     """Mean of the uncentred unit descriptors of ``images`` -> ``a.out`` (``mean [dim]`` + provenance)."""
+    from cerpe.atomicio import atomic_write_npz
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
     from cerpe.protocols import View
 
@@ -93,10 +93,8 @@ def _fit_mean(images, a: argparse.Namespace, source: str) -> int:
         print("fit_descriptor: no textured images found", file=sys.stderr)
         return 2
     dst = Path(a.out)
-    tmp = dst.with_name(dst.stem + ".tmp.npz")
-    np.savez(tmp, mean=np.mean(D, axis=0).astype(np.float32), source=np.array(source), n_images=np.array(len(D)),
+    atomic_write_npz(dst, mean=np.mean(D, axis=0).astype(np.float32), source=np.array(source), n_images=np.array(len(D)),
              dim=np.array(desc.dim), centres_file="shipped (cerpe/data/xfeat_salad_centres.npz)")
-    os.replace(tmp, dst)
     print(f"fit_descriptor: {len(D)} images -> mean descriptor [{desc.dim}], wrote {dst} ({dst.stat().st_size} B)")
     return 0
 
@@ -125,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     data_dir = Path(__file__).resolve().parents[1] / "cerpe" / "data"
     a.out = a.out or str(data_dir / ("xfeat_salad_mean.npz" if a.descriptor_mean else "xfeat_salad_centres.npz"))
 
+    from cerpe.atomicio import atomic_write_npz
     from cerpe.backbones.descriptor import fit_centres
     from cerpe.backbones.xfeat import XFeatEncoder
 
@@ -147,11 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = fit_centres(maps, num_clusters=a.clusters, seed=a.seed)
     dst = Path(a.out)
-    tmp = dst.with_name(dst.stem + ".tmp.npz")
-    np.savez(tmp, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),
+    atomic_write_npz(dst, centres=out["centres"], mean=out["mean"], source=np.array(f"{source} {a.source_note}".strip()),
              n_images=np.array(len(maps)), seed=np.array(a.seed), num_clusters=np.array(a.clusters),
              features=np.array(a.features), max_keypoints=np.array(a.max_keypoints))
-    os.replace(tmp, dst)
     print(f"fit_descriptor: {len(maps)} images -> {a.clusters} centres, wrote {dst} ({dst.stat().st_size} B)")
     return 0
 

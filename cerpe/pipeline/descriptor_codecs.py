@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..atomicio import atomic_write_npz
 from .calibrate import cross_scene_negatives, largest_tau_with_recall, pair_samples
 from .evaluate import roc_auc
 
@@ -56,10 +57,7 @@ def describe_setting(desc: Any, setting: Any, cache: Path | None = None, every: 
                 D[i, t] = desc.describe(View((r.robot_id, t), r.image(t), r.intrinsics))
         out.append(D)
     if cache is not None:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.stem + ".tmp.npz")
-        np.savez(tmp, fingerprint=np.array(fingerprint), **{f"e{k}": D for k, D in enumerate(out)})
-        tmp.replace(cache)
+        atomic_write_npz(cache, fingerprint=np.array(fingerprint), **{f"e{k}": D for k, D in enumerate(out)})
     return out
 
 
