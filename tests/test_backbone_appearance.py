@@ -144,3 +144,80 @@ def test_the_agent_counts_a_contradicted_placement_and_has_no_direct_estimate():
     assert p.gate_open and p.T_direct is None and p.anchor_verdict == ""
     assert p.source == "propagated" and p.anchor_step == 26 and p.reason.startswith("appearance-mismatch")
     assert P[28].source == "direct"
+
+
+def _pass_of(images, depth_m):
+    """A pass over two views of the given images (the first with a depth prior), pinhole ``K``."""
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.offline.context import Pass
+    from cerpe.backbones.offline.matching import pinhole_camera
+
+    bb = OfflineGeometryBackbone({})
+    views = [View(("r0", 0), images[0], K, depth_m, role="current"),
+             View(("r1", 0, "jpeg"), images[1], K, None, role="collaborator")]
+    feats = [bb.encoder.encode(v) for v in views]
+    return Pass(views=views, feats=feats, Ks=[K.K, K.K], cams=[pinhole_camera(K)] * 2,
+                low_tex=[False, False], conf=bb.conf, matcher=bb.matcher, memos=[None, None])
+
+
+def test_the_high_pass_compares_texture_not_the_layout_every_camera_held_alike_shares():
+    """Two images with the same layout (bright above, dark below) and unrelated texture: the plain
+    correlation is high, the high-passed one near zero; with the same texture both are high."""
+    from cerpe.backbones.offline.vote import photometric_agreement
+
+    rng = np.random.default_rng(3)
+    H, W = K.height, K.width
+    layout = np.linspace(220.0, 40.0, H)[:, None] * np.ones((1, W))
+
+    def texture():
+        import cv2
+
+        return cv2.GaussianBlur(rng.normal(0, 25, (H, W)), (0, 0), 1.5)
+
+    def rgb(g):
+        return np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    t0 = texture()
+    depth = np.full((H, W), 4.0, np.float32)
+    other = _pass_of([rgb(layout + t0), rgb(layout + texture())], depth)
+    same = _pass_of([rgb(layout + t0), rgb(layout + t0)], depth)
+    I4 = np.eye(4)
+    _, plain = photometric_agreement(other, 0, 1, I4)
+    _, high = photometric_agreement(other, 0, 1, I4, highpass_px=12.0)
+    assert plain > 0.7 and abs(high) < 0.2
+    assert photometric_agreement(same, 0, 1, I4, highpass_px=12.0)[1] > 0.9
+
+
+def test_a_placement_must_agree_in_texture_too_not_only_in_layout():
+    """Only the layout agrees: the plain correlation passes, the high-passed one fails, the placement is
+    dropped and counted; with the high pass off it is kept, and with the same texture it is kept."""
+    from cerpe.backbones.offline.cross import check_appearance
+
+    rng = np.random.default_rng(5)
+    H, W = K.height, K.width
+    layout = np.linspace(220.0, 40.0, H)[:, None] * np.ones((1, W))
+
+    def rgb(g):
+        return np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    import cv2
+
+    tex = [cv2.GaussianBlur(rng.normal(0, 25, (H, W)), (0, 0), 1.5) for _ in range(2)]
+    depth = np.full((H, W), 4.0, np.float32)
+    p = _pass_of([rgb(layout + tex[0]), rgb(layout + tex[1])], depth)
+    assert check_appearance(p, 0, 1, np.eye(4), 20) == REASON_APPEARANCE
+    assert p.counts["cross-appearance-checked"] == 1 and p.counts["cross-appearance-rejected"] == 1
+    p.conf["cross"]["appearance_highpass_px"] = 0.0
+    assert check_appearance(p, 0, 1, np.eye(4), 20) == ""
+    same = _pass_of([rgb(layout + tex[0]), rgb(layout + tex[0])], depth)
+    assert check_appearance(same, 0, 1, np.eye(4), 20) == ""
+
+
+def test_a_negative_high_pass_sigma_or_a_threshold_out_of_range_is_refused_naming_the_field():
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.offline.context import OfflineBackboneError
+
+    with pytest.raises(OfflineBackboneError, match="cross.appearance_highpass_px"):
+        OfflineGeometryBackbone({"cross": {"appearance_highpass_px": -1}})
+    with pytest.raises(OfflineBackboneError, match="cross.appearance_min_ncc_highpass"):
+        OfflineGeometryBackbone({"cross": {"appearance_min_ncc_highpass": 1.5}})

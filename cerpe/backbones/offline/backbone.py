@@ -102,7 +102,8 @@ class OfflineGeometryBackbone:
             tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
             ``feature_cache_size``, ``scale_match_px``, and the appearance check of every
             metric collaborator placement (joint or registered): ``appearance_check``,
-            ``appearance_min_ncc``, ``appearance_min_pixels`` (:func:`.cross.check_appearance`).
+            ``appearance_min_ncc``, ``appearance_min_pixels``, ``appearance_highpass_px``,
+            ``appearance_min_ncc_highpass`` (:func:`.cross.check_appearance`).
 
     ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
     ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,

@@ -183,19 +183,23 @@ def grid_mask_image(grid: np.ndarray, image_hw: tuple[int, int], stride: int) ->
 
 
 def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
-                          blur_px: float | None = None) -> tuple[int, float]:
+                          blur_px: float | None = None, highpass_px: float = 0.0) -> tuple[int, float]:
     """How well view ``b``'s image agrees with view ``a``'s, moved by ``T_b_a`` (camera-``a``
     points into camera ``b``) on ``a``'s depth prior: ``(n, ncc)``, the grid pixels of ``a``
     that land inside ``b`` and the normalised cross-correlation of both blurred grey levels
     there (gain and offset of either camera do not matter). ``(n, nan)`` below 2 such pixels.
     ``blur_px``: the Gaussian blur of both images (default ``vote_blur_sigma``); a wider one
-    forgives the few pixels a right but imprecise placement is off by.
+    forgives the few pixels a right but imprecise placement is off by. ``highpass_px`` > 0: both
+    images less their Gaussian blur of that sigma first, so that only texture and edges count,
+    not the layout (bright sky above, dark ground below) that any two cameras held alike share.
 
     Keypoint inliers say only that some features agree; a placement from repeated or
     mirrored structure agrees there and nowhere else, while a true one makes the whole
     shared surface look alike."""
     c = p.conf
     grey = blurred_greys(p, (a, b), float(c["vote_blur_sigma"] if blur_px is None else blur_px))
+    if highpass_px > 0:
+        grey = [g - low for g, low in zip(grey, blurred_greys(p, (a, b), float(highpass_px)))]
     vv, uu, ok, X = grid_points(p, a)
     _, ub, vb, ins = project_points(p, b, X, T_b_a)
     n = int(ins.sum())
