@@ -315,10 +315,12 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int) -
     if n < int(c["appearance_min_pixels"]) or not np.isfinite(ncc):
         return ""
     p.counts["cross-appearance-checked"] += 1
+    agrees = ncc >= float(c["appearance_min_ncc"])
     hp = float(c["appearance_highpass_px"])
-    if ncc >= float(c["appearance_min_ncc"]) and (
-            hp <= 0 or not photometric_agreement(p, a, k, T_k_a, highpass_px=hp)[1]
-            < float(c["appearance_min_ncc_highpass"])):  # NaN (too few pixels vary): not judged
+    if agrees and hp > 0:
+        ncc_texture = photometric_agreement(p, a, k, T_k_a, highpass_px=hp)[1]
+        agrees = not ncc_texture < float(c["appearance_min_ncc_highpass"])  # NaN (no texture there): passes
+    if agrees:
         return ""
     p.counts["cross-appearance-rejected"] += 1
     return REASON_APPEARANCE
