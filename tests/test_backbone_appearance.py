@@ -23,18 +23,25 @@ def room() -> Room:
     return Room(0)
 
 
-def make_pass(room: Room, **cross):
-    """A pass over the current view (with depth) and a collaborator (without), as ``infer`` builds it."""
+def pass_of(images, depth_m, **cross):
+    """A pass over the current view ``images[0]`` (with the depth prior ``depth_m``) and a collaborator
+    ``images[1]`` (without), as ``infer`` builds it; ``cross``: the backbone's ``cross`` settings."""
     from cerpe.backbones.offline import OfflineGeometryBackbone
     from cerpe.backbones.offline.context import Pass
     from cerpe.backbones.offline.matching import pinhole_camera
 
     bb = OfflineGeometryBackbone({"cross": cross})
-    (img0, d0), (img1, _) = room.render(POSES["cur"]), room.render(POSES["near"])
-    views = [View(("r0", 0), img0, K, d0, role="current"), View(("r1", 0, "jpeg"), img1, K, None, role="collaborator")]
+    views = [View(("r0", 0), images[0], K, depth_m, role="current"),
+             View(("r1", 0, "jpeg"), images[1], K, None, role="collaborator")]
     feats = [bb.encoder.encode(v) for v in views]
     return Pass(views=views, feats=feats, Ks=[K.K, K.K], cams=[pinhole_camera(K)] * 2,
                 low_tex=[False, False], conf=bb.conf, matcher=bb.matcher, memos=[None, None])
+
+
+def make_pass(room: Room, **cross):
+    """The pass of the room seen from ``POSES["cur"]`` (with depth) and ``POSES["near"]`` (the collaborator)."""
+    (img0, d0), (img1, _) = room.render(POSES["cur"]), room.render(POSES["near"])
+    return pass_of([img0, img1], d0, **cross)
 
 
 TRUE = G.se3_inverse(POSES["cur"]) @ POSES["near"]           # T_cur_near
@@ -146,18 +153,22 @@ def test_the_agent_counts_a_contradicted_placement_and_has_no_direct_estimate():
     assert P[28].source == "direct"
 
 
-def _pass_of(images, depth_m):
-    """A pass over two views of the given images (the first with a depth prior), pinhole ``K``."""
-    from cerpe.backbones.offline import OfflineGeometryBackbone
-    from cerpe.backbones.offline.context import Pass
-    from cerpe.backbones.offline.matching import pinhole_camera
+def layout_passes(seed: int):
+    """Two passes over images with one layout (bright above, dark below, as sky and road) and a
+    fronto-parallel depth prior: ``(other, same)``, the collaborator with unrelated texture / the same."""
+    import cv2
 
-    bb = OfflineGeometryBackbone({})
-    views = [View(("r0", 0), images[0], K, depth_m, role="current"),
-             View(("r1", 0, "jpeg"), images[1], K, None, role="collaborator")]
-    feats = [bb.encoder.encode(v) for v in views]
-    return Pass(views=views, feats=feats, Ks=[K.K, K.K], cams=[pinhole_camera(K)] * 2,
-                low_tex=[False, False], conf=bb.conf, matcher=bb.matcher, memos=[None, None])
+    rng = np.random.default_rng(seed)
+    H, W = K.height, K.width
+    layout = np.linspace(220.0, 40.0, H)[:, None] * np.ones((1, W))
+    tex = [cv2.GaussianBlur(rng.normal(0, 25, (H, W)), (0, 0), 1.5) for _ in range(2)]
+
+    def rgb(g):
+        return np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    depth = np.full((H, W), 4.0, np.float32)
+    return (pass_of([rgb(layout + tex[0]), rgb(layout + tex[1])], depth),
+            pass_of([rgb(layout + tex[0]), rgb(layout + tex[0])], depth))
 
 
 def test_the_high_pass_compares_texture_not_the_layout_every_camera_held_alike_shares():
@@ -165,22 +176,7 @@ def test_the_high_pass_compares_texture_not_the_layout_every_camera_held_alike_s
     correlation is high, the high-passed one near zero; with the same texture both are high."""
     from cerpe.backbones.offline.vote import photometric_agreement
 
-    rng = np.random.default_rng(3)
-    H, W = K.height, K.width
-    layout = np.linspace(220.0, 40.0, H)[:, None] * np.ones((1, W))
-
-    def texture():
-        import cv2
-
-        return cv2.GaussianBlur(rng.normal(0, 25, (H, W)), (0, 0), 1.5)
-
-    def rgb(g):
-        return np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
-
-    t0 = texture()
-    depth = np.full((H, W), 4.0, np.float32)
-    other = _pass_of([rgb(layout + t0), rgb(layout + texture())], depth)
-    same = _pass_of([rgb(layout + t0), rgb(layout + t0)], depth)
+    other, same = layout_passes(3)
     I4 = np.eye(4)
     _, plain = photometric_agreement(other, 0, 1, I4)
     _, high = photometric_agreement(other, 0, 1, I4, highpass_px=12.0)
@@ -193,23 +189,11 @@ def test_a_placement_must_agree_in_texture_too_not_only_in_layout():
     dropped and counted; with the high pass off it is kept, and with the same texture it is kept."""
     from cerpe.backbones.offline.cross import check_appearance
 
-    rng = np.random.default_rng(5)
-    H, W = K.height, K.width
-    layout = np.linspace(220.0, 40.0, H)[:, None] * np.ones((1, W))
-
-    def rgb(g):
-        return np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
-
-    import cv2
-
-    tex = [cv2.GaussianBlur(rng.normal(0, 25, (H, W)), (0, 0), 1.5) for _ in range(2)]
-    depth = np.full((H, W), 4.0, np.float32)
-    p = _pass_of([rgb(layout + tex[0]), rgb(layout + tex[1])], depth)
+    p, same = layout_passes(5)
     assert check_appearance(p, 0, 1, np.eye(4), 20) == REASON_APPEARANCE
     assert p.counts["cross-appearance-checked"] == 1 and p.counts["cross-appearance-rejected"] == 1
     p.conf["cross"]["appearance_highpass_px"] = 0.0
     assert check_appearance(p, 0, 1, np.eye(4), 20) == ""
-    same = _pass_of([rgb(layout + tex[0]), rgb(layout + tex[0])], depth)
     assert check_appearance(same, 0, 1, np.eye(4), 20) == ""
 
 
