@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Wide-baseline pairs from the real development sets, end to end: how many collaborator views a method places.
+"""Wide-baseline pairs from the development sets, end to end: how many collaborator views a method places.
 
 The held-out failure this watches: real pairs with a large viewpoint change, where the
 collaborator image is placed (or not) from one exchange, with no sequence to verify it. This
@@ -14,15 +14,23 @@ wrong, and the median rotation error of the placed ones.
   ``--min-deg`` .. ``--max-deg`` apart (RGB only: the collaborator is placed by the essential
   matrix, at ground-truth scale);
 * ``sun3d``: every ``--stride``-th frame of fragment 1 against every ``--stride``-th of fragment 2
-  (RGB-D, depth in millimetres; a repetitive room, coarse cross-fragment ground truth).
+  (RGB-D, depth in millimetres; a repetitive room, coarse cross-fragment ground truth);
+* ``synth``: a synthetic development suite (``--suite``, a ``cerpe synth`` folder such as
+  ``build/dev/synth/dev/indoor-team-seed2001``; never the paper-default seed 0): every ``--every``-th
+  frame of each robot against every ``--every``-th of each other robot (also places one saw before
+  the other), viewing directions ``--min-deg`` .. ``--max-deg`` apart, each camera seeing at least
+  ``--min-overlap`` of the other's surface (RGB-D: the wide-baseline case with depth, which the real
+  development data lacks).
 
     python scripts/dev_wide_pairs.py --set fr3 --methods cerpe aliked-lightglue
     python scripts/dev_wide_pairs.py --set sun3d --stride 5
+    python scripts/dev_wide_pairs.py --set synth --suite build/dev/synth/dev/indoor-team-seed2001 --max-deg 170
 """
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import sys
 from pathlib import Path
 
@@ -78,13 +86,50 @@ def sun3d_pairs(stride: int, min_deg: float, max_deg: float) -> tuple[Path, list
     return root, out
 
 
-def write_set(name: str, root: Path, pairs: list, K: str, out: Path, depth: bool) -> Path:
+def synth_pairs(suite: Path, every: int, min_deg: float, max_deg: float,
+                min_overlap: float) -> tuple[Path, list[tuple[str, str, np.ndarray]], str]:
+    """Pairs of two robots' frames of a synthetic development suite (a ``cerpe synth`` folder, RGB-D):
+    every ``every``-th step of each robot against every ``every``-th of the other (so also a place
+    one robot saw before the other), viewing directions ``min_deg`` .. ``max_deg`` apart, each camera
+    seeing at least ``min_overlap`` of the other's surface (depth and ground truth, as ``cerpe synth``)."""
+    import cv2
+
+    from cerpe.scene import CameraIntrinsics
+    from cerpe.synth.groundtruth import overlap_ratio
+
+    out, K = [], None
+    for enc in sorted(p for p in suite.iterdir() if (p / "overlap.npy").is_file()):
+        frames = {}
+        for r in sorted(p.name for p in enc.iterdir() if (p / "groundtruth.txt").is_file()):
+            cam = dict(line.split(":", 1) for line in (enc / r / "camera.yaml").read_text().splitlines()
+                       if ":" in line and not line.startswith("#"))
+            f = {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+            intr = CameraIntrinsics(f["fx"], f["fy"], f["cx"], f["cy"], int(f["width"]), int(f["height"]))
+            K = K or f"{f['fx']} 0 {f['cx']} 0 {f['fy']} {f['cy']} 0 0 1"
+            rows = [line.split() for line in (enc / r / "groundtruth.txt").read_text().splitlines()
+                    if line.strip() and not line.startswith("#")][::every]
+            frames[r] = [(v[0], se3_from_tq_xyzw(np.array(v[1:4], float), np.array(v[4:8], float)),
+                          cv2.imread(str(enc / r / "depth" / f"{v[0]}.png"), cv2.IMREAD_UNCHANGED) / 1000.0, intr)
+                         for v in rows]
+        for a, b in itertools.combinations(sorted(frames), 2):
+            for (sa, Ta, Da, Ka), (sb, Tb, Db, Kb) in itertools.product(frames[a], frames[b]):
+                T_b_a = se3_inverse(Tb) @ Ta
+                if not min_deg <= np.degrees(rotation_angle(T_b_a[:3, :3])) <= max_deg:
+                    continue
+                seen = min(overlap_ratio(Da, Ka, Ta, Db, Kb, Tb, 8), overlap_ratio(Db, Kb, Tb, Da, Ka, Ta, 8))
+                if seen >= min_overlap:
+                    out.append((f"{enc.name}/{a}/rgb/{sa}.png", f"{enc.name}/{b}/rgb/{sb}.png", T_b_a))
+    return suite, out, K or ""
+
+
+def write_set(name: str, root: Path, pairs: list, K: str, out: Path, depth: bool,
+              replace: str = "[[color, depth]]") -> Path:
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"{a} {b} 0 0 {K} {K} " + " ".join(f"{x:.9f}" for x in T.ravel()) for a, b, T in pairs]
     (out / "pairs.txt").write_text("\n".join(lines) + "\n")
     man = [f"name: {name}", "adapter: pairs", f"data_root: {root}", f"pairs: {out / 'pairs.txt'}", "images: .",
            "evaluation: {every: 1}"]
-    man += ["depth: {replace: [[color, depth]], units_per_m: 1000}", "metric_depth: dataset", "covisibility: auto"] \
+    man += [f"depth: {{replace: {replace}, units_per_m: 1000}}", "metric_depth: dataset", "covisibility: auto"] \
         if depth else ["metric_depth: none"]
     path = out / f"{name}.yaml"
     path.write_text("\n".join(man) + "\n")
@@ -112,26 +157,41 @@ def table(run_dir: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--set", choices=("fr3", "sun3d"), default="fr3")
+    ap.add_argument("--set", choices=("fr3", "sun3d", "synth"), default="fr3")
+    ap.add_argument("--suite", type=Path, help="synth: a synthetic development suite folder (never paper-default)")
+    ap.add_argument("--every", type=int, default=3, help="synth: every N-th step")
+    ap.add_argument("--min-overlap", type=float, default=0.2, help="synth: least overlap, both ways")
     ap.add_argument("--min-deg", type=float, default=30.0, help="smallest angle between the two viewing directions")
     ap.add_argument("--max-deg", type=float, default=75.0, help="largest angle between the two viewing directions")
     ap.add_argument("--stride", type=int, default=5, help="sun3d: every N-th frame of each fragment")
     ap.add_argument("--methods", nargs="+", default=["cerpe", "aliked-lightglue"])
     ap.add_argument("--out", type=Path, default=ROOT / "build" / "dev" / "wide-pairs")
     args = ap.parse_args(argv)
-    if not DATA.is_dir():
+    if args.set == "synth" and (args.suite is None or not (args.suite / "manifest.yaml").is_file()):
+        print(f"dev_wide_pairs: --set synth needs --suite, a `cerpe synth` folder (got {args.suite})")
+        return 2
+    if args.set == "synth" and json.loads((args.suite / "meta.json").read_text())["key"]["args"]["seed"] == 0:
+        print(f"dev_wide_pairs: {args.suite} was rendered with seed 0, the paper-default test suite: "
+              f"not for development")
+        return 2
+    if args.set != "synth" and not DATA.is_dir():
         print(f"dev_wide_pairs: no development data at {DATA}: nothing to do")
         return 0
     if args.set == "fr3":
         root, pairs = fr3_pairs(args.min_deg, args.max_deg)
         name, K, depth = "dev-fr3-wide-pairs", K_FR3, False
-    else:
+    elif args.set == "sun3d":
         root, pairs = sun3d_pairs(max(1, args.stride), args.min_deg, args.max_deg)
         name, K, depth = "dev-sun3d-wide-pairs", K_SUN3D, True
+    else:
+        root, pairs, K = synth_pairs(args.suite.resolve(), max(1, args.every), args.min_deg, args.max_deg,
+                                     args.min_overlap)
+        name, depth = f"dev-{args.suite.name}-wide-pairs", True
     if not pairs:
         print(f"dev_wide_pairs: no {args.set} pair between {args.min_deg} and {args.max_deg} deg")
         return 1
-    man = write_set(name, root, pairs, K, args.out / name, depth)
+    man = write_set(name, root, pairs, K, args.out / name, depth,
+                    "[[/rgb/, /depth/]]" if args.set == "synth" else "[[color, depth]]")
     print(f"{name}: {len(pairs)} pairs ({args.min_deg:g}-{args.max_deg:g} deg), manifest {man}")
     from cerpe.pipeline.run import run_method
 
