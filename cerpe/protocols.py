@@ -62,6 +62,11 @@ class View:
             depth sensor, ~0.1 for a monocular network); None when not known. The offline
             backbone corrects a per-frame scale only above a threshold
             (``frame_scale_min_rel_sigma``); it never asks which source made the depth.
+        try_hard: for a collaborator view, the robot asks for the backbone's costliest
+            registration of it: it holds no anchor of the sender yet (first contact, or a
+            pair that lost its anchor), and tries that failed back off
+            (:func:`cerpe.algorithm.policy.try_hard`). A backbone may ignore it; the offline
+            backbone's ``cross.fallback`` reads it.
     """
 
     key: Hashable
@@ -71,6 +76,7 @@ class View:
     memo: Mapping[str, Any] | None = None
     role: str | None = None
     depth_rel_sigma: float | None = None
+    try_hard: bool = False
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from cerpe.algorithm.policy import (
     backoff_steps,
     decide,
     propagation_sigma,
+    try_hard,
 )
 from cerpe.geometry import e_rot
 
@@ -282,3 +283,13 @@ def test_agent_rechecks_an_anchor_its_estimate_disagreed_with():
     assert not R[8].request_skipped and R[8].bytes_pair > 0 and R[8].anchor_verdict == "accepted"
     assert R[9].request_skipped and R[9].bytes_pair == 0
 
+
+def test_try_hard_while_unanchored_backing_off_by_powers_of_two():
+    conf = PolicyConfig(hard_tries=2, hard_backoff_max_steps=8)
+    asked = [m for m in range(40) if try_hard(conf, PairView(anchored=False, misses=m))]
+    # misses in a row before the request: 0 and 1 (the tries), then 1, 2, 4, 8 past them, then every 8
+    assert asked == [0, 1, 2, 3, 5, 9, 17, 25, 33]
+    assert not any(try_hard(conf, PairView(anchored=True, misses=m)) for m in range(40))
+    assert not try_hard(PolicyConfig(hard_tries=0), PairView(anchored=False))
+    with pytest.raises(PolicyError, match="hard_backoff_max_steps"):
+        PolicyConfig(hard_backoff_max_steps=0)

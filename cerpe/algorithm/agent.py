@@ -32,6 +32,7 @@ from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import GateSide
 from .graph import DirectEstimate, PairGraph
+from .policy import try_hard
 from .poses import check_pose, direct_relative, ego_motion, registered_relative
 from .state import PairInfo, Previous, StepState
 
@@ -173,6 +174,7 @@ class RobotAgent(GateSide):
             self.degrade(f"msg:{fault}")
             st.gate_reason[other] = f"reply-{fault}"
             return None
+        view = dataclasses.replace(view, try_hard=try_hard(self.config.request_policy, self._pair_view(other, st.step)))
         st.collab_views[other] = view
         return view
 

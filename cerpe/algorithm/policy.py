@@ -35,6 +35,13 @@ Three further rules ask for a fresh look at an anchor that may be wrong (all off
 * ``rot_sigma_per_m``: the propagation model's rotation sigma also grows per metre the two
   robots travelled since the anchor (propagated rotation error follows the metres).
 
+How hard to try on an image that came (:func:`try_hard`, whatever the mode): a pair without an
+anchor asks the backbone for its costliest registration (``View.try_hard``; the offline backbone's
+learned matcher on RGB-D passes) at every request while fewer than ``hard_tries`` requests in a row
+placed nothing, then after 1, 2, 4, 8 ... misses more, at most ``hard_backoff_max_steps`` misses apart:
+first contact and wide viewpoints get it, a pair whose images never place (a repetitive room)
+pays for it ever more rarely (0 tries: never asked).
+
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
 decision; the agent fills the view from its anchors, odometers and graph.
@@ -82,6 +89,8 @@ class PolicyConfig:
             unknown count, -1, never asks).
         rot_sigma_per_m: growth of the propagation model's rotation sigma per metre the
             two robots travelled since the anchor (added to the per-step growth; 0: off).
+        hard_tries, hard_backoff_max_steps: how a pair without an anchor asks the backbone to
+            try hard (:func:`try_hard`; 0 tries: never).
     """
 
     mode: str = "gate"
@@ -104,6 +113,8 @@ class PolicyConfig:
     recheck_limit: int = 0
     min_inliers: int = 0
     rot_sigma_per_m: float = 0.0
+    hard_tries: int = 2
+    hard_backoff_max_steps: int = 32
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -121,10 +132,13 @@ class PolicyConfig:
             if not isinstance(getattr(self, name), bool):
                 raise PolicyError(f"request_policy: {name} must be true or false, got {getattr(self, name)!r}")
         for name in ("max_steps", "miss_limit", "miss_backoff_steps", "miss_backoff_max_steps", "recheck_limit",
-                     "min_inliers", "unanchored_backoff_steps"):
+                     "min_inliers", "unanchored_backoff_steps", "hard_tries"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be an integer >= 0, got {v!r}")
+        v = self.hard_backoff_max_steps
+        if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+            raise PolicyError(f"request_policy: hard_backoff_max_steps must be an integer >= 1, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -218,6 +232,20 @@ def backoff_steps(conf: PolicyConfig, misses: int, anchored: bool = True) -> int
     wait = base * conf.miss_backoff_growth ** (misses - conf.miss_limit)
     cap = conf.miss_backoff_max_steps or base
     return int(min(max(wait, base), max(cap, base)))
+
+
+def try_hard(conf: PolicyConfig, view: PairView) -> bool:
+    """Whether a pair asks the backbone for its costliest registration of this step's image (see the
+    module docstring): never with an anchor; else while ``view.misses`` (requests in a row that placed
+    nothing) is under ``hard_tries``, then when the misses beyond them, plus one, are a power of two up
+    to ``hard_backoff_max_steps``, and a multiple of it after."""
+    if view.anchored or not conf.hard_tries:
+        return False
+    n = view.misses - conf.hard_tries + 1  # 1 at the first miss past the tries
+    if n <= 0:
+        return True
+    cap = conf.hard_backoff_max_steps
+    return n % cap == 0 if n > cap else n & (n - 1) == 0
 
 
 def _backing_off(conf: PolicyConfig, view: PairView) -> bool:

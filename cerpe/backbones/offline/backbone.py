@@ -95,8 +95,11 @@ class OfflineGeometryBackbone:
         cross: cross-robot registration of collaborator views (``View.role ==
             "collaborator"``; :mod:`.cross`): ``enabled`` (False: collaborators join the
             joint reconstruction as any other view; ``"without-depth"``, the default: on
-            for passes whose own views have no depth), ``matcher`` (the learned stage:
-            ``aliked``, ``xfeat`` or ``none``), ``min_inliers`` (learned stage),
+            for passes whose own views have no depth), ``fallback`` (where it is off, a
+            collaborator the joint pass left unplaced is registered apart when the robot asks:
+            ``View.try_hard``), ``matcher`` (the learned stage:
+            ``aliked``, ``xfeat`` or ``none``), ``min_inliers`` (learned stage; ``min_inliers_pnp``
+            where it places by P3P on depth),
             ``min_inliers_mnn`` (mutual-NN stage), ``min_inlier_ratio``,
             ``pnp_px``, ``epipolar_px``, ``max_views`` (own views the learned stage
             tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
@@ -108,7 +111,9 @@ class OfflineGeometryBackbone:
     ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
     ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
     ``cross-learned`` (collaborator views the learned stage ran for),
-    ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``,
+    ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``, ``cross-fallback-placed``,
+    ``cross-fallback-none`` (collaborators asked for with ``try_hard`` that the joint pass left, placed
+    or not apart),
     ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``); statistics only, they change no result.
     """
 
@@ -241,11 +246,16 @@ class OfflineGeometryBackbone:
                 if s in rec.obs:
                     support[s] = len(rec.obs[s][0])
         collab = [s for s in range(S) if is_collab[s]]
-        regs, why = cross_mod.register_collaborators(p, rec, own, collab, self.learned)
+        late = self._fallback(views, valid, cross_on)
+        mine = [s for s in own if views[s].role != "collaborator"]
+        regs, why = cross_mod.register_collaborators(p, rec, mine, collab + late, self.learned, strict=late)
         cross_mod.place_collaborators(regs, T, valid, support)
         for s in collab:
             # registered only through views this pass did not place: the algorithm composes those itself
             reasons[s] = "" if valid[s] else "via-unplaced" if s in regs else why.get(s, "no-reference")
+        for s in late:  # the joint pass's reason stays where the fallback did not place it either
+            p.counts["cross-fallback-placed" if valid[s] else "cross-fallback-none"] += 1
+            reasons[s] = "" if valid[s] else reasons[s]
         self.counts.update(p.counts)
         depth, conf = _depth_maps(p, rec, valid)
         timings["total"] = time.perf_counter() - t0
@@ -265,6 +275,14 @@ class OfflineGeometryBackbone:
         if on == "without-depth":
             return all(v.depth_m is None for v in views if v.role != "collaborator")
         return bool(on)
+
+    def _fallback(self, views: Sequence[View], valid: np.ndarray, cross_on: bool) -> list[int]:
+        """Collaborators of a joint pass (``cross`` off) it left unplaced that the robot asks to try hard
+        (``View.try_hard``): registered apart (``cross.fallback``)."""
+        if cross_on or not self.conf["cross"]["fallback"]:
+            return []
+        return [s for s, v in enumerate(views) if s > 0 and v.role == "collaborator" and v.try_hard
+                and not valid[s] and v.intrinsics is not None]
 
     def _bad_collaborator(self, v: View) -> str:
         """Why a received view cannot be used at all (``""``: it can): an image this backbone

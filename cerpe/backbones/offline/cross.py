@@ -18,6 +18,15 @@ evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from
 learned one (and, for the essential matrix, an inlier ratio of ``min_inlier_ratio``); a
 learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
 
+The fallback (``fallback``): on passes where collaborators join the joint reconstruction (RGB-D),
+one the joint pass left unplaced is registered here when the robot asks (``View.try_hard``: no
+anchor of its sender yet), more strictly than above, since the joint pass's own evidence already
+failed: both stages need ``min_inliers_pnp`` inliers, the learned one tries ``fallback_max_views``
+own views, and every placement, whatever its inliers, must pass the appearance check. On
+development runs the fallback without those rules carried half turns placed on 20-45 keypoints
+(streets whose two sides look alike, synthetic CAD) and a 96-inlier placement of a view that saw
+nothing the robot saw (indoor); with them, none.
+
 A metric placement of a collaborator on fewer than ``appearance_max_inliers`` inliers, in the
 joint pass or here, must also pass the **appearance check** (:func:`check_appearance`): the own
 view's depth pixels, moved into the collaborator's camera by the placement, must look like what
@@ -62,12 +71,23 @@ default_conf: dict[str, Any] = {
     # RGB-D it placed no more on development data and its learned stage cost several times the
     # step: opt in with True)
     "enabled": "without-depth",
+    # on passes where it is off (RGB-D): a collaborator the joint pass did not place is registered apart,
+    # both stages, when the robot asks (View.try_hard: it holds no anchor of the sender, tries that
+    # failed back off), so the costly stage runs for pairs not anchored yet, and ever more rarely while
+    # nothing places (synthetic RGB-D development pairs 30-170 deg apart: 84 -> 102 of 168 placed, none wrong)
+    "fallback": True,
+    # own views the fallback's learned stage tries (ALIKED at 640 px: ~0.7 s per image, LightGlue ~0.7 s per pair)
+    "fallback_max_views": 1,
     "matcher": "aliked",  # aliked: ALIKED + LightGlue; xfeat: LighterGlue over XFeat; none: cheap stage only
     # ALIKED at 640 px with 1024 keypoints, 65 essential-matrix inliers: on the wide-baseline
     # development pairs (TUM fr3 office 30-75 deg, SUN3D across fragments) the most inliers a wrong
     # registration reached were 55 and 38 (at 512 px: 36 and 41, with 50 asked); 2048 keypoints
     # placed no more at a safe threshold and cost 4x per pair
     "min_inliers": 65,
+    # the learned stage's P3P placements on the own views' metric depth (a wrong pose must also fit the
+    # depths): on synthetic CAD development scenes half turns on streets whose two sides look alike
+    # reached 34 and 45 inliers, right wide-baseline indoor ones mostly 57-155
+    "min_inliers_pnp": 50,
     "min_inliers_mnn": 15,
     "min_inlier_ratio": 0.2,
     "pnp_px": 3.0,
@@ -103,7 +123,11 @@ def check_conf(c: Mapping[str, Any]) -> None:
     for name in ("appearance_min_ncc", "appearance_min_ncc_highpass"):
         if not -1.0 <= float(c[name]) <= 1.0:
             raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be in [-1, 1], got {c[name]}")
-    for name in ("min_inliers", "min_inliers_mnn", "max_views", "max_keypoints"):
+    if not isinstance(c["fallback"], bool):
+        raise OfflineBackboneError(f"offline backbone conf: cross.fallback must be true or false, "
+                                   f"got {c['fallback']!r}")
+    for name in ("min_inliers", "min_inliers_pnp", "min_inliers_mnn", "max_views", "fallback_max_views",
+                 "max_keypoints"):
         if int(c[name]) < 1:
             raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be >= 1, got {c[name]}")
 
@@ -157,11 +181,15 @@ class LearnedMatcher:
 
 
 def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], collab: Sequence[int],
-                           learned: Any) -> tuple[dict[int, list[Registration]], dict[int, str]]:
+                           learned: Any, strict: Sequence[int] = ()
+                           ) -> tuple[dict[int, list[Registration]], dict[int, str]]:
     """Registrations of each collaborator view (index in ``p``) against the own views ``own``.
 
     ``rec``: the own views' reconstruction (None: nothing placed but view 0); ``learned``:
-    a callable returning the :class:`LearnedMatcher` (built on first use) or None.
+    a callable returning the :class:`LearnedMatcher` (built on first use) or None. ``strict``:
+    collaborators the joint pass already failed to place (the fallback, ``cross.fallback``): both
+    stages need ``min_inliers_pnp`` inliers (``min_inliers`` without depth), the learned one tries
+    ``fallback_max_views`` own views, and every placement is judged by the appearance check.
     Returns ``{k: registrations, most inliers first}`` (only views with at least one)
     and a reason per collaborator without one.
     """
@@ -169,7 +197,7 @@ def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], colla
     regs: dict[int, list[Registration]] = {}
     why: dict[int, str] = {}
     for k in collab:
-        found, reason = _register(p, k, own, rec, learned)
+        found, reason = _register(p, k, own, rec, learned, k in strict)
         if found:
             regs[k] = found
             p.counts["cross-registered"] += 1
@@ -181,7 +209,7 @@ def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], colla
 
 
 def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
-              learned: Any) -> tuple[list[Registration], str]:
+              learned: Any, strict: bool = False) -> tuple[list[Registration], str]:
     c = p.conf["cross"]
     need = int(c["min_inliers"])
     if p.Ks[k] is None:
@@ -191,11 +219,15 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
     metric = rec is None or rec.metric
     targets = [s for s in own if metric and p.views[s].depth_m is not None and not p.low_tex[s]]
     mode = "pnp" if targets else "essential"
+    if mode == "pnp":
+        need = int(c["min_inliers_pnp"])
     if not targets:
         targets = [s for s in own if not p.low_tex[s]]
     # the essential matrix asks of the mutual-NN stage what the own image-only pass asks of a pair
     need_mnn = int(c["min_inliers_mnn"]) if mode == "pnp" else max(int(c["min_inliers_mnn"]),
                                                                     int(p.conf["min_inliers"]))
+    if strict:  # the joint pass failed: the mutual-NN stage must reach what the learned one does
+        need_mnn = max(need_mnn, need)
     best: dict[int, tuple[np.ndarray | None, int, int]] = {}
     for s in targets:
         m = p.m(s, k)
@@ -207,7 +239,8 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
             and c["matcher"] != "none":
         tl = time.perf_counter()
         lm = learned()
-        order = sorted(targets, key=lambda s: -len(p.m(s, k)))[:int(c["max_views"])]
+        n_views = int(c["fallback_max_views" if strict else "max_views"])
+        order = sorted(targets, key=lambda s: -len(p.m(s, k)))[:n_views]
         fk = lm.features(p, k)
         p.counts["cross-learned"] += 1
         for s in order:
@@ -222,7 +255,7 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
     out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None]
     placed = bool(out)
     if mode == "pnp":
-        out = [r for r in out if not check_appearance(p, r.via, k, r.T_via_cam, r.inliers)]
+        out = [r for r in out if not check_appearance(p, r.via, k, r.T_via_cam, r.inliers, judge_all=strict)]
     out.sort(key=lambda r: (-r.inliers, r.via))
     if out:
         return out, ""
@@ -290,7 +323,7 @@ def pass_unit(p: Pass, rec: Recon | None, s: int, k: int, uv_s: np.ndarray, uv_k
     return 1.0
 
 
-def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int) -> str:
+def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, judge_all: bool = False) -> str:
     """The appearance check of collaborator ``k`` placed at ``T_a_k`` (metres) in own view ``a``
     on ``inliers`` keypoint inliers: ``""`` (agrees, or not judged) or
     :data:`~cerpe.protocols.REASON_APPEARANCE`.
@@ -303,10 +336,11 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int) -
     there must reach ``appearance_min_ncc``, and that of the same levels less their blur of
     ``appearance_highpass_px`` (texture, not layout; 0: not asked) ``appearance_min_ncc_highpass``. Not
     judged (``""``) either: the check off, ``a`` without a depth prior, either view blank, too few
-    pixels inside. Counted ``cross-appearance-<checked|rejected>``.
+    pixels inside. Counted ``cross-appearance-<checked|rejected>``. ``judge_all``: whatever the inliers
+    (a fallback placement, :func:`register_collaborators`).
     """
     c = p.conf["cross"]
-    if (not c["appearance_check"] or int(inliers) >= int(c["appearance_max_inliers"])
+    if (not c["appearance_check"] or (int(inliers) >= int(c["appearance_max_inliers"]) and not judge_all)
             or p.views[a].depth_m is None or p.low_tex[a] or p.low_tex[k] or p.Ks[k] is None
             or not np.all(np.isfinite(T_a_k))):
         return ""
