@@ -63,8 +63,9 @@ class View:
             backbone corrects a per-frame scale only above a threshold
             (``frame_scale_min_rel_sigma``); it never asks which source made the depth.
         try_hard: for a collaborator view, the robot asks for the backbone's costliest
-            registration of it: it holds no anchor of the sender yet (first contact, or a
-            pair that lost its anchor), and tries that failed back off
+            registration of it: the gate opened for it, the robot holds no anchor of the
+            sender yet (first contact, or a pair that lost its anchor), and tries that failed
+            back off
             (:func:`cerpe.algorithm.policy.try_hard`). A backbone may ignore it; the offline
             backbone's ``cross.fallback`` reads it.
     """

@@ -78,11 +78,23 @@ def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():
             self.seen += [(v.key[0], v.key[1], v.try_hard) for v in views if v.role == "collaborator"]
             return super().infer(views)
 
-    world = make_world(2, 16, seed=1)
-    bb = HardSpy(world, seed=1)
-    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), CerpeConfig(min_scale_pixels=20))
-    list(team.run_encounter(world.to_encounter()))
-    for sender in {s for s, _, _ in bb.seen}:
-        flags = [h for s, _, h in sorted(x for x in bb.seen if x[0] == sender)]
+    def run(**conf) -> list:
+        world = make_world(2, 16, seed=1)
+        bb = HardSpy(world, seed=1)
+        bb.seen = []
+        team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(),
+                    CerpeConfig(min_scale_pixels=20, **conf))
+        list(team.run_encounter(world.to_encounter()))
+        return sorted(bb.seen)
+
+    seen = run()
+    for sender in {s for s, _, _ in seen}:
+        flags = [h for s, _, h in seen if s == sender]
         assert flags[0] and not flags[-1], flags  # first contact asked for, the anchored pair not
         assert flags == sorted(flags, reverse=True), flags  # once anchored, never again in this world
+    # asking for every image, gate or not (the first ones before the gate opens, when nothing has missed
+    # yet): only gated ones, those the paper's policy asks for, may try hard
+    always = run(request_policy={"mode": "always"})
+    gated = {(s, t) for s, t, _ in seen}
+    assert len(always) > len(seen) and min(t for _, t, _ in always) < min(t for _, t in gated)
+    assert all((s, t) in gated for s, t, h in always if h)

@@ -174,7 +174,9 @@ class RobotAgent(GateSide):
             self.degrade(f"msg:{fault}")
             st.gate_reason[other] = f"reply-{fault}"
             return None
-        view = dataclasses.replace(view, try_hard=try_hard(self.config.request_policy, self._pair_view(other, st.step)))
+        # the costliest registration only for a gated image (request_policy "always" asks without the gate)
+        hard = self.gate_open(other) and try_hard(self.config.request_policy, self._pair_view(other, st.step))
+        view = dataclasses.replace(view, try_hard=hard)
         st.collab_views[other] = view
         return view
 

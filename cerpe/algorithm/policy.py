@@ -35,8 +35,8 @@ Three further rules ask for a fresh look at an anchor that may be wrong (all off
 * ``rot_sigma_per_m``: the propagation model's rotation sigma also grows per metre the two
   robots travelled since the anchor (propagated rotation error follows the metres).
 
-How hard to try on an image that came (:func:`try_hard`, whatever the mode): a pair without an
-anchor asks the backbone for its costliest registration (``View.try_hard``; the offline backbone's
+How hard to try on an image that came through an open gate (:func:`try_hard`, whatever the mode):
+a pair without an anchor asks the backbone for its costliest registration (``View.try_hard``; the offline backbone's
 learned matcher on RGB-D passes) at every request while fewer than ``hard_tries`` requests in a row
 placed nothing, then after 1, 2, 4, 8 ... misses more, at most ``hard_backoff_max_steps`` misses apart:
 first contact and wide viewpoints get it, a pair whose images never place (a repetitive room)
