@@ -72,8 +72,6 @@ def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():
     from cerpe.algorithm import CerpeConfig, Team
 
     class HardSpy(GTBackbone):
-        seen: list = []
-
         def infer(self, views):
             self.seen += [(v.key[0], v.key[1], v.try_hard) for v in views if v.role == "collaborator"]
             return super().infer(views)

@@ -287,7 +287,7 @@ def test_agent_rechecks_an_anchor_its_estimate_disagreed_with():
 def test_try_hard_while_unanchored_backing_off_by_powers_of_two():
     conf = PolicyConfig(hard_tries=2, hard_backoff_max_steps=8)
     asked = [m for m in range(40) if try_hard(conf, PairView(anchored=False, misses=m))]
-    # misses in a row before the request: 0 and 1 (the tries), then 1, 2, 4, 8 past them, then every 8
+    # misses in a row before the request: 0, 1 (the tries), then where misses - 1 is 1, 2, 4, 8, then every 8
     assert asked == [0, 1, 2, 3, 5, 9, 17, 25, 33]
     assert not any(try_hard(conf, PairView(anchored=True, misses=m)) for m in range(40))
     assert not try_hard(PolicyConfig(hard_tries=0), PairView(anchored=False))

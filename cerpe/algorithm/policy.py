@@ -37,8 +37,9 @@ Three further rules ask for a fresh look at an anchor that may be wrong (all off
 
 How hard to try on an image that came through an open gate (:func:`try_hard`, whatever the mode):
 a pair without an anchor asks the backbone for its costliest registration (``View.try_hard``; the offline backbone's
-learned matcher on RGB-D passes) at every request while fewer than ``hard_tries`` requests in a row
-placed nothing, then after 1, 2, 4, 8 ... misses more, at most ``hard_backoff_max_steps`` misses apart:
+learned matcher on RGB-D passes) at every request while at most ``hard_tries`` requests in a row
+placed nothing, then at the requests after ``hard_tries - 1`` plus 2, 4, 8 ... misses, at most
+``hard_backoff_max_steps`` misses apart (``hard_tries`` 2: after 0, 1, 2, 3, 5, 9, 17, 33, 65 misses):
 first contact and wide viewpoints get it, a pair whose images never place (a repetitive room)
 pays for it ever more rarely (0 tries: never asked).
 
@@ -236,9 +237,9 @@ def backoff_steps(conf: PolicyConfig, misses: int, anchored: bool = True) -> int
 
 def try_hard(conf: PolicyConfig, view: PairView) -> bool:
     """Whether a pair asks the backbone for its costliest registration of this step's image (see the
-    module docstring): never with an anchor; else while ``view.misses`` (requests in a row that placed
-    nothing) is under ``hard_tries``, then when the misses beyond them, plus one, are a power of two up
-    to ``hard_backoff_max_steps``, and a multiple of it after."""
+    module docstring): never with an anchor; else when ``n = view.misses - hard_tries + 1`` (``misses``:
+    requests in a row that placed nothing) is at most 0, a power of two up to ``hard_backoff_max_steps``,
+    or a multiple of it beyond."""
     if view.anchored or not conf.hard_tries:
         return False
     n = view.misses - conf.hard_tries + 1  # 1 at the first miss past the tries
