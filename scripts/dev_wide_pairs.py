@@ -88,38 +88,33 @@ def sun3d_pairs(stride: int, min_deg: float, max_deg: float) -> tuple[Path, list
 
 def synth_pairs(suite: Path, every: int, min_deg: float, max_deg: float,
                 min_overlap: float) -> tuple[Path, list[tuple[str, str, np.ndarray]], str]:
-    """Pairs of two robots' frames of a synthetic development suite (a ``cerpe synth`` folder, RGB-D):
-    every ``every``-th step of each robot against every ``every``-th of the other (so also a place
-    one robot saw before the other), viewing directions ``min_deg`` .. ``max_deg`` apart, each camera
-    seeing at least ``min_overlap`` of the other's surface (depth and ground truth, as ``cerpe synth``)."""
-    import cv2
-
-    from cerpe.scene import CameraIntrinsics
+    """Pairs of two robots' frames of a synthetic development suite (a ``cerpe synth`` folder, RGB-D, read
+    through its manifest): every ``every``-th step of each robot against every ``every``-th of the other
+    (so also a place one robot saw before the other), viewing directions ``min_deg`` .. ``max_deg`` apart,
+    each camera seeing at least ``min_overlap`` of the other's surface (depth and ground truth, as
+    ``cerpe synth``)."""
+    from cerpe.pipeline.run import load_manifest_setting
+    from cerpe.scene import load_depth_m
     from cerpe.synth.groundtruth import overlap_ratio
 
-    out, K = [], None
-    for enc in sorted(p for p in suite.iterdir() if (p / "overlap.npy").is_file()):
+    out, K = [], ""
+    for enc in load_manifest_setting(suite / "manifest.yaml").encounters:
         frames = {}
-        for r in sorted(p.name for p in enc.iterdir() if (p / "groundtruth.txt").is_file()):
-            cam = dict(line.split(":", 1) for line in (enc / r / "camera.yaml").read_text().splitlines()
-                       if ":" in line and not line.startswith("#"))
-            f = {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy", "width", "height")}
-            intr = CameraIntrinsics(f["fx"], f["fy"], f["cx"], f["cy"], int(f["width"]), int(f["height"]))
-            K = K or f"{f['fx']} 0 {f['cx']} 0 {f['fy']} {f['cy']} 0 0 1"
-            rows = [line.split() for line in (enc / r / "groundtruth.txt").read_text().splitlines()
-                    if line.strip() and not line.startswith("#")][::every]
-            frames[r] = [(v[0], se3_from_tq_xyzw(np.array(v[1:4], float), np.array(v[4:8], float)),
-                          cv2.imread(str(enc / r / "depth" / f"{v[0]}.png"), cv2.IMREAD_UNCHANGED) / 1000.0, intr)
-                         for v in rows]
+        for rs in enc.robots:
+            i = rs.intrinsics
+            K = K or f"{i.fx} 0 {i.cx} 0 {i.fy} {i.cy} 0 0 1"
+            image = [Path(getattr(ref, "path", ref)).relative_to(suite) for ref in rs.images]  # ImageFile or Path
+            frames[rs.robot_id] = [(image[t], rs.T_world_cam[t], load_depth_m(rs.depth[t], rs.depth_units_per_m), i)
+                                   for t in range(0, len(rs.stamps_s), every)]
         for a, b in itertools.combinations(sorted(frames), 2):
-            for (sa, Ta, Da, Ka), (sb, Tb, Db, Kb) in itertools.product(frames[a], frames[b]):
+            for (pa, Ta, Da, Ka), (pb, Tb, Db, Kb) in itertools.product(frames[a], frames[b]):
                 T_b_a = se3_inverse(Tb) @ Ta
                 if not min_deg <= np.degrees(rotation_angle(T_b_a[:3, :3])) <= max_deg:
                     continue
                 seen = min(overlap_ratio(Da, Ka, Ta, Db, Kb, Tb, 8), overlap_ratio(Db, Kb, Tb, Da, Ka, Ta, 8))
                 if seen >= min_overlap:
-                    out.append((f"{enc.name}/{a}/rgb/{sa}.png", f"{enc.name}/{b}/rgb/{sb}.png", T_b_a))
-    return suite, out, K or ""
+                    out.append((str(pa), str(pb), T_b_a))
+    return suite, out, K
 
 
 def write_set(name: str, root: Path, pairs: list, K: str, out: Path, depth: bool,
