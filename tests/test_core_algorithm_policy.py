@@ -203,7 +203,7 @@ NEW_RULES = {"unanchored_backoff_steps": 2, "backoff_pending_exempt": True, "rec
 def test_after_request_logs_misses_and_what_set_the_anchor():
     conf = PolicyConfig(mode="pays", recheck_rot_rad=0.03)
     log = after_request(conf, None, 4, placed=False)
-    assert log == AskLog(4, 1) and after_request(conf, log, 5, placed=False).misses == 2
+    assert log == AskLog(4, 1, hard_misses=1) and after_request(conf, log, 5, placed=False).misses == 2
     # a placed estimate that set the anchor: misses reset, its disagreement and inliers kept
     log = after_request(conf, log, 6, True, "verified", 0.05, 120)
     assert (log.step, log.misses, log.anchor_rot_rad, log.anchor_inliers, log.rechecks) == (6, 0, 0.05, 120, 1)
@@ -215,8 +215,21 @@ def test_after_request_logs_misses_and_what_set_the_anchor():
     # two estimates in a row that agree end the streak
     assert after_request(conf, log, 9, True, "accepted", 0.01, 90).rechecks == 0
     assert after_request(PAYS, log, 9, True, "accepted", 0.5, 90).rechecks == 0  # the rule off: no streak
-    assert AskLog(3, 2, 0.1, 7, 1).view(10) == {"misses": 2, "steps_since_ask": 7, "anchor_rot_rad": 0.1,
-                                                "anchor_inliers": 7, "rechecks": 1}
+    assert AskLog(3, 2, 0.1, 7, 1, 5).view(10) == {"misses": 2, "hard_misses": 5, "steps_since_ask": 7,
+                                                   "anchor_rot_rad": 0.1, "anchor_inliers": 7, "rechecks": 1}
+
+
+def test_hard_misses_run_on_through_placements_that_set_no_anchor():
+    conf = PolicyConfig()
+    log = after_request(conf, after_request(conf, None, 1, placed=False), 2, placed=False)
+    assert (log.misses, log.hard_misses) == (2, 2)
+    # a rejected or unverified placement: misses restart, hard_misses neither count it nor restart
+    for verdict in ("rejected", "unverified", ""):
+        kept = after_request(conf, log, 3, True, verdict, 0.4, 11)
+        assert (kept.misses, kept.hard_misses) == (0, 2)
+        assert after_request(conf, kept, 4, placed=False).hard_misses == 3
+    # an estimate that set the anchor restarts both
+    assert after_request(conf, log, 3, True, "verified", 0.01, 90).hard_misses == 0
 
 
 def test_recheck_weak_and_metre_rules_known_answers():
@@ -286,10 +299,15 @@ def test_agent_rechecks_an_anchor_its_estimate_disagreed_with():
 
 def test_try_hard_while_unanchored_backing_off_by_powers_of_two():
     conf = PolicyConfig(hard_tries=2, hard_backoff_max_steps=8)
-    asked = [m for m in range(40) if try_hard(conf, PairView(anchored=False, misses=m))]
-    # misses in a row before the request: 0, 1 (the tries), then where misses - 1 is 1, 2, 4, 8, then every 8
+    asked = [m for m in range(40) if try_hard(conf, PairView(anchored=False, hard_misses=m))]
+    # misses before the request: 0, 1 (the tries), then where misses - 1 is 1, 2, 4, 8, then every 8
     assert asked == [0, 1, 2, 3, 5, 9, 17, 25, 33]
-    assert not any(try_hard(conf, PairView(anchored=True, misses=m)) for m in range(40))
+    assert not any(try_hard(conf, PairView(anchored=True, hard_misses=m)) for m in range(40))
+    # the schedule reads hard_misses, not the misses in a row that a placement restarts
+    assert not try_hard(conf, PairView(anchored=False, misses=0, hard_misses=4))
+    # the default, one try: 0, 1, 2, 4, 8, 16, 32, then every 32
+    assert [m for m in range(100) if try_hard(PolicyConfig(), PairView(anchored=False, hard_misses=m))] == [
+        0, 1, 2, 4, 8, 16, 32, 64, 96]
     assert not try_hard(PolicyConfig(hard_tries=0), PairView(anchored=False))
     with pytest.raises(PolicyError, match="hard_backoff_max_steps"):
         PolicyConfig(hard_backoff_max_steps=0)
