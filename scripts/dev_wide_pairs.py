@@ -165,10 +165,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.set == "synth" and (args.suite is None or not (args.suite / "manifest.yaml").is_file()):
         print(f"dev_wide_pairs: --set synth needs --suite, a `cerpe synth` folder (got {args.suite})")
         return 2
-    if args.set == "synth" and json.loads((args.suite / "meta.json").read_text())["key"]["args"]["seed"] == 0:
-        print(f"dev_wide_pairs: {args.suite} was rendered with seed 0, the paper-default test suite: "
-              f"not for development")
-        return 2
+    if args.set == "synth":
+        from cerpe.pipeline.dev import PAPER_SEED
+
+        try:
+            seed = json.loads((args.suite / "meta.json").read_text())["key"]["args"]["seed"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            print(f"dev_wide_pairs: {args.suite / 'meta.json'}: cannot read the suite's seed (key.args.seed): "
+                  f"{type(exc).__name__}: {exc}")
+            return 2
+        if seed == PAPER_SEED:
+            print(f"dev_wide_pairs: {args.suite} was rendered with seed {PAPER_SEED}, the paper-default test suite: "
+                  f"not for development")
+            return 2
     if args.set != "synth" and not DATA.is_dir():
         print(f"dev_wide_pairs: no development data at {DATA}: nothing to do")
         return 0
