@@ -49,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cerpe.algorithm.graph import GraphConfig  # noqa: E402
+from cerpe.algorithm.graph_model import sensor_like  # noqa: E402
 from cerpe.pipeline.evaluate import frame_errors, load_run, summarise  # noqa: E402
 from cerpe.pipeline.graphdev import (  # noqa: E402
     MAXWELL_MEDIAN,
@@ -100,9 +101,10 @@ def fit_direct(sets: list[Path], stat: str = "median") -> dict:
 
 
 def fit_odometry(sets: list[Path]) -> dict:
-    """Odometry noise from every set (one model: per-depth-kind gains were measured worse, see the
-    commit), and the ratio of observed to modelled error over longer windows per depth kind ``rel``, under
-    the fit and under the shipped model (``shipped_*``)."""
+    """Odometry noise from every set (one model: per-depth-kind fits were measured worse, see commit
+    9b719d3; the shipped model scales it by ``odo_sensor_scale`` on sensor-like depth), and the ratio of
+    observed to modelled error over longer windows per depth kind ``rel``, under the fit and under the
+    shipped model (``shipped_*``, with that scale)."""
     from cerpe.pipeline.run import load_manifest_setting
 
     rows = []
@@ -133,19 +135,22 @@ def fit_odometry(sets: list[Path]) -> dict:
     for (rel, w), g in O[~O["failed"]].groupby(["rel", "window"]):
         row = {"rel": float(rel), "window": int(w), "n": int(len(g)),
                "trans_median_m": float(g["trans_err_m"].median()), "trans_rms_m": float(np.sqrt(np.mean(g["trans_err_m"] ** 2)))}
-        for tag, c in (("", fit), ("shipped_", shipped)):  # the fit above and GraphConfig's defaults
-            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c).items()})
+        sensor = sensor_like(GraphConfig(), None if rel < 0 else float(rel))
+        for tag, c, f in (("", fit, 1.0), ("shipped_", shipped, GraphConfig().odo_sensor_scale if sensor else 1.0)):
+            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c, f).items()})  # the fit; GraphConfig's
         growth.append(row)
     fails = O[(O["window"] == 1)]
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
 
 
-def _odo_ratios(g: pd.DataFrame, w: int, c: dict) -> dict:
-    """Observed over modelled odometry error of ``w``-step windows ``g`` under the odometry model ``c`` (1: calibrated)."""
+def _odo_ratios(g: pd.DataFrame, w: int, c: dict, scale: float = 1.0) -> dict:
+    """Observed over modelled odometry error of ``w``-step windows ``g`` under the odometry model ``c``
+    with its sigmas times ``scale`` (1: calibrated)."""
     # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
     var_r = w * c["odo_rot_per_step"] ** 2 + ((c["odo_rot_per_m"] * g["dist_m"]) ** 2
                                               + (c["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
     var_t = w * c["odo_trans_per_step"] ** 2 + (c["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
+    var_r, var_t = var_r * scale**2, var_t * scale**2
     return {"rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
             "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
             "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t)) / (MAXWELL_MEDIAN / np.sqrt(3)))}

@@ -120,7 +120,8 @@ def test_odometry_covariance_grows_with_steps_and_distance():
 
 @pytest.mark.parametrize("bad", [{"kernel": "tukey"}, {"window_nodes": 1}, {"direct_rot_rad": -1.0},
                                  {"kernel_k": float("nan")}, {"drift_after": -1}, {"drift_cos": 1.0},
-                                 {"drift_chi2": 0.0}, {"drift_inflate": float("inf")}])
+                                 {"drift_chi2": 0.0}, {"drift_inflate": float("inf")},
+                                 {"sensor_max_rel": float("nan")}, {"odo_sensor_scale": 0.0}])
 def test_bad_graph_config_is_one_clear_error(bad):
     with pytest.raises(GraphError, match=next(iter(bad))):
         GraphConfig(**bad)
@@ -420,6 +421,55 @@ def test_along_gain_per_depth_kind():
     np.testing.assert_allclose(c, b)
     with pytest.raises(GraphError, match="direct_depth_along_unknown"):
         GraphConfig(direct_depth_along_unknown=-0.1)
+
+
+def test_odometry_on_sensor_depth_is_tighter_but_fails_alike():
+    # known answer: on a sensor-like depth source (rel <= sensor_max_rel) the noise part of an increment's
+    # covariance is odo_sensor_scale^2 times the monocular prior's; the failure terms (lost steps, a jump)
+    # are the same; an unknown source (None) and a monocular prior get the plain model
+    conf = GraphConfig(odo_sensor_scale=0.4, sensor_max_rel=0.05)
+    D = make_se3(so3_exp(np.array([0.0, 0.2, 0.0])), np.array([0.5, 0.0, 0.1]))
+    plain = odometry_cov(conf, D, 2)
+    for rel in (0.0, 0.01):
+        np.testing.assert_allclose(odometry_cov(conf, D, 2, depth_rel_sigma=rel), 0.16 * plain, rtol=1e-12)
+        lost = odometry_cov(conf, D, 2, lost_steps=1, depth_rel_sigma=rel) - odometry_cov(conf, D, 2, depth_rel_sigma=rel)
+        np.testing.assert_allclose(lost, odometry_cov(conf, D, 2, lost_steps=1) - plain, atol=1e-15)
+    for rel in (MONO_REL, None):
+        np.testing.assert_array_equal(odometry_cov(conf, D, 2, depth_rel_sigma=rel), plain)
+    jump = make_se3(so3_exp(np.array([0.0, 2.5, 0.0])), np.zeros(3))  # 2.5 rad in one step: a failure
+    assert odometry_cov(conf, jump, 1, depth_rel_sigma=0.0)[0, 0] > 2.5**2
+
+
+def test_a_pair_graph_on_sensor_depth_walks_tighter():
+    s = simulate_pair(5, n_steps=20, direct_every=10)
+    sigmas = []
+    for rel in (None, 0.0):
+        g = PairGraph(GraphConfig(), depth_rel_sigma=rel)
+        out = [g.step(t, s.X_i[t], s.X_j[t], t, DirectEstimate(t, s.direct[t], depth_rel_sigma=0.0)
+                      if t in s.direct else None) for t in range(len(s.truth))]
+        sigmas.append(np.trace(out[9].cov) - np.trace(out[0].cov))  # growth over 9 steps of propagation
+    assert 0 < sigmas[1] < 0.5 * sigmas[0]
+
+
+def test_inliers_weigh_estimates_on_sensor_depth_only():
+    # known answers: ref 100, clip 3; on a depth sensor (rel 0) 25 inliers double every sigma, 400 halve
+    # them, 10 000 stop at a third; on a monocular prior (rel above sensor_max_rel) and on no
+    # metric depth (rel unknown) the inliers change nothing, nor do unknown inliers (-1)
+    conf = GraphConfig(direct_inliers_ref=100.0, direct_inliers_clip=3.0, sensor_max_rel=0.05)
+    T = random_se3(np.random.default_rng(3), 2.0)
+    for rel in (0.0, 0.01):
+        base = graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=100, depth_rel_sigma=rel))
+        assert np.array_equal(base, graph_mod.direct_cov(conf, DirectEstimate(0, T, depth_rel_sigma=rel)))
+        for n, f in ((25, 2.0), (400, 0.5), (10_000, 1.0 / 3.0)):
+            C = graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=n, depth_rel_sigma=rel))
+            np.testing.assert_allclose(C, f**2 * base, rtol=1e-12)
+    for rel in (MONO_REL, None):
+        base = graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=100, depth_rel_sigma=rel))
+        for n in (25, 400):
+            assert np.array_equal(graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=n, depth_rel_sigma=rel)), base)
+    off = dataclasses.replace(conf, direct_inliers_ref=0.0)
+    assert np.array_equal(graph_mod.direct_cov(off, DirectEstimate(0, T, inliers=25, depth_rel_sigma=0.0)),
+                          graph_mod.direct_cov(off, DirectEstimate(0, T, inliers=400, depth_rel_sigma=0.0)))
 
 
 # the noise model of cerpe-graph before depth kinds (commit a50f8ce's calibration, one model for every depth)

@@ -439,7 +439,7 @@ class RobotAgent(GateSide):
         info = st.pair_info.get(other, PairInfo())
         graph = self.graphs.get(other)
         if graph is None:
-            graph = self.graphs[other] = PairGraph(self.config.graph)
+            graph = self.graphs[other] = PairGraph(self.config.graph, getattr(self.depth, "rel_sigma", None))
         pose = self.poses.get(other)
         direct = (None if info.direct_T is None else
                   DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,

@@ -162,10 +162,16 @@ class _Solver:
 
 
 class PairGraph:
-    """The pose graph of one ordered pair (ego i about robot j), fed once per step by :meth:`step`."""
+    """The pose graph of one ordered pair (ego i about robot j), fed once per step by :meth:`step`.
 
-    def __init__(self, conf: GraphConfig | None = None) -> None:
+    ``depth_rel_sigma``: the ego's depth source's relative scale sigma (None: none reported); it sets
+    the noise model of both odometries (:func:`odometry_cov`): the messages do not say the other
+    robot's depth kind, and a team is taken to share one.
+    """
+
+    def __init__(self, conf: GraphConfig | None = None, depth_rel_sigma: float | None = None) -> None:
         self.conf = conf or GraphConfig()
+        self.depth_rel_sigma = depth_rel_sigma  # the ego's depth source's: both odometries' noise model
         self._ref: tuple[np.ndarray, np.ndarray] | None = None  # X_i, X_j at the first node
         self._last_i: tuple[int, np.ndarray] | None = None
         self._last_j: tuple[int, np.ndarray] | None = None
@@ -216,7 +222,8 @@ class PairGraph:
             self._lost = 0 if self._O is None else self._lost
             return
         inc = _inv(last[1]) @ X_i
-        S = odometry_cov(self.conf, inc, step - last[0], self._lost, self._speed_change(0, inc, last[0], step))
+        S = odometry_cov(self.conf, inc, step - last[0], self._lost, self._speed_change(0, inc, last[0], step),
+                         self.depth_rel_sigma)
         self._lost = 0
         A = se3_adjoint(self._local(X_i, 0))
         self._Q = _sym(self._Q + A @ S @ A.T)
@@ -229,7 +236,8 @@ class PairGraph:
         if self._O is None or last is None:
             return
         inc = _inv(last[1]) @ X_j
-        S = odometry_cov(self.conf, inc, step - last[0], 0, self._speed_change(1, inc, last[0], step))
+        S = odometry_cov(self.conf, inc, step - last[0], 0, self._speed_change(1, inc, last[0], step),
+                         self.depth_rel_sigma)
         A = se3_adjoint(_inv(self._O) @ self._local(X_j, 1))
         self._Q = _sym(self._Q + A @ S @ A.T)
 

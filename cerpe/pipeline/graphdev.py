@@ -72,7 +72,7 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     failed = {t: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)
               for t, d in ego["degradations"].items()}
     T_dir = _poses(steps, "dir")
-    graph = PairGraph(conf)
+    graph = PairGraph(conf, rel_sigma)
     est = np.full((len(steps), 4, 4), np.nan)
     src, anchor, s_pos, s_rot = [], [], np.full(len(steps), np.nan), np.full(len(steps), np.nan)
     verdicts = steps["anchor_verdict"].fillna("").astype(str) if "anchor_verdict" in steps else [""] * len(steps)
