@@ -95,7 +95,7 @@ def err(T, G) -> float:
 
 
 def anchor(r, metric) -> Anchor:
-    return Anchor(r["step"], r["T"], r["X_i"], r["X_j"], r["odo_i"], r["odo_j"], metric)
+    return Anchor(r["step"], r["T"], r["X_i"], r["X_j"], r["odo_i"], r["odo_j"], metric, r["inliers"])
 
 
 def _cols(prefix: str, T) -> list[float]:
@@ -122,7 +122,7 @@ def replay_pair(rows, metric: bool, cfg: CerpeConfig):
                 verdict, dropped = check.verdict, len(check.dropped)
             else:
                 pa.anchor, verdict = est, "unchecked"
-            if verdict != "rejected" and (verdict != "unverified" or cfg.report_unverified):
+            if verdict not in ("rejected", "weak") and (verdict != "unverified" or cfg.report_unverified):
                 rep, src_step, source = r["T"], t, "direct"
         if rep is None and cfg.propagate:
             a, _ = pa.carried(t)

@@ -86,6 +86,30 @@ def test_wrong_estimate_is_rejected_and_a_consistent_one_accepted():
     assert pa.carried(7) == (pa.anchor, True)
 
 
+def test_a_weak_consistent_estimate_keeps_the_anchor_and_a_weak_wrong_one_is_judged_as_any():
+    import dataclasses
+
+    p = Pair(2)
+    conf = dataclasses.replace(CONF, min_inliers=40)
+    pa = PairAnchors(conf, anchor=p.est(0))
+
+    def est(t, inliers, error=None):
+        return dataclasses.replace(p.est(t, error), inliers=inliers)
+
+    check = pa.offer(est(1, 39, rot(0.05)))  # agrees, on 39 inliers: weak, the anchor stays
+    assert check.verdict == "weak" and check.against == 0 and pa.anchor.step == 0 and not pa.challengers
+    assert pa.carried(2) == (pa.anchor, True)
+    assert pa.offer(est(2, 40)).verdict == "accepted" and pa.anchor.step == 2  # 40: enough
+    assert pa.offer(est(3, -1)).verdict == "accepted" and pa.anchor.step == 3  # unknown inliers: no rule
+    assert pa.offer(est(4, 10, rot(0.5))).verdict == "rejected" and pa.anchor.step == 3  # disagrees: rejected
+    assert len(pa.challengers) == 1
+    off = PairAnchors(dataclasses.replace(CONF, min_inliers=0), anchor=p.est(0))  # 0: off
+    assert off.offer(est(1, 5)).verdict == "accepted"
+    fresh = PairAnchors(conf)  # without an anchor the rule does not apply: candidates verify as before
+    assert fresh.offer(est(1, 5)).verdict == "unverified"
+    assert fresh.offer(est(2, 5)).verdict == "verified" and fresh.anchor.step == 2
+
+
 def test_persistent_disagreement_replaces_the_anchor():
     p = Pair(3)
     wrong = rot(0.6, (1.0, 0.0, 0.0))

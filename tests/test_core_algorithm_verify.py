@@ -74,6 +74,27 @@ def test_wrong_direct_estimate_is_rejected_and_counted_a_consistent_one_accepted
                 assert max(gt_error(world, q)) < 1e-5, (q.step, q.ego)
 
 
+def test_a_weak_estimate_that_agrees_keeps_the_anchor_and_is_counted():
+    world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
+    weak = ("r1", 27, "jpeg")  # r0's pass at step 27 places r1's image on 20 inliers, 0.05 rad off
+    support = lambda cur, key: 20 if key == weak else 100  # noqa: E731
+    nudge = lambda cur, via, key: turned(0.05) if key == weak else None  # noqa: E731
+    _, results = run(world, support=support, perturb=nudge)
+    p = pair(results, "r0", "r1")[27]
+    assert p.gate_open and p.anchor_verdict == "weak" and p.check_rot_rad == pytest.approx(0.05, abs=1e-6)
+    assert p.source == "propagated" and p.anchor_step == 26 and p.reason.startswith("direct-weak: 20 inliers < 40")
+    assert max(gt_error(world, p)) < 1e-5  # the anchor's propagation, not the weak estimate
+    assert pair(results, "r0", "r1")[28].anchor_verdict == "accepted"
+    assert degradations(results, "r0")["anchor:weak"] == 1 and degradations(results, "r0")["anchor:inconsistent"] == 0
+    assert degradations(results, "r1")["anchor:weak"] == 0
+    # without propagation (w/o EM) the weak step reports nothing; with the rule off it is reported
+    _, results = run(world, dataclasses.replace(CFG, propagate=False), support=support, perturb=nudge)
+    assert pair(results, "r0", "r1")[27].source == "none"
+    _, results = run(world, dataclasses.replace(CFG, anchor_min_inliers=0), support=support, perturb=nudge)
+    p = pair(results, "r0", "r1")[27]
+    assert p.source == "direct" and p.anchor_verdict == "accepted" and gt_error(world, p)[0] > 0.04
+
+
 def _world_turn(world: World, key, angle: float, about: np.ndarray) -> np.ndarray:
     """Right-hand perturbation that places view ``key`` in a world turned by ``angle`` about the point
     ``about``: every such placement is wrong by the same rigid motion, so they agree with each other."""

@@ -454,7 +454,7 @@ class RobotAgent(GateSide):
             self.sigmas[other] = (float(rot), float(pos))
         # what the switch said about its own anchors does not describe the graph's estimate
         reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
-                           and not r.startswith("direct-rejected"))
+                           and not r.startswith(("direct-rejected", "direct-weak")))
         if res.T_cj_ci is None:
             if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
                 return "none", None, "; ".join(r for r in (reason, "unverified-expired") if r), res.node_step, None
@@ -485,7 +485,8 @@ class RobotAgent(GateSide):
                         return "direct", T, "anchor-not-stored: pose message missing", st.step
                     self.degrade("pose:bridged")
                 est = Anchor(st.step, T, self.X.copy(), X_j.copy(), self._odometer(self.robot_id, st.step, self.X),
-                             self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale)
+                             self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale,
+                             int(ests[0][3]))
                 if bridged:
                     plog.defer(st.step, est)
                 if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
@@ -501,11 +502,16 @@ class RobotAgent(GateSide):
                     self.degrade("anchor:inconsistent")
                 if check.verdict == "unverified" and not self.config.report_unverified:
                     return "none", None, "unverified-held", -1  # nothing agrees with it yet
-                if check.verdict != "rejected":
+                if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
+                    self.degrade("anchor:weak")
+                    reason = (f"direct-weak: {int(ests[0][3])} inliers < {self.config.anchor_min_inliers}; "
+                              f"the anchor of step {check.against} is kept")
+                elif check.verdict != "rejected":
                     return "direct", T, "unverified" if check.verdict == "unverified" else "", st.step
-                self.degrade("anchor:inconsistent")
-                reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
-                          f"of step {check.against}")
+                else:
+                    self.degrade("anchor:inconsistent")
+                    reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
+                              f"of step {check.against}")
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
             reason = "request-skipped" if other in st.skipped else st.gate_reason.get(other, "")
             if not self.config.propagate:

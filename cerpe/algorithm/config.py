@@ -119,6 +119,11 @@ class CerpeConfig:
         anchor_trans_drift_frac: added to the translation tolerance per metre the two
             robots travelled since the anchor (odometers summed).
         anchor_trans_rel: added to the translation tolerance per metre between the cameras.
+        anchor_min_inliers: with an anchor, a direct estimate that agrees with it but
+            stands on fewer registration inliers than this (when the backbone reports them)
+            is *weak*: neither reported nor the new anchor, the anchor is propagated
+            instead (counted ``anchor:weak``; 0: off). One that disagrees is judged as any
+            other. 40: below it the appearance check already judges a placement.
         anchor_replace_after: when this many rejected estimates of the last
             ``anchor_candidate_steps`` steps agree with the newest of them (it included),
             the newest replaces the anchor.
@@ -193,6 +198,7 @@ class CerpeConfig:
     anchor_rot_drift_per_step: float = 0.005
     anchor_trans_drift_frac: float = 0.1
     anchor_trans_rel: float = 0.2
+    anchor_min_inliers: int = 40
     anchor_replace_after: int = 5
     max_unverified_steps: int = 2
     anchor_candidate_steps: int = 10
@@ -249,7 +255,7 @@ class CerpeConfig:
         if not (np.isfinite(self.anchor_verify_fraction) and 0.0 <= self.anchor_verify_fraction <= 1.0):
             raise AlgorithmError(f"config: anchor_verify_fraction must be in [0, 1], got {self.anchor_verify_fraction}")
         for name in ("anchor_replace_after", "anchor_verify_support", "max_unverified_steps",
-                     "anchor_candidate_steps"):
+                     "anchor_candidate_steps", "anchor_min_inliers"):
             v, low = getattr(self, name), int(name in ("anchor_replace_after", "anchor_verify_support"))
             if int(v) != v or v < low:
                 raise AlgorithmError(f"config: {name} must be an integer >= {low}, got {v}")
@@ -296,6 +302,7 @@ class CerpeConfig:
                             rot_drift_per_step=self.anchor_rot_drift_per_step,
                             trans_drift_frac=self.anchor_trans_drift_frac, trans_rel=self.anchor_trans_rel,
                             replace_after=int(self.anchor_replace_after),
+                            min_inliers=int(self.anchor_min_inliers),
                             max_unverified_steps=int(self.max_unverified_steps),
                             candidate_steps=int(self.anchor_candidate_steps),
                             agree_rot_rad=self.registration_agree_rot_rad,

@@ -52,6 +52,8 @@ DEGRADATIONS: dict[str, str] = {
                          "this step; the pair keeps its anchor",
     "anchor:inconsistent": "a direct estimate that disagrees with the pair's verified anchor propagated to it: "
                            "not an anchor; the anchor's propagation is reported instead",
+    "anchor:weak": "a direct estimate that agrees with the pair's anchor but stands on fewer than anchor_min_inliers "
+                   "registration inliers: not an anchor; the anchor's propagation is reported instead",
     "anchor:replaced": "anchor_replace_after recent rejected estimates agree with the newest of them: it replaced "
                        "the anchor",
     "direct:appearance-mismatch": "the backbone placed the collaborator's view by keypoints but the images contradict "

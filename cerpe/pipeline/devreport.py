@@ -15,9 +15,9 @@ One row per (set, method) (:func:`method_row`):
 * ``n_direct`` / ``n_requests``: evaluated frames with a direct estimate (a placed
   collaborator view) / with an image requested (the gate open and the request policy
   asking; always, for the per-frame baselines);
-* ``anchors_rejected`` / ``anchors_replaced``: how often the robots counted the
-  degradations ``anchor:inconsistent`` / ``anchor:replaced`` (0 where the algorithm does
-  not have them);
+* ``anchors_rejected`` / ``anchors_replaced`` / ``anchors_weak``: how often the robots counted
+  the degradations ``anchor:inconsistent`` / ``anchor:replaced`` / ``anchor:weak`` (0 where the
+  algorithm does not have them);
 * ``carried_longest_steps``, ``carried_runs_over_3``: wrong estimates carried
   (:func:`wrong_runs`): the longest run of consecutive steps of one ordered pair whose
   estimate is more than 0.3 rad wrong and comes from the same anchor, and how many such
@@ -46,11 +46,12 @@ WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong" (iss
 CARRIED_MAX_STEPS = 3  # issue 18's target: no wrong estimate carried for more than this many steps
 REJECTED = "anchor:inconsistent"
 REPLACED = "anchor:replaced"
+WEAK = "anchor:weak"
 
 REPORT_COLS: tuple[str, ...] = (
     "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_pos_on_woem_frames_m", "e_rot_rad", "e_rot_median_rad",
     "success_pct", "success_after_covis_pct", "right_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
-    "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
+    "anchors_weak", "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
 GATE_COLS: tuple[str, ...] = (
     "set", "tau", "covis_roc_auc", "covis_precision", "covis_recall", "covis_n_pairs", "covis_n_positive",
     "covis_n_left_out", "roc_auc", "precision", "recall", "roc_auc_ceiling", "n_pairs", "n_overlapping")
@@ -123,6 +124,7 @@ def method_row(run: Run, set_name: str | None = None, frames: pd.DataFrame | Non
     row["n_requests"] = int(asked.sum())
     row["anchors_rejected"] = count_degradation(run.robots, REJECTED)
     row["anchors_replaced"] = count_degradation(run.robots, REPLACED)
+    row["anchors_weak"] = count_degradation(run.robots, WEAK)
     row.update(carried(wrong_runs(run.steps)))
     b = pd.to_numeric(run.robots.get("bytes_total"), errors="coerce")
     row["bytes_per_robot_step"] = float(b.mean()) if b is not None and len(b) else float("nan")
@@ -171,13 +173,13 @@ def _cells(r: pd.Series) -> list[str]:
     return [str(r["set"]), str(r["method"]), f"{_f(r['e_pos_m'], 3)} / {_f(r['e_pos_gt_scale_m'], 3)}",
             _f(r["e_pos_on_woem_frames_m"]), _f(r["e_rot_rad"]), _f(r["e_rot_median_rad"]), _f(r["success_pct"], 1),
             _f(r["success_after_covis_pct"], 1), _f(r["right_pct"], 1), f"{int(r['n_direct'])} / {int(r['n_requests'])}",
-            str(int(r["anchors_rejected"])),
+            f"{int(r['anchors_rejected'])} / {int(r['anchors_weak'])}",
             f"{int(r['carried_longest_steps'])} ({int(r['carried_runs_over_3'])})",
             _f(r["bytes_per_robot_step"], 0), str(int(r["n_frames"]))]
 
 
 HEADER = ["set", "method", "e_pos m (pred / GT scale)", "e_pos on w/o EM frames", "e_rot mean", "e_rot med", "succ %", "succ>covis %",
-          "right %", "placed / req", "rejected", "wrong carried (>3)", "B/robot/step", "frames"]
+          "right %", "placed / req", "rejected / weak", "wrong carried (>3)", "B/robot/step", "frames"]
 GATE_HEADER = ["set", "tau", "covis AUC", "covis P", "covis R", "covis pairs (pos)", "left out",
                "ordered AUC", "ordered P", "ordered R", "ceiling"]
 
@@ -191,8 +193,8 @@ def _gate_cells(r: pd.Series) -> list[str]:
 
 LEGEND = ("e_pos on w/o EM frames: e_pos (predicted scale) over the frames where CERPE w/o EM reports, "
           "the methods on the same frames; e_rot in rad; succ>covis: success over frames at or after the pair's first step with GT overlap >= 0.2 "
-          f"both ways; right: frames with an estimate within {RIGHT_ROT_RAD:g} rad of the true rotation; placed / req: evaluated frames with a direct estimate / with an image requested; rejected: "
-          f"'{REJECTED}' counted; wrong carried: longest run of consecutive steps of one pair more than "
+          f"both ways; right: frames with an estimate within {RIGHT_ROT_RAD:g} rad of the true rotation; placed / req: evaluated frames with a direct estimate / with an image requested; rejected / weak: "
+          f"'{REJECTED}' / '{WEAK}' counted; wrong carried: longest run of consecutive steps of one pair more than "
           f"{WRONG_RAD} rad wrong from one anchor (runs longer than {CARRIED_MAX_STEPS} steps); B/robot/step: "
           "bytes a robot sent per step. Gate: the descriptor cosine against the co-visibility label (unordered "
           "pair, overlap >= 0.2 both ways positive, < 0.05 both ways negative, the rest left out) at the run's "
