@@ -432,7 +432,8 @@ def test_odometry_on_sensor_depth_is_tighter_but_fails_alike():
     plain = odometry_cov(conf, D, 2)
     for rel in (0.0, 0.01):
         np.testing.assert_allclose(odometry_cov(conf, D, 2, depth_rel_sigma=rel), 0.16 * plain, rtol=1e-12)
-        lost = odometry_cov(conf, D, 2, lost_steps=1, depth_rel_sigma=rel) - odometry_cov(conf, D, 2, depth_rel_sigma=rel)
+        lost = (odometry_cov(conf, D, 2, lost_steps=1, depth_rel_sigma=rel)
+                - odometry_cov(conf, D, 2, depth_rel_sigma=rel))
         np.testing.assert_allclose(lost, odometry_cov(conf, D, 2, lost_steps=1) - plain, atol=1e-15)
     for rel in (MONO_REL, None):
         np.testing.assert_array_equal(odometry_cov(conf, D, 2, depth_rel_sigma=rel), plain)
@@ -466,7 +467,8 @@ def test_inliers_weigh_estimates_on_sensor_depth_only():
     for rel in (MONO_REL, None):
         base = graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=100, depth_rel_sigma=rel))
         for n in (25, 400):
-            assert np.array_equal(graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=n, depth_rel_sigma=rel)), base)
+            C = graph_mod.direct_cov(conf, DirectEstimate(0, T, inliers=n, depth_rel_sigma=rel))
+            assert np.array_equal(C, base)
     off = dataclasses.replace(conf, direct_inliers_ref=0.0)
     assert np.array_equal(graph_mod.direct_cov(off, DirectEstimate(0, T, inliers=25, depth_rel_sigma=0.0)),
                           graph_mod.direct_cov(off, DirectEstimate(0, T, inliers=400, depth_rel_sigma=0.0)))

@@ -19,8 +19,8 @@ starts from) only when something independent agrees with it:
 An estimate that agrees with the anchor but stands on fewer than ``min_inliers``
 registration inliers is *weak*: the pair keeps the anchor (and propagates it
 instead of reporting the estimate). An estimate that disagrees with the anchor is
-*rejected* (the pair keeps the anchor); when ``replace_after`` rejected estimates of the last ``candidate_steps``
-steps agree with the newest of them, the newest replaces it (persistent
+*rejected* (the pair keeps the anchor); when ``replace_after`` rejected estimates
+of the last ``candidate_steps`` steps agree with the newest of them, the newest replaces it (persistent
 disagreement: the anchor was the wrong one). Before any anchor is
 verified, the newest unverified estimate may be propagated for at most
 ``max_unverified_steps`` steps, and only with ``report_unverified`` (without it,

@@ -183,7 +183,8 @@ class GraphConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GraphError(f"graph config: {name} must be finite and >= 0, got {v}")
-        for name in ("odo_sensor_scale", "direct_inliers_clip", "direct_along_factor", "unverified_scale", "rejected_scale", "kernel_k",
+        for name in ("odo_sensor_scale", "direct_inliers_clip", "direct_along_factor", "unverified_scale",
+                     "rejected_scale", "kernel_k",
                      "converge_tol", "consensus_gate_chi2", "consensus_ratio", "drift_chi2", "drift_inflate",
                      "relinearize_threshold"):
             v = getattr(self, name)

@@ -51,7 +51,8 @@ WEAK = "anchor:weak"
 REPORT_COLS: tuple[str, ...] = (
     "set", "method", "e_pos_m", "e_pos_gt_scale_m", "e_pos_on_woem_frames_m", "e_rot_rad", "e_rot_median_rad",
     "success_pct", "success_after_covis_pct", "right_pct", "n_direct", "n_requests", "anchors_rejected", "anchors_replaced",
-    "anchors_weak", "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames", "n_frames_after_covis")
+    "anchors_weak", "carried_longest_steps", "carried_runs_over_3", "bytes_per_robot_step", "n_frames",
+    "n_frames_after_covis")
 GATE_COLS: tuple[str, ...] = (
     "set", "tau", "covis_roc_auc", "covis_precision", "covis_recall", "covis_n_pairs", "covis_n_positive",
     "covis_n_left_out", "roc_auc", "precision", "recall", "roc_auc_ceiling", "n_pairs", "n_overlapping")

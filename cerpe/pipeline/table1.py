@@ -93,7 +93,7 @@ CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with
            "scale; CERPE rows show predicted / GT-scale. The SuperGlue row of the paper is replaced by "
            "ALIKED+LightGlue (SuperPoint/SuperGlue weights exist nowhere offline). NOPE and Co-VisNet: "
            "not available offline (no code/weights). The last row, CERPE + pose graph, is our extension, not the "
-           "paper's: the same messages as CERPE, each pair's direct estimates (accepted or rejected) and both "
+           "paper's: the same messages as CERPE, each pair's direct estimates (whatever anchor verification said) and both "
            "odometries in a robust pose graph (GTSAM iSAM2, Cauchy kernel) instead of switching.")
 PRESET_NOTES = {
     "offline": "CERPE here uses the offline backbone preset (XFeat + SALAD-style descriptor + multi-view "
@@ -109,7 +109,8 @@ def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
     metre, ``BackboneOutput.metric_unit``, when ``backbone_metric_unit`` is on: the offline
     backbone anchors its passes on the metric depth priors) and through which view ego-motion
     is chained (``track_previous``: the previous frame; off: keyframes only, the paper's pass),
-    and whether the odometry's step-length rule was on (``ego_max_accel_mps2`` > 0).
+    and whether the odometry's step-length rule was on (``ego_max_accel_mps2`` > 0), whether anchor
+    verification was (``verify_anchors``) and with it the weak-estimate rule (``anchor_min_inliers`` > 0).
     """
     note = [PRESET_NOTES.get(preset, f"CERPE uses the {preset!r} backbone preset.")]
     metric = {bool(c["backbone_metric_unit"]) for c in cerpe_configs if "backbone_metric_unit" in c}
@@ -132,7 +133,19 @@ def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
     if held == {True}:
         note.append("A metric ego-motion step far slower than the robot's last steady ones, more than braking "
                     "explains, is held at their speed (CerpeConfig.ego_max_accel_mps2; not in the paper).")
-    if len(metric) > 1 or len(prev) > 1 or len(held) > 1:
+    verify = {bool(c["verify_anchors"]) for c in cerpe_configs if "verify_anchors" in c}
+    weak = {int(c.get("anchor_min_inliers", 0)) for c in cerpe_configs if c.get("verify_anchors")}
+    if verify == {True}:
+        note.append("A direct estimate becomes the pair's anchor only when verified: consistent with the anchor "
+                    "propagated to it, or, before one, with a second estimate (CerpeConfig.verify_anchors; not in "
+                    "the paper, where every direct estimate is the anchor); one that disagrees is not reported "
+                    "and the anchor is propagated instead.")
+        if len(weak) == 1 and min(weak) > 0:
+            note.append(f"With an anchor, an estimate on fewer than {min(weak)} registration inliers is not "
+                        "reported either (CerpeConfig.anchor_min_inliers).")
+    elif verify == {False}:
+        note.append("Every direct estimate is the new anchor, as in the paper (verify_anchors off).")
+    if len(metric) > 1 or len(prev) > 1 or len(held) > 1 or len(verify) > 1 or len(weak) > 1:
         note.append("These settings differ between the CERPE runs (see their run.json).")
     return " ".join(note)
 
