@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from cerpe.algorithm import CerpeConfig
-from cerpe.algorithm.anchors import Anchor, PairAnchors, disagreement
+from cerpe.algorithm.anchors import NOT_REPORTED, Anchor, PairAnchors, disagreement
 from cerpe.geometry import e_rot, se3_from_tq_xyzw
 
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -122,7 +122,7 @@ def replay_pair(rows, metric: bool, cfg: CerpeConfig):
                 verdict, dropped = check.verdict, len(check.dropped)
             else:
                 pa.anchor, verdict = est, "unchecked"
-            if verdict not in ("rejected", "weak") and (verdict != "unverified" or cfg.report_unverified):
+            if verdict not in NOT_REPORTED and (verdict != "unverified" or cfg.report_unverified):
                 rep, src_step, source = r["T"], t, "direct"
         if rep is None and cfg.propagate:
             a, _ = pa.carried(t)

@@ -26,7 +26,7 @@ from ..protocols import (
 )
 from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
-from .anchors import Anchor, PairAnchors
+from .anchors import NOT_REPORTED, Anchor, PairAnchors
 from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
 from .frames import check_frame, describe, intrinsics_tuple, received_view
@@ -486,7 +486,7 @@ class RobotAgent(GateSide):
                     self.degrade("pose:bridged")
                 est = Anchor(st.step, T, self.X.copy(), X_j.copy(), self._odometer(self.robot_id, st.step, self.X),
                              self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale,
-                             int(ests[0][3]))
+                             int(info.direct_inliers))
                 if bridged:
                     plog.defer(st.step, est)
                 if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
@@ -504,9 +504,9 @@ class RobotAgent(GateSide):
                     return "none", None, "unverified-held", -1  # nothing agrees with it yet
                 if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
                     self.degrade("anchor:weak")
-                    reason = (f"direct-weak: {int(ests[0][3])} inliers < {self.config.anchor_min_inliers}; "
+                    reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchor_min_inliers}; "
                               f"the anchor of step {check.against} is kept")
-                elif check.verdict != "rejected":
+                elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
                     return "direct", T, "unverified" if check.verdict == "unverified" else "", st.step
                 else:
                     self.degrade("anchor:inconsistent")

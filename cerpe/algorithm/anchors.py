@@ -40,6 +40,8 @@ import numpy as np
 from ..geometry import propagate_relative_pose, rotation_angle, se3_inverse
 
 Verdict = Literal["verified", "accepted", "unverified", "rejected", "replaced", "weak"]
+# verdicts whose estimate is not reported (the anchor's propagation is): the agent's rule, which replays share
+NOT_REPORTED: frozenset[str] = frozenset({"rejected", "weak"})
 
 
 @dataclass(frozen=True)

@@ -256,8 +256,9 @@ def along_gain(conf: GraphConfig, rel: float | None) -> float:
 
 
 def sensor_like(conf: GraphConfig, rel: float | None) -> bool:
-    """Whether depth that reported ``rel`` (None: none) is a sensor's or a dataset's (``r <= sensor_max_rel``)."""
-    return _rel(conf, rel) <= conf.sensor_max_rel
+    """Whether depth that reported ``rel`` is a sensor's or a dataset's (``r <= sensor_max_rel``); a source
+    that reported none is not (whatever ``direct_depth_rel_unknown`` says)."""
+    return _known(rel) and float(rel) <= conf.sensor_max_rel
 
 
 def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0,
