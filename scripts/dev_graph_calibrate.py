@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cerpe.algorithm.graph import GraphConfig  # noqa: E402
-from cerpe.algorithm.graph_model import sensor_like  # noqa: E402
+from cerpe.algorithm.graph_model import odometry_noise_var, sensor_like  # noqa: E402
 from cerpe.pipeline.evaluate import frame_errors, load_run, summarise  # noqa: E402
 from cerpe.pipeline.graphdev import (  # noqa: E402
     MAXWELL_MEDIAN,
@@ -131,26 +131,22 @@ def fit_odometry(sets: list[Path]) -> dict:
            "odo_rot_per_rad": float(np.sqrt(cr[2])), "odo_trans_per_step": float(np.sqrt(ct[0])),
            "odo_trans_per_m": float(np.sqrt(ct[1]))}
     growth = []
-    shipped = dataclasses.asdict(GraphConfig())
+    fitted = dataclasses.replace(GraphConfig(), **fit)
     for (rel, w), g in O[~O["failed"]].groupby(["rel", "window"]):
         row = {"rel": float(rel), "window": int(w), "n": int(len(g)),
                "trans_median_m": float(g["trans_err_m"].median()), "trans_rms_m": float(np.sqrt(np.mean(g["trans_err_m"] ** 2)))}
         sensor = sensor_like(GraphConfig(), None if rel < 0 else float(rel))
-        for tag, c, f in (("", fit, 1.0), ("shipped_", shipped, GraphConfig().odo_sensor_scale if sensor else 1.0)):
-            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c, f).items()})  # the fit; GraphConfig's
+        for tag, c, sens in (("", fitted, False), ("shipped_", GraphConfig(), sensor)):  # the fit; GraphConfig's
+            row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c, sens).items()})
         growth.append(row)
     fails = O[(O["window"] == 1)]
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
 
 
-def _odo_ratios(g: pd.DataFrame, w: int, c: dict, scale: float = 1.0) -> dict:
-    """Observed over modelled odometry error of ``w``-step windows ``g`` under the odometry model ``c``
-    with its sigmas times ``scale`` (1: calibrated)."""
-    # modelled per-axis variance of a w-step window: w steps of the one-step model (d, a spread evenly)
-    var_r = w * c["odo_rot_per_step"] ** 2 + ((c["odo_rot_per_m"] * g["dist_m"]) ** 2
-                                              + (c["odo_rot_per_rad"] * g["angle_rad"]) ** 2) / w
-    var_t = w * c["odo_trans_per_step"] ** 2 + (c["odo_trans_per_m"] * g["dist_m"]) ** 2 / w
-    var_r, var_t = var_r * scale**2, var_t * scale**2
+def _odo_ratios(g: pd.DataFrame, w: int, conf: GraphConfig, sensor: bool) -> dict:
+    """Observed over modelled odometry error of ``w``-step windows ``g`` under ``conf``'s odometry model
+    (``sensor``: with its sensor-like scale), the motion of a window spread evenly over its steps."""
+    var_r, var_t = odometry_noise_var(conf, w, g["dist_m"].to_numpy(), g["angle_rad"].to_numpy(), sensor)
     return {"rot_ratio": float(np.sqrt(np.mean(g["rot_err_rad"] ** 2) / np.mean(3 * var_r))),
             "trans_ratio": float(np.sqrt(np.mean(g["trans_err_m"] ** 2) / np.mean(3 * var_t))),
             "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t)) / (MAXWELL_MEDIAN / np.sqrt(3)))}

@@ -42,6 +42,9 @@ from ..geometry import propagate_relative_pose, rotation_angle, se3_inverse
 Verdict = Literal["verified", "accepted", "unverified", "rejected", "replaced", "weak"]
 # verdicts whose estimate is not reported (the anchor's propagation is): the agent's rule, which replays share
 NOT_REPORTED: frozenset[str] = frozenset({"rejected", "weak"})
+# verdicts whose estimate set the pair's anchor: verification's, and "unchecked" (verification off, the paper's
+# switch); the request policy and the pose graph read them (the graph adds "", no verdict given)
+SETS_ANCHOR: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked"})
 
 
 @dataclass(frozen=True)

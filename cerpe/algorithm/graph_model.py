@@ -13,11 +13,12 @@ import numpy as np
 
 from ..errors import CerpeError
 from ..geometry import rotation_angle
+from .anchors import SETS_ANCHOR
 
 KERNELS: tuple[str, ...] = ("cauchy", "huber", "none")
-# verdicts that confirm a direct estimate: anchor verification's, "unchecked" (verification off, the paper)
-# and "" (no verdict given); any other (unverified, rejected, or a verdict added later) does not
-CONFIRMED: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked", ""})
+# verdicts that confirm a direct estimate: those that set an anchor and "" (no verdict given); any other
+# (unverified, rejected, weak, or a verdict added later) does not
+CONFIRMED: frozenset[str] = SETS_ANCHOR | {""}
 GRAPH_DEGRADATIONS: dict[str, str] = {
     "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
                                    "positive definite: the estimate is not added to the pair's graph",
@@ -261,6 +262,18 @@ def sensor_like(conf: GraphConfig, rel: float | None) -> bool:
     return _known(rel) and float(rel) <= conf.sensor_max_rel
 
 
+def odometry_noise_var(conf: GraphConfig, n_steps, dist_m, angle_rad, sensor: bool = False):
+    """Per-axis ``(rotation, translation)`` variances of the noise part of an odometry increment of
+    ``n_steps`` steps, ``dist_m`` metres and ``angle_rad`` radians (scalars or arrays; the failure
+    terms are :func:`odometry_cov`'s); ``sensor``: on sensor-like depth, times ``odo_sensor_scale``^2."""
+    n = np.maximum(n_steps, 1)
+    var_r = n * conf.odo_rot_per_step**2 + ((conf.odo_rot_per_m * dist_m) ** 2
+                                            + (conf.odo_rot_per_rad * angle_rad) ** 2) / n
+    var_t = n * conf.odo_trans_per_step**2 + (conf.odo_trans_per_m * dist_m) ** 2 / n
+    f = conf.odo_sensor_scale**2 if sensor else 1.0
+    return var_r * f, var_t * f
+
+
 def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0,
                  speed_change_mps2: float = 0.0, depth_rel_sigma: float | None = None) -> np.ndarray:
     """``[6,6]`` covariance of one odometry increment ``T_prev_cur`` spanning ``n_steps`` steps;
@@ -271,10 +284,7 @@ def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_s
     if conf.odo_max_accel_mps2 > 0 and speed_change_mps2 > conf.odo_max_accel_mps2:
         lost_steps += 1  # no robot accelerates so: the odometry failed without saying so
     a = float(rotation_angle(T_prev_cur[:3, :3]))
-    var_r = n * conf.odo_rot_per_step**2 + ((conf.odo_rot_per_m * d) ** 2 + (conf.odo_rot_per_rad * a) ** 2) / n
-    var_t = n * conf.odo_trans_per_step**2 + (conf.odo_trans_per_m * d) ** 2 / n
-    if sensor_like(conf, depth_rel_sigma):
-        var_r, var_t = var_r * conf.odo_sensor_scale**2, var_t * conf.odo_sensor_scale**2
+    var_r, var_t = odometry_noise_var(conf, n, d, a, sensor_like(conf, depth_rel_sigma))
     var_r += lost_steps * conf.odo_lost_rot**2
     var_t += lost_steps * conf.odo_lost_trans**2
     if conf.odo_jump_rad > 0 and a > conf.odo_jump_rad * n:  # not a motion, a failure: the walk may jump by it

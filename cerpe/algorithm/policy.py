@@ -57,6 +57,7 @@ import math
 from dataclasses import dataclass
 
 from ..errors import CerpeError
+from .anchors import SETS_ANCHOR
 
 MODES: tuple[str, ...] = ("gate", "pays", "always")
 
@@ -209,9 +210,6 @@ class AskLog:
                 "rechecks": self.rechecks}
 
 
-ANCHOR_VERDICTS = ("verified", "accepted", "replaced", "unchecked")
-
-
 def after_request(conf: PolicyConfig, log: AskLog | None, step: int, placed: bool, verdict: str = "",
                   rot_rad: float = float("nan"), inliers: int = -1) -> AskLog:
     """The log after a request at ``step``: did its image place, and did its estimate set the
@@ -219,7 +217,7 @@ def after_request(conf: PolicyConfig, log: AskLog | None, step: int, placed: boo
     log = log or AskLog()
     if not placed:
         return AskLog(step, log.misses + 1, log.anchor_rot_rad, log.anchor_inliers, log.rechecks, log.hard_misses + 1)
-    if verdict not in ANCHOR_VERDICTS:  # rejected, unverified or weak: the anchor (if any) stays
+    if verdict not in SETS_ANCHOR:  # rejected, unverified or weak: the anchor (if any) stays
         return AskLog(step, 0, log.anchor_rot_rad, log.anchor_inliers, log.rechecks, log.hard_misses)
     off = bool(conf.recheck_rot_rad) and math.isfinite(rot_rad) and rot_rad > conf.recheck_rot_rad
     return AskLog(step, 0, float(rot_rad), int(inliers), log.rechecks + 1 if off else 0, 0)

@@ -61,7 +61,7 @@ from ..cache import LRUCache
 from .context import OfflineBackboneError, Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T
 from .two_view import relative_pose, triangulate_pair
-from .vote import photometric_agreement
+from .vote import photometric_agreements
 
 MATCHERS = ("aliked", "xfeat", "none")
 
@@ -344,16 +344,14 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, j
             or p.views[a].depth_m is None or p.low_tex[a] or p.low_tex[k] or p.Ks[k] is None
             or not np.all(np.isfinite(T_a_k))):
         return ""
-    T_k_a = se3_inverse(T_a_k)
-    n, ncc = photometric_agreement(p, a, k, T_k_a)
-    if n < int(c["appearance_min_pixels"]) or not np.isfinite(ncc):
+    hp = float(c["appearance_highpass_px"])
+    n, nccs = photometric_agreements(p, a, k, se3_inverse(T_a_k), (0.0, hp) if hp > 0 else (0.0,))
+    if n < int(c["appearance_min_pixels"]) or not np.isfinite(nccs[0]):
         return ""
     p.counts["cross-appearance-checked"] += 1
-    agrees = ncc >= float(c["appearance_min_ncc"])
-    hp = float(c["appearance_highpass_px"])
-    if agrees and hp > 0:
-        ncc_texture = photometric_agreement(p, a, k, T_k_a, highpass_px=hp)[1]
-        agrees = not ncc_texture < float(c["appearance_min_ncc_highpass"])  # NaN (no texture there): passes
+    agrees = nccs[0] >= float(c["appearance_min_ncc"])
+    if agrees and hp > 0:  # texture too; NaN (no texture there) passes
+        agrees = not nccs[1] < float(c["appearance_min_ncc_highpass"])
     if agrees:
         return ""
     p.counts["cross-appearance-rejected"] += 1

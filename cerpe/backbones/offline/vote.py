@@ -196,20 +196,32 @@ def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
     Keypoint inliers say only that some features agree; a placement from repeated or
     mirrored structure agrees there and nowhere else, while a true one makes the whole
     shared surface look alike."""
-    c = p.conf
-    grey = blurred_greys(p, (a, b), float(c["vote_blur_sigma"] if blur_px is None else blur_px))
-    if highpass_px > 0:
-        grey = [g - low for g, low in zip(grey, blurred_greys(p, (a, b), float(highpass_px)))]
+    n, (ncc,) = photometric_agreements(p, a, b, T_b_a, (highpass_px,), blur_px)
+    return n, ncc
+
+
+def photometric_agreements(p: Pass, a: int, b: int, T_b_a: np.ndarray, highpass_px: Sequence[float],
+                           blur_px: float | None = None) -> tuple[int, list[float]]:
+    """:func:`photometric_agreement` for each of ``highpass_px`` (0: none) over one projection of
+    ``a``'s grid: ``(n, [ncc per highpass])``."""
     vv, uu, ok, X = grid_points(p, a)
     _, ub, vb, ins = project_points(p, b, X, T_b_a)
     n = int(ins.sum())
     if n < 2:
-        return n, float("nan")
-    g_a = grey[0][vv[ok][ins], uu[ok][ins]].astype(np.float64)
-    g = bilinear(grey[1], ub[ins], vb[ins]).astype(np.float64)
-    da, db = g_a - g_a.mean(), g - g.mean()
-    den = float(np.sqrt((da @ da) * (db @ db)))
-    return n, float(da @ db / den) if den > 0 else float("nan")
+        return n, [float("nan")] * len(highpass_px)
+    grey = blurred_greys(p, (a, b), float(p.conf["vote_blur_sigma"] if blur_px is None else blur_px))
+    out = []
+    for hp in highpass_px:
+        g0, g1 = grey
+        if hp > 0:
+            low = blurred_greys(p, (a, b), float(hp))
+            g0, g1 = g0 - low[0], g1 - low[1]
+        g_a = g0[vv[ok][ins], uu[ok][ins]].astype(np.float64)
+        g = bilinear(g1, ub[ins], vb[ins]).astype(np.float64)
+        da, db = g_a - g_a.mean(), g - g.mean()
+        den = float(np.sqrt((da @ da) * (db @ db)))
+        out.append(float(da @ db / den) if den > 0 else float("nan"))
+    return n, out
 
 
 def blurred_greys(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
