@@ -4,7 +4,7 @@ Frame layout (little endian), shared by every message type::
 
     magic  b"CE"   2 B
     version u8     1 B   (VERSION; 2: coded descriptors, the image reply's codec and the sender's pose)
-    type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply)
+    type    u8     1 B   (1 descriptor, 2 pose, 3 image request, 4 image reply, 5 shared estimates)
     sender  u16    2 B
     step    u32    4 B
     payload        ...
@@ -14,7 +14,10 @@ The paper's broadcast ``m_i^t = (i, X_i^t, d_i^t)`` travels as two frames: the
 :class:`DescriptorMessage` before the joint backbone pass (the gate needs it) and
 the :class:`PoseMessage` right after it (propagation needs ``X_j^t`` of the same
 step). This costs one extra 14-byte header per robot and step and keeps one
-backbone pass per step. A garbled frame (bad magic, length or checksum) raises
+backbone pass per step. With ``CerpeConfig.share_estimates`` (our extension, off in the paper's
+rows) a robot also broadcasts, right after its pose, the direct estimates it made this step
+(:class:`EstimateMessage`, 62 B each, possibly none), so that a robot whose own pass could not
+place its peer's image still gets the pair's pose. A garbled frame (bad magic, length or checksum) raises
 :class:`MessageError` in :func:`decode`; transports count and drop such frames.
 """
 from __future__ import annotations
@@ -134,6 +137,42 @@ class PoseMessage:
         return _frame(self.TYPE, self.sender, self.step, struct.pack("<7d", *t, *q))
 
 
+_ESTIMATE = struct.Struct("<Hi7d")  # target robot, inliers (-1 unknown), T_cj_ci as t xyz + q xyzw
+
+
+@dataclass(frozen=True)
+class EstimateMessage:
+    """The direct estimates robot ``sender`` made at ``step`` (our extension): ``(target, T_cj_ci,
+    inliers)`` per peer it placed, ``T_cj_ci`` mapping points of the sender's camera into the
+    target's (float64; its inverse is the target's estimate of the sender). May be empty."""
+
+    TYPE: ClassVar[int] = 5
+    sender: int
+    step: int
+    estimates: tuple[tuple[int, np.ndarray, int], ...] = ()
+
+    def encode(self) -> bytes:
+        if len(self.estimates) >= 2**16:
+            raise MessageError(f"estimate message: {len(self.estimates)} estimates, at most {2**16 - 1}")
+        parts = [struct.pack("<H", len(self.estimates))]
+        for target, T, inliers in self.estimates:
+            if not (0 <= int(target) < 2**16 and -1 <= int(inliers) < 2**31):
+                raise MessageError(f"estimate message: target {target} or inliers {inliers} out of range")
+            try:
+                t, q = se3_to_tq_xyzw(np.asarray(T, dtype=np.float64))
+            except GeometryError as exc:
+                raise MessageError(f"estimate message: {exc}") from None
+            parts.append(_ESTIMATE.pack(int(target), int(inliers), *t, *q))
+        return _frame(self.TYPE, self.sender, self.step, b"".join(parts))
+
+    def for_target(self, target: int) -> tuple[np.ndarray, int] | None:
+        """``(T_cj_ci, inliers)`` of the estimate about robot ``target`` (the first), None without one."""
+        for k, T, inliers in self.estimates:
+            if int(k) == int(target):
+                return T, int(inliers)
+        return None
+
+
 @dataclass(frozen=True)
 class ImageRequest:
     """Robot ``sender`` asks robot ``target`` for its raw image of ``step``."""
@@ -232,7 +271,7 @@ class ImageReply:
         return np.repeat(arr[:, :, None], 3, axis=2) if grey else arr[:, :, ::-1].copy()
 
 
-Message = Union[DescriptorMessage, PoseMessage, ImageRequest, ImageReply]
+Message = Union[DescriptorMessage, PoseMessage, ImageRequest, ImageReply, EstimateMessage]
 
 
 def decode(frame: bytes) -> Message:
@@ -278,6 +317,17 @@ def decode(frame: bytes) -> Message:
             if not np.all(np.isfinite(v)):
                 raise MessageError("pose frame carries non-finite values")
             return PoseMessage(sender, step, se3_from_tq_xyzw(v[:3], v[3:]))
+        if mtype == EstimateMessage.TYPE:
+            (n,) = struct.unpack("<H", p[:2])
+            if len(p) != 2 + n * _ESTIMATE.size:
+                raise MessageError("estimate frame length does not match its count")
+            ests = []
+            for k in range(n):
+                target, inliers, *v = _ESTIMATE.unpack_from(p, 2 + k * _ESTIMATE.size)
+                if not np.all(np.isfinite(v)) or inliers < -1:
+                    raise MessageError("estimate frame carries non-finite values or negative inliers")
+                ests.append((int(target), se3_from_tq_xyzw(v[:3], v[3:]), int(inliers)))
+            return EstimateMessage(sender, step, tuple(ests))
         if mtype == ImageRequest.TYPE:
             if len(p) != 2:
                 raise MessageError("image request has wrong length")

@@ -157,7 +157,7 @@ class RobotRecord:
             "bytes_total": self.bytes_total,
             "degradations": ";".join(self.degradations),
         }
-        for k in ("descriptor", "pose", "request", "reply"):
+        for k in ("descriptor", "pose", "request", "reply", "estimate"):
             row[f"bytes_{k}"] = int(self.bytes_sent.get(k, 0))
         for s in STAGES:
             row[f"t_{s}_s"] = float(self.timings_s.get(s, 0.0))

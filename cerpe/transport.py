@@ -26,7 +26,7 @@ from .messages import Message, MessageError, decode
 
 log = logging.getLogger(__name__)
 
-KINDS: tuple[str, ...] = ("descriptor", "pose", "request", "reply")
+KINDS: tuple[str, ...] = ("descriptor", "pose", "request", "reply", "estimate")
 
 
 class TransportError(CerpeError, ValueError):

@@ -155,3 +155,20 @@ def test_verbosity_flags_set_the_log_level(capsys, log_levels, flags, level):
     assert rc == 2 and log_levels.level == level
     rc, _ = _cli(capsys, "eval", "no-such-run", *flags)  # after the sub-command too
     assert rc == 2 and log_levels.level == level
+
+
+def test_run_set_parses_config_overrides_and_refuses_malformed_ones(capsys, tmp_path):
+    from cerpe.pipeline.run import parse_sets
+
+    assert parse_sets(["share_estimates=true", "request_policy.mode=pays", "request_policy.miss_limit=3",
+                       "tau=0.4"]) == {"share_estimates": True, "request_policy": {"mode": "pays", "miss_limit": 3},
+                                       "tau": 0.4}
+    manifest = ROOT / "datasets_manifest" / "synthetic-indoor.yaml"
+    for bad, match in (("share_estimates", "expected KEY=VALUE"), ("=1", "expected KEY=VALUE"),
+                       ("tau=[", "not YAML"), ("graph=1", None)):
+        if match is None:
+            with pytest.raises(Exception, match="value and sub-keys"):
+                parse_sets(["graph=1", "graph.kernel=huber"])
+            continue
+        rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", "--set", bad)
+        assert rc == 2 and match in err, (bad, err)

@@ -12,6 +12,7 @@ robot processes is tested in tests/test_online_cli.py.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -24,6 +25,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from cerpe.algorithm import CerpeConfig, RobotAgent, Team  # noqa: E402
+from cerpe.algorithm.direct import SHARED_VIA  # noqa: E402
 from cerpe.config import ConfigError  # noqa: E402
 from cerpe.geometry import se3_to_tq_xyzw  # noqa: E402
 from cerpe.online import ros  # noqa: E402
@@ -53,8 +55,9 @@ def frames(world, rid: str, n_steps: int | None = None):
         yield r.image(t), FrameContext(rid, t, r.intrinsics, r.depth_m(t), 0), float(r.stamps_s[t])
 
 
-def make_node(world, rid, lconf, conf=None, backbone=None):
-    agent = RobotAgent(rid, world.index(rid), CFG, OverlapDescriptor(world), backbone or GTBackbone(world, seed=7),
+def make_node(world, rid, lconf, conf=None, backbone=None, config=None):
+    agent = RobotAgent(rid, world.index(rid), config or CFG, OverlapDescriptor(world),
+                       backbone or GTBackbone(world, seed=7),
                        SensorDepthDouble())
     return RobotNode(agent, ZenohLink(rid, world.robot_ids, lconf), world.robot_ids, conf={**FAST, **(conf or {})})
 
@@ -95,8 +98,9 @@ def node_job(node, world, rid, n_steps=None, close=True):
     return job
 
 
-def assert_same_as_team(world, online: dict, tol: float = 1e-8) -> int:
-    team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(), CFG)
+def assert_same_as_team(world, online: dict, tol: float = 1e-8, config=None, backbone=None) -> int:
+    team = Team(world.robot_ids, OverlapDescriptor(world), backbone or GTBackbone(world, seed=1), SensorDepthDouble(),
+                config or CFG)
     ref = list(team.run_encounter(world.to_encounter()))
     n_direct = 0
     for t, res in enumerate(ref):
@@ -130,6 +134,26 @@ def test_lossless_nodes_equal_team(n_robots):
     for r, node in nodes.items():
         assert node.stats["msg:lost"] == 0 and node.stats["replies_sent"] > 0, (r, dict(node.stats))
         assert node.stats["net:peer-lost"] == 0 and len(node.step_s) == world.n_steps
+
+
+def test_shared_estimates_online_equal_team():
+    """share_estimates over Zenoh: r0 cannot place r1's image, r1's estimate reaches it in the
+    'estimate' frame of the same step; every record equals the in-process team's."""
+    world = make_world(2, 12, seed=3, windows={(0, 1): [(3, 6), (9, 11)]})
+    cfg = dataclasses.replace(CFG, share_estimates=True)
+
+    def blind(cur, key):
+        return cur[0] == "r0" and len(key) == 3
+
+    confs = link_confs(world.robot_ids)
+    nodes = {r: make_node(world, r, confs[r], backbone=GTBackbone(world, seed=7, invalid=blind), config=cfg)
+             for r in world.robot_ids}
+    out = run_threads({r: node_job(nodes[r], world, r) for r in world.robot_ids})
+    n_direct = assert_same_as_team(world, out, config=cfg, backbone=GTBackbone(world, seed=1, invalid=blind))
+    assert n_direct == 2 * 5
+    assert sum(p.direct_via == SHARED_VIA for res in out["r0"] for p in res.pairs) == 5
+    for r, node in nodes.items():
+        assert node.stats["msg:lost"] == 0, (r, dict(node.stats))
 
 
 def test_peer_comes_up_late_then_same_as_team():

@@ -163,6 +163,17 @@ class CerpeConfig:
             (:class:`~cerpe.algorithm.policy.PolicyConfig`; a dict of its fields is accepted):
             ``mode="gate"`` is the paper's (always), ``"pays"`` ours (only without a fresh,
             certain anchor), ``"always"`` every peer at every step.
+        share_estimates: our extension, off in the paper's rows: after its pose, each robot
+            broadcasts the direct estimates it made this step (an ``estimate`` frame, 62 B per
+            estimate). Registration is not symmetric: a robot places a peer's image through the
+            keyframes it kept, and a peer that passes where this robot was has no view of it. A
+            robot whose own pass placed nothing of a peer then takes the peer's estimate,
+            inverted, as its direct estimate of the pair (``direct_via`` -2; anchor verification
+            judges it as its own); with its own, the peer's is a second, independent
+            registration that can verify it. Not taken: one on fewer than ``anchor_min_inliers``
+            inliers, and any while the pair's anchor is the robot's own measurement (its own
+            estimates outrank the peer's; an anchor a shared estimate set is replaced by newer
+            shared ones as its own by its own).
     """
 
     tau: float | None = None
@@ -208,11 +219,14 @@ class CerpeConfig:
     anchor_verify_fraction: float = 0.5
     anchor_max_odo_rot_step: float = 1.0
     report_unverified: bool = True
+    share_estimates: bool = False
     backend: str = "switch"
     graph: GraphConfig = field(default_factory=GraphConfig)
     request_policy: PolicyConfig = field(default_factory=PolicyConfig)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.share_estimates, (bool, np.bool_)):
+            raise AlgorithmError(f"config: share_estimates must be true or false, got {self.share_estimates!r}")
         if self.backend not in BACKENDS:
             raise AlgorithmError(f"config: backend must be one of {list(BACKENDS)}, got {self.backend!r}")
         for name, cls in (("graph", GraphConfig), ("request_policy", PolicyConfig)):

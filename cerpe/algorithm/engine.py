@@ -100,15 +100,21 @@ class StepEngine:
                 a.accept_reply(p, replies.messages[p].message)
             else:
                 a.reply_missing(p)
-        # 4. ONE joint pass; 5. scale; 6. odometry; 7. broadcast the pose
+        # 4. ONE joint pass; 5. scale; 6. odometry; 7. broadcast the pose (and, shared, the direct estimates)
         a.joint_pass()
         a.estimate_scale()
         a.update_odometry()
         a.count_sent("pose", link.broadcast("pose", a.pose_frame()))
+        share = bool(a.config.share_estimates)  # our extension: the direct estimates of this step too
+        if share:
+            a.count_sent("estimate", link.broadcast("estimate", a.estimate_frame(self.index_of)))
         yield "pose"
         a.note_pose(a.robot_id, t, a.X)
         for p, got_pose in self._book(link.gather(t, "pose", peers, self.wait_s)).messages.items():
             a.note_pose(p, got_pose.message.step, got_pose.message.T_odom_cam)
+        if share:
+            for p, got_est in self._book(link.gather(t, "estimate", peers, self.wait_s)).messages.items():
+                a.note_estimates(p, got_est.message)
         # 8. relative pose per peer: direct when the gate opened and the pass placed the other's view
         # (verified against the anchor), else the anchor propagated
         pairs = []

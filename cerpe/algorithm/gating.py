@@ -13,6 +13,7 @@ import numpy as np
 
 from ..memory import Keyframe, cosine
 from ..messages import DescriptorMessage, decode
+from .direct import SHARED_VIA
 from .policy import AskLog, PairView, after_request, decide
 
 if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent
@@ -168,7 +169,8 @@ class GateSide:
     def note_request(self, other: str, info: PairInfo) -> None:
         """After the pass: what the request to ``other`` brought (:func:`~cerpe.algorithm.policy.after_request`)."""
         self.asks[other] = after_request(self.config.request_policy, self.asks.get(other), self._state().step,
-                                         info.direct_T is not None, info.verdict, info.check_rot_rad,
+                                         info.direct_T is not None and info.direct_via != SHARED_VIA,
+                                         info.verdict, info.check_rot_rad,
                                          info.direct_inliers)
 
     def _pair_view(self, other: str, step: int) -> PairView:

@@ -14,13 +14,13 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Protocol, Sequence, runtime_checkable
 
-from ..messages import DescriptorMessage, ImageReply, ImageRequest, Message, PoseMessage
+from ..messages import DescriptorMessage, EstimateMessage, ImageReply, ImageRequest, Message, PoseMessage
 
 log = logging.getLogger(__name__)
 
 #: message class -> kind, as :data:`cerpe.transport.KINDS` names them
 KIND_OF: dict[type, str] = {DescriptorMessage: "descriptor", PoseMessage: "pose", ImageRequest: "request",
-                            ImageReply: "reply"}
+                            ImageReply: "reply", EstimateMessage: "estimate"}
 
 #: answers an image request: ``(peer, request) -> reply frame`` or None (nothing to send)
 RequestHandler = Callable[[str, ImageRequest], "bytes | None"]

@@ -34,6 +34,8 @@ class StepState:
     pair_info: dict[str, "PairInfo"] = field(default_factory=dict)
     requested: dict[str, bool] = field(default_factory=dict)  # peer -> image asked (request policy)
     skipped: dict[str, str] = field(default_factory=dict)  # peer -> why the policy skipped an open gate
+    directs: dict[str, tuple[list, str]] = field(default_factory=dict)  # peer -> own direct estimates, reason
+    shared: dict[str, tuple] = field(default_factory=dict)  # peer -> its estimate of this robot, as this robot's
     scale: float = float("nan")
     metric_scale: bool = True  # False: s = 1 for want of metric depth (unit_scale_without_depth)
     ego_status: str = ""
@@ -50,7 +52,7 @@ class PairInfo:
     """How this step's direct estimate for one peer came about (pair record columns).
 
     ``direct_via``: step of the own view it was registered through (-1: the current
-    frame or the joint pass); ``verdict``: what anchor verification said (``""``
+    frame or the joint pass; -2: the peer's estimate, shared, ``CerpeConfig.share_estimates``); ``verdict``: what anchor verification said (``""``
     without a direct estimate, ``"unchecked"`` with ``verify_anchors=False``);
     ``check_rot_rad``, ``check_trans_m``: its disagreement with what it was checked
     against (NaN when nothing was compared); ``direct_T``: the direct estimate itself

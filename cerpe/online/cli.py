@@ -111,7 +111,8 @@ def _machine_lock(manifest: Path) -> Iterator[None]:
 def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Path | str, *,
                link_conf: Mapping[str, Any] | None = None, node_conf: Mapping[str, Any] | None = None,
                method: str = "cerpe", profile: str = "offline", seed: int = 0, overwrite: bool = False,
-               progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None) -> Path:
+               progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None,
+               overrides: Mapping[str, Any] | None = None) -> Path:
     """Run robot ``robot`` of ``encounter`` online and write its run folder ``out``.
 
     ``link_conf``: options of :class:`~cerpe.online.zenoh_link.ZenohLink` (team,
@@ -119,7 +120,8 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     (timeouts, rate, ROS keys). ``setting``, ``plugins`` (an object with
     ``descriptor``, ``backbone``, ``depth``) and ``config`` (a
     :class:`~cerpe.algorithm.CerpeConfig`) may be given instead of being loaded
-    (tests, embedding in a robot's own process). Raises a
+    (tests, embedding in a robot's own process); ``overrides``: CerpeConfig fields of the loaded
+    one (``--set``; every robot of a team should pass the same). Raises a
     :class:`~cerpe.errors.CerpeError` naming the argument, file or endpoint at fault.
     """
     from ..algorithm import CerpeConfig, RobotAgent
@@ -146,7 +148,8 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     try:
         if plugins is None:
             plugins, config, mconf = rp.cerpe_plugins_and_config(
-                method, profile, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None))
+                method, profile, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None),
+                dict(overrides) if overrides else None)
         else:
             config = config if config is not None else CerpeConfig()
             mconf = {"cerpe": rp.config_dict(config), "preset": "given", "plugins": "given"}
@@ -201,6 +204,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--out", type=Path, default=None,
                    help="run folder (default build/online/<manifest name>/<method>/<robot>)")
     g.add_argument("--overwrite", action="store_true", help="run again although this robot's folder is finished")
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                   help="a CerpeConfig field, as `cerpe run --set` (repeatable; the same on every robot), e.g. "
+                        "share_estimates=true")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     z = p.add_argument_group("network (Zenoh)")
     z.add_argument("--team", default=link_defaults["team"],
@@ -263,6 +269,7 @@ def main(args: argparse.Namespace) -> int:
     if out is None:
         out = Path("build") / "online" / Path(args.manifest).stem / args.method / args.robot
     run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node, method=args.method,
-               profile=args.profile, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress)
+               profile=args.profile, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress,
+               overrides=rp.parse_sets(args.sets) or None)
     print(f"run folder: {out}")
     return 0

@@ -12,7 +12,7 @@ import re
 
 from ..errors import CerpeError
 from ..messages import VERSION as MESSAGES_VERSION
-from ..messages import DescriptorMessage, ImageReply, ImageRequest, PoseMessage
+from ..messages import DescriptorMessage, EstimateMessage, ImageReply, ImageRequest, PoseMessage
 
 LINK_PROTOCOL = 1
 MAGIC = b"CZ"
@@ -22,8 +22,9 @@ ROOT = "cerpe"
 
 # message type byte -> the kind name cerpe.transport uses; "image" is the queryable's key
 KIND_OF_TYPE: dict[int, str] = {DescriptorMessage.TYPE: "descriptor", PoseMessage.TYPE: "pose",
-                                ImageRequest.TYPE: "request", ImageReply.TYPE: "reply"}
-BROADCAST_KINDS: tuple[str, ...] = ("descriptor", "pose")
+                                ImageRequest.TYPE: "request", ImageReply.TYPE: "reply",
+                                EstimateMessage.TYPE: "estimate"}
+BROADCAST_KINDS: tuple[str, ...] = ("descriptor", "pose", "estimate")
 BYE = "bye"
 IMAGE = "image"
 ALIVE = "alive"

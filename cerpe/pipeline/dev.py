@@ -38,6 +38,7 @@ from typing import Sequence
 
 from ..atomicio import atomic_write_text
 from ..errors import CerpeError
+from .methods import CERPE_METHODS
 from .provenance import code_hash, git_revision
 
 log = logging.getLogger(__name__)
@@ -140,8 +141,9 @@ def synthetic_set(setting: str, seed: int, preset: str, out: Path, progress: boo
 
 
 def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, profile: str,
-            progress: bool = True) -> tuple[list[tuple[str, Path]], list[str]]:
-    """Run (or reuse) every method on one set; ``(finished (set, run folder) pairs, errors)``."""
+            progress: bool = True, overrides: dict | None = None) -> tuple[list[tuple[str, Path]], list[str]]:
+    """Run (or reuse) every method on one set; ``(finished (set, run folder) pairs, errors)``.
+    ``overrides``: CerpeConfig fields of the cerpe methods (``cerpe dev --set``)."""
     from .paper import run_is_current
     from .run import load_manifest_setting, run_method
 
@@ -149,10 +151,12 @@ def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, profile: str,
     for m in methods:
         path = runs_root / s.name / m
         try:
-            if not run_is_current(path, s.manifest, m, profile):
+            ov = overrides if m in CERPE_METHODS else None
+            if not run_is_current(path, s.manifest, m, profile, ov):
                 setting = setting if setting is not None else load_manifest_setting(s.manifest)
                 t0 = time.perf_counter()
-                run_method(s.manifest, m, path, profile=profile, overwrite=True, progress=progress, setting=setting)
+                run_method(s.manifest, m, path, profile=profile, overwrite=True, progress=progress, setting=setting,
+                           overrides=ov)
                 log.info("%s/%s: %.0f s", s.name, m, time.perf_counter() - t0)
             done.append((s.name, path))
         except CerpeError as exc:
@@ -168,8 +172,9 @@ def _selected(name: str, patterns: Sequence[str] | None) -> bool:
 def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequence[str] = METHODS,
                sets: Sequence[str] | None = None, preset: str = "dev", real: bool = True,
                manifests_dir: Path | None = None, profile: str = "offline", label: str | None = None,
-               progress: bool = True, echo=print) -> dict:
-    """Build (or resume) every run of the report, evaluate, print and write it.
+               progress: bool = True, echo=print, overrides: dict | None = None) -> dict:
+    """Build (or resume) every run of the report, evaluate, print and write it (``overrides``:
+    CerpeConfig fields of the cerpe methods' runs, recorded in each run.json and the report).
 
     Returns ``{"table", "gate", "sets", "errors", "paths"}``; ``echo`` prints a line
     (each skipped set, the report).
@@ -206,12 +211,13 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
         if e.status != "ok":
             echo(f"{e.name}: skipped ({e.detail})")
             continue
-        done, errs = run_set(e, methods, out / "runs", profile, progress)
+        done, errs = run_set(e, methods, out / "runs", profile, progress, overrides)
         runs += done
         errors += errs
     table, gate = report(runs)
     prov = {"git_revision": git_revision(), "code_cerpe": code_hash("cerpe"), "code_baselines": code_hash("sift-ransac"),
-            "profile": profile, "synthetic": {"preset": preset, "seeds": [int(s) for s in seeds]},
+            "profile": profile, "overrides": overrides or {},
+            "synthetic": {"preset": preset, "seeds": [int(s) for s in seeds]},
             "sets": {e.name: e.status + (f": {e.detail}" if e.detail else "") for e in entries},
             "methods": list(methods), "command": " ".join(sys.argv), "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
     text = format_text(table, gate)
@@ -246,14 +252,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="offline", help="backbone preset of the cerpe methods (default: offline)")
     p.add_argument("--label", default=None,
                    help="also write report-LABEL.{csv,md} (e.g. before / after) beside report.{csv,md}")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets_config",
+                   help="a CerpeConfig field for the cerpe methods' runs, as `cerpe run --set` (repeatable; "
+                        "e.g. share_estimates=true); use its own --out, or the runs there are replaced")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def main(args: argparse.Namespace) -> int:
     if args.label is not None and not (args.label and all(c.isalnum() or c in "-_." for c in args.label)):
         raise DevError(f"--label {args.label!r}: letters, digits, '-', '_' and '.' only")
+    from .run import parse_sets
+
     res = dev_report(args.out, args.seeds, args.methods, args.sets, args.synth, not args.no_real, args.manifests,
-                     args.profile, args.label, progress=not args.no_progress)
+                     args.profile, args.label, progress=not args.no_progress,
+                     overrides=parse_sets(args.sets_config) or None)
     for msg in res["errors"]:
         print(f"cerpe dev: error: {msg}", file=sys.stderr)
     return 1 if res["errors"] else 0

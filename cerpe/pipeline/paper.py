@@ -166,16 +166,19 @@ def discover_settings(profile: str, suite: str, manifests_dir: Path, derived_dir
     return sorted(entries, key=key)
 
 
-def run_is_current(out: Path, manifest: Path, method: str, preset: str) -> bool:
+def run_is_current(out: Path, manifest: Path, method: str, preset: str, overrides: dict | None = None) -> bool:
     """Cheap check that a cached run folder is finished and matches the current code and manifest.
 
-    Compares ``run.json``'s code hash, manifest digest and preset and requires a
-    ``DONE.json`` with the run's fingerprint for every encounter; builds no model.
+    Compares ``run.json``'s code hash, manifest digest, preset and configuration overrides
+    (``cerpe run --set``; none is none) and requires a ``DONE.json`` with the run's
+    fingerprint for every encounter; builds no model.
     """
     try:
         meta = read_json(out / "run.json", "run.json")
         cfg = meta["config"]
         if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != file_digest(manifest):
+            return False
+        if (cfg.get("overrides") or None) != (json.loads(json.dumps(overrides)) if overrides else None):
             return False
         if method in CERPE_METHODS and cfg.get("profile") != preset:
             return False

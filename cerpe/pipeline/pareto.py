@@ -84,7 +84,7 @@ def is_current(path: Path, manifest: Path, profile: str, overrides: Mapping, enc
         return False
     return (json.dumps(cfg.get("overrides"), sort_keys=True) == json.dumps(dict(overrides), sort_keys=True)
             and list(cfg.get("encounters", [])) == list(encounters)
-            and run_is_current(path, manifest, "cerpe", profile))
+            and run_is_current(path, manifest, "cerpe", profile, dict(overrides) or None))
 
 
 def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profile: str = "offline",

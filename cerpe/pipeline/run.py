@@ -1,6 +1,7 @@
 """Run one method on every encounter of a dataset manifest and write a run folder.
 
-Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline] [--loss P [--garble P] [--loss-seed N]]``
+Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline] [--loss P [--garble P] [--loss-seed N]]
+[--set KEY=VALUE ...]``
 
 Methods: ``cerpe`` (Algorithm 1), ``cerpe-wo-em`` (no ego-motion propagation:
 only direct estimates), ``cerpe-graph`` (our extension: the same messages, a robust
@@ -36,7 +37,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -513,9 +514,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss-seed", type=int, default=None, metavar="N",
                    help="seed of the channel's draws (default: --seed); the same seed reproduces the run bit for "
                         "bit, another seed draws other losses")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                   help="cerpe methods: a CerpeConfig field (dotted for a sub-config: request_policy.mode=pays; "
+                        "the value is YAML: true, 0.3, [1, 2]); repeatable. Unknown keys are errors that list the "
+                        "known ones; recorded in run.json (config.overrides), part of the run's fingerprint. "
+                        "E.g. --set share_estimates=true (our extension: robots share their direct estimates)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a run folder written with another configuration instead of refusing")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def parse_sets(items: Sequence[str]) -> dict:
+    """``--set KEY=VALUE`` arguments -> nested overrides (dotted keys nest; values parsed as YAML)."""
+    import yaml
+
+    out: dict = {}
+    for item in items:
+        key, sep, raw = str(item).partition("=")
+        parts = [k.strip() for k in key.split(".")]
+        if not sep or not all(parts):
+            raise RunError(f"--set {item!r}: expected KEY=VALUE, e.g. share_estimates=true")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise RunError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})") from None
+        node = out
+        for k in parts[:-1]:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise RunError(f"--set {item!r}: {k} was given a value and sub-keys")
+        node[parts[-1]] = value
+    return out
 
 
 def main(args: argparse.Namespace) -> int:
@@ -526,6 +555,7 @@ def main(args: argparse.Namespace) -> int:
     loss = None if args.loss == 0 and args.garble == 0 else \
         LossSpec(args.loss, args.garble, args.seed if args.loss_seed is None else args.loss_seed)
     out = run_method(args.manifest, args.method, args.out, profile=args.profile, seed=args.seed,
-                     overwrite=args.overwrite, progress=not args.no_progress, loss=loss)
+                     overwrite=args.overwrite, progress=not args.no_progress, loss=loss,
+                     overrides=parse_sets(args.sets) or None)
     print(f"run folder: {out}")
     return 0
