@@ -18,6 +18,7 @@ from cerpe.algorithm.policy import (
     backoff_steps,
     decide,
     propagation_sigma,
+    skip_for_shared,
     try_hard,
 )
 from cerpe.geometry import e_rot
@@ -51,7 +52,8 @@ def test_pays_skips_a_fresh_certain_anchor_and_asks_otherwise():
 
 
 @pytest.mark.parametrize("bad", [{"mode": "sometimes"}, {"max_steps": -1}, {"max_steps": 1.5},
-                                 {"max_sigma_rot_rad": float("nan")}, {"pos_sigma_per_m": -0.1}])
+                                 {"max_sigma_rot_rad": float("nan")}, {"pos_sigma_per_m": -0.1},
+                                 {"shared_skip_misses": -1}, {"shared_retry_steps": 0}])
 def test_bad_policy_config_is_one_clear_error(bad):
     with pytest.raises(PolicyError, match=next(iter(bad))):
         PolicyConfig(**bad)
@@ -81,7 +83,7 @@ def test_agent_skips_requests_while_the_anchor_is_fresh_and_asks_again_when_it_i
     for t in (8, 9):
         p = P[t]
         assert p.gate_open and p.request_skipped and p.bytes_pair == 0 and p.anchor_verdict == ""
-        assert p.source == "propagated" and p.anchor_step == 7 and p.reason == "request-skipped"
+        assert p.source == "propagated" and p.anchor_step == 7 and p.reason == "request-skipped: anchor-fresh"
         gt = world.gt_T_cj_ci(t, 0, 1)
         assert e_rot(p.T_cj_ci, gt) < 1e-5 and np.linalg.norm(p.T_cj_ci[:3, 3] - gt[:3, 3]) < 1e-4
         assert B[t].bytes_pair > 0 and not B[t].request_skipped and B[t].source == "direct"
@@ -311,3 +313,13 @@ def test_try_hard_while_unanchored_backing_off_by_powers_of_two():
     assert not try_hard(PolicyConfig(hard_tries=0), PairView(anchored=False))
     with pytest.raises(PolicyError, match="hard_backoff_max_steps"):
         PolicyConfig(hard_backoff_max_steps=0)
+
+
+def test_skip_for_shared_known_answers():
+    conf = PolicyConfig(shared_skip_misses=2, shared_retry_steps=4)
+    base = dict(anchored=False, misses=2, steps_since_shared=1, steps_since_ask=1)
+    assert skip_for_shared(conf, PairView(**base))
+    assert not skip_for_shared(conf, PairView(**{**base, "misses": 1}))  # its own images may still place
+    assert not skip_for_shared(conf, PairView(**{**base, "steps_since_shared": 2}))  # the peer stopped sharing
+    assert not skip_for_shared(conf, PairView(**{**base, "steps_since_ask": 4}))  # time to look again
+    assert not skip_for_shared(PolicyConfig(shared_skip_misses=0), PairView(**base))  # off

@@ -133,3 +133,32 @@ def test_shared_estimates_do_not_replace_an_anchor_of_the_robot_own():
         assert P[t].source == "propagated" and P[t].anchor_step == 9, t
         gt = world.gt_T_cj_ci(t, 0, 1)
         assert e_pos(P[t].T_cj_ci[:3, 3], gt[:3, 3]) < 1e-5 and e_rot(P[t].T_cj_ci, gt) < 1e-6
+
+
+def test_a_robot_that_cannot_place_its_peer_skips_requests_while_the_peer_shares():
+    """request_policy.shared_skip_misses 2 (the default), shared_retry_steps 4: r0 asks at 5 and 6 (both place nothing),
+    skips 7-9 while r1 shares, asks at 25 (r1 shared nothing since 9), skips 26-28 and asks again at 29.
+    r0's estimates are those of sharing without the rule (its own images never placed); r1 sends fewer replies."""
+    world = make_world(2, 30, seed=4)
+    bb = GTBackbone(world, seed=1, invalid=lambda cur, key: cur[0] == "r0" and len(key) == 3)
+    conf = CerpeConfig(min_scale_pixels=20, share_estimates=True,
+                       request_policy={"shared_skip_misses": 2, "shared_retry_steps": 4})
+    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), conf)
+    on = list(team.run_encounter(world.to_encounter()))
+    plain_conf = CerpeConfig(min_scale_pixels=20, share_estimates=True, request_policy={"shared_skip_misses": 0})
+    plain = list(Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1, invalid=bb.invalid),
+                      SensorDepthDouble(), plain_conf).run_encounter(world.to_encounter()))
+    skipped = [res.step for res in on for p in res.pairs if p.ego == "r0" and p.request_skipped]
+    assert skipped == [7, 8, 9, 26, 27, 28]
+    for res, ref in zip(on, plain):
+        q, q_ref = (next(p for p in r.pairs if p.ego == "r0") for r in (res, ref))
+        assert (q.source, q.direct_via) == (q_ref.source, q_ref.direct_via), res.step
+        if q.T_cj_ci is not None:
+            np.testing.assert_allclose(q.T_cj_ci, q_ref.T_cj_ci, atol=1e-9)
+        if q.request_skipped:
+            assert q.reason == "request-skipped: peer-shares" or q.direct_via == SHARED_VIA
+        r1, r1_ref = (next(p for p in r.pairs if p.ego == "r1") for r in (res, ref))
+        assert r1.source == r1_ref.source  # r1 asks as before: its images place
+    replies = [sum(r.bytes_sent.get("reply", 0) for res in run for r in res.robots if r.robot == "r1")
+               for run in (on, plain)]
+    assert 0 < replies[0] < replies[1]

@@ -71,6 +71,7 @@ class RobotAgent(GateSide):
         self.ego_speeds: list[tuple[float, float, np.ndarray]] = []  # accepted steps: (speed, stamp, t), newest last
         self.pairs: dict[str, PairAnchors] = {}
         self.shared_anchors: dict[str, list[Anchor]] = {}  # peer -> the recent candidates shared estimates made
+        self.shared_steps: dict[str, int] = {}  # peer -> step of its last usable shared estimate (request policy)
         self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
         self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
         self.asks = {}  # request policy: peer -> what its requests brought (policy.AskLog; GateSide.note_request)
@@ -424,6 +425,7 @@ class RobotAgent(GateSide):
         bar = int(self.config.anchor_min_inliers)
         if got is not None and not 0 <= got[3] < bar:  # below the bar that replaces an anchor: too weak
             st.shared[other] = got
+            self.shared_steps[other] = st.step
 
     def _directs(self, st: StepState, other: str) -> tuple[list, str]:
         """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
@@ -561,7 +563,7 @@ class RobotAgent(GateSide):
                     reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
                               f"of step {check.against}")
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
-            reason = "request-skipped" if other in st.skipped else st.gate_reason.get(other, "")
+            reason = f"request-skipped: {st.skipped[other]}" if other in st.skipped else st.gate_reason.get(other, "")
             if not self.config.propagate:
                 return "none", None, reason or "gate-closed", -1
         if not self.config.propagate:

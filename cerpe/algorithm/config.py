@@ -173,7 +173,8 @@ class CerpeConfig:
             registration that can verify it. Not taken: one on fewer than ``anchor_min_inliers``
             inliers, and any while the pair's anchor is the robot's own measurement (its own
             estimates outrank the peer's; an anchor a shared estimate set is replaced by newer
-            shared ones as its own by its own).
+            shared ones as its own by its own). ``request_policy.shared_skip_misses`` then spares
+            the replies a robot cannot place (:func:`~cerpe.algorithm.policy.skip_for_shared`).
     """
 
     tau: float | None = None

@@ -14,7 +14,7 @@ import numpy as np
 from ..memory import Keyframe, cosine
 from ..messages import DescriptorMessage, decode
 from .direct import SHARED_VIA
-from .policy import AskLog, PairView, after_request, decide
+from .policy import AskLog, PairView, after_request, decide, skip_for_shared
 
 if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent
     from ..compress import DescriptorCodec
@@ -35,6 +35,7 @@ class GateSide:
         pairs: dict[str, PairAnchors]
         sigmas: dict[str, tuple[float, float]]
         asks: dict[str, AskLog]
+        shared_steps: dict[str, int]
         odometers: dict[str, tuple[int, np.ndarray, float]]
         last_descriptors: dict[str, tuple[int, np.ndarray]]
         _kf_wire: dict[int, np.ndarray]
@@ -155,12 +156,17 @@ class GateSide:
 
     def wants_image(self, other: str) -> bool:
         """Whether to request ``other``'s image this step: the gate and the request policy
-        (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens). A skipped
+        (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens; with ``share_estimates``
+        the ``peer-shares`` rule may skip it). A skipped
         request is kept (``PairRecord.request_skipped``); the pair then propagates its anchor."""
         st = self._state()
         gate = self.gate_open(other)
         conf = self.config.request_policy
-        ask, why = decide(conf, gate, self._pair_view(other, st.step) if conf.mode == "pays" else None)
+        shares = bool(self.config.share_estimates and conf.shared_skip_misses and conf.mode != "always")
+        view = self._pair_view(other, st.step) if conf.mode == "pays" or shares else None
+        ask, why = decide(conf, gate, view)
+        if ask and shares and skip_for_shared(conf, view):
+            ask, why = False, "peer-shares"
         st.requested[other] = ask
         if gate and not ask:
             st.skipped[other] = why
@@ -178,6 +184,7 @@ class GateSide:
         the previous step, the graph's last sigma)."""
         pair = self.pairs.get(other)
         tries = self.asks.get(other, AskLog()).view(step)
+        tries["steps_since_shared"] = step - self.shared_steps.get(other, -(1 << 30))
         if pair is None or pair.anchor is None:
             return PairView(anchored=False, pending=bool(pair and pair.candidates), **tries)
         a = pair.anchor

@@ -47,6 +47,14 @@ unverified) neither counts nor restarts the schedule: on repetitive streets such
 between the misses and restarted it every few steps (synthetic CAD development seed 1: 36 of 39 tries
 placed nothing).
 
+With ``CerpeConfig.share_estimates`` (our extension) one more rule, in every mode but ``always``: a robot
+whose last ``shared_skip_misses`` requests to a peer placed nothing, while that peer's estimates of the pair
+keep arriving (one at the previous step), skips the request (``peer-shares``) and asks again only every
+``shared_retry_steps`` steps: registration is not symmetric (a robot places a peer's image through its own
+keyframes), so the image it cannot place costs the peer a reply for nothing while the peer's own
+registration gives the pair its estimate (0 misses: off; without ``share_estimates`` it never acts, so the
+paper's rows are unchanged).
+
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
 decision; the agent fills the view from its anchors, odometers and graph.
@@ -97,6 +105,9 @@ class PolicyConfig:
             two robots travelled since the anchor (added to the per-step growth; 0: off).
         hard_tries, hard_backoff_max_steps: how a pair without an anchor asks the backbone to
             try hard (:func:`try_hard`; 0 tries: never).
+        shared_skip_misses, shared_retry_steps: with ``share_estimates``, skip the request after
+            this many requests in a row placed nothing while the peer shares its estimates of the
+            pair, asking again every ``shared_retry_steps`` steps (:func:`skip_for_shared`; 0: off).
     """
 
     mode: str = "gate"
@@ -121,6 +132,9 @@ class PolicyConfig:
     rot_sigma_per_m: float = 0.0
     hard_tries: int = 1  # 2 tried 15 % more on synthetic CAD development seed 1, placing no more (3 of 36)
     hard_backoff_max_steps: int = 32
+    # only with share_estimates; 2 (1, 3 tried) on development data: scripts' figures in the commit that says so
+    shared_skip_misses: int = 2
+    shared_retry_steps: int = 8
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -138,13 +152,14 @@ class PolicyConfig:
             if not isinstance(getattr(self, name), bool):
                 raise PolicyError(f"request_policy: {name} must be true or false, got {getattr(self, name)!r}")
         for name in ("max_steps", "miss_limit", "miss_backoff_steps", "miss_backoff_max_steps", "recheck_limit",
-                     "min_inliers", "unanchored_backoff_steps", "hard_tries"):
+                     "min_inliers", "unanchored_backoff_steps", "hard_tries", "shared_skip_misses"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                 raise PolicyError(f"request_policy: {name} must be an integer >= 0, got {v!r}")
-        v = self.hard_backoff_max_steps
-        if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
-            raise PolicyError(f"request_policy: hard_backoff_max_steps must be an integer >= 1, got {v!r}")
+        for name in ("hard_backoff_max_steps", "shared_retry_steps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise PolicyError(f"request_policy: {name} must be an integer >= 1, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -167,6 +182,8 @@ class PairView:
         anchor_inliers: inliers of the registration that set the anchor (-1: unknown).
         rechecks: placed estimates in a row that set the anchor disagreeing by more than
             ``recheck_rot_rad`` (the rule asks while this is at most ``recheck_limit``).
+        steps_since_shared: steps since the peer last shared a usable estimate of the pair
+            (``share_estimates``; large: never).
     """
 
     anchored: bool
@@ -181,6 +198,7 @@ class PairView:
     anchor_rot_rad: float = float("nan")
     anchor_inliers: int = -1
     rechecks: int = 0
+    steps_since_shared: int = 1 << 30
 
 
 @dataclass(frozen=True)
@@ -261,6 +279,14 @@ def _backing_off(conf: PolicyConfig, view: PairView) -> bool:
     if (conf.backoff_anchored_only and not view.anchored) or (conf.backoff_pending_exempt and view.pending):
         return False
     return view.steps_since_ask < backoff_steps(conf, view.misses, view.anchored)
+
+
+def skip_for_shared(conf: PolicyConfig, view: PairView) -> bool:
+    """Whether a robot that shares estimates skips this request (see the module docstring): its last
+    ``shared_skip_misses`` requests placed nothing, the peer shared an estimate of the pair at the previous
+    step, and fewer than ``shared_retry_steps`` steps passed since it last asked."""
+    return bool(conf.shared_skip_misses and view.misses >= conf.shared_skip_misses
+                and view.steps_since_shared <= 1 and view.steps_since_ask < conf.shared_retry_steps)
 
 
 def decide(conf: PolicyConfig, gate_open: bool, view: PairView | None) -> tuple[bool, str]:
