@@ -62,7 +62,11 @@ def test_a_robot_that_cannot_place_its_peer_takes_the_peer_estimate():
         assert p_on["r1"].source == p_off["r1"].source
         if p_on["r1"].T_cj_ci is not None:
             np.testing.assert_allclose(p_on["r1"].T_cj_ci, p_off["r1"].T_cj_ci, atol=1e-9)
-        if t in direct_steps:
+        if t in (5, 6):  # r1's first two estimates: held until a third verifies them (r0 cannot check them)
+            q = p_on["r0"]
+            assert (q.source, q.direct_via, q.reason) == ("none", SHARED_VIA, "unverified-held")
+            assert p_on["r1"].source == "direct" and "unverified" in p_on["r1"].reason  # r1 reports its own
+        elif t in direct_steps:
             assert p_off["r0"].source != "direct"  # without sharing r0 never has a direct estimate
             q = p_on["r0"]
             assert q.source == "direct" and q.direct_via == SHARED_VIA and "shared-estimate" in q.reason
@@ -112,7 +116,7 @@ def test_a_shared_estimate_below_the_anchor_bar_is_not_used(inliers, used):
         return inliers if own[0] == "r1" and own[1] == collab[1] else 0
 
     results = _records(world, True, register=register)
-    for t in range(5, 10):
+    for t in range(7, 10):  # 5 and 6: held until verified (test above)
         q = next(p for p in results[t].pairs if p.ego == "r0")
         assert (q.source == "direct" and q.direct_via == SHARED_VIA and q.direct_inliers == inliers) == used, t
         r1 = next(p for p in results[t].pairs if p.ego == "r1")

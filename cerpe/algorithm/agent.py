@@ -548,8 +548,10 @@ class RobotAgent(GateSide):
                     self.degrade("anchor:replaced")
                 for _ in check.dropped:  # unverified candidates the group that verified left out
                     self.degrade("anchor:inconsistent")
-                if check.verdict == "unverified" and not self.config.report_unverified:
-                    return "none", None, "unverified-held", -1  # nothing agrees with it yet
+                # nothing agrees with it yet; a peer's estimate (share_estimates), which this robot could not
+                # check by a registration of its own, is held until another estimate verifies it
+                if check.verdict == "unverified" and (not self.config.report_unverified or via == SHARED_VIA):
+                    return "none", None, "unverified-held", -1
                 if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
                     self.degrade("anchor:weak")
                     reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchor_min_inliers}; "
