@@ -166,3 +166,22 @@ def test_a_robot_that_cannot_place_its_peer_skips_requests_while_the_peer_shares
     replies = [sum(r.bytes_sent.get("reply", 0) for res in run for r in res.robots if r.robot == "r1")
                for run in (on, plain)]
     assert 0 < replies[0] < replies[1]
+
+
+def test_a_shared_estimate_on_more_inliers_than_the_robot_own_is_the_one_offered():
+    """r0 places r1's image on 15 inliers, 0.05 rad off; r1 places r0's on 200, exactly. The two agree
+    within the anchor tolerance and verify each other; r0 reports and anchors r1's (the stronger),
+    so its propagation between the windows is exact (before, r0 anchored its own, 0.05 rad off)."""
+    world = make_world(2, 30, seed=4)
+    turn = make_se3(so3_exp(np.array([0.0, 0.05, 0.0])), np.zeros(3))
+
+    def register(own, collab):
+        return {"r0": 15, "r1": 200}[own[0]] if own[1] == collab[1] else 0
+
+    results = _records(world, True, perturb=lambda cur, via, key: turn if key[0] == "r1" and len(key) == 3 else None,
+                       register=register)
+    P = {res.step: next(p for p in res.pairs if p.ego == "r0") for res in results}
+    assert P[5].source == "direct" and P[5].direct_via == SHARED_VIA and P[5].direct_inliers == 200
+    assert P[5].anchor_verdict == "verified"
+    for t in range(10, 25):
+        assert P[t].source == "propagated" and e_rot(P[t].T_cj_ci, world.gt_T_cj_ci(t, 0, 1)) < 1e-6, t

@@ -515,7 +515,8 @@ class RobotAgent(GateSide):
         if asked or shared is not None:
             ests, reason = self._directs(st, other) if asked else ([], "")
             if shared is not None:  # the peer's registration: another view of the pair (share_estimates)
-                ests = ests + [shared]
+                # first when it stands on more inliers than this robot's best: the one offered as the anchor
+                ests = [shared] + ests if ests and 0 <= ests[0][3] < shared[3] else ests + [shared]
             if ests:
                 via, T = ests[0][1], ests[0][2]
                 info.direct_via, info.direct_T, info.direct_inliers = via, T, ests[0][3]
