@@ -170,12 +170,13 @@ class CerpeConfig:
             robot whose own pass placed nothing of a peer then takes the peer's estimate,
             inverted, as its direct estimate of the pair (``direct_via`` -2; anchor verification
             judges it as its own, but an unverified one is held, not reported); with its own, the
-            peer's is a second, independent registration that can verify it (and the one offered as the
-            anchor when it has more inliers than the robot's best). Not taken: one on
-            fewer than ``anchor_min_inliers`` inliers, and any while the pair's anchor is the
-            robot's own measurement (its own estimates outrank the peer's; an anchor a shared
-            estimate set is replaced by newer shared ones as its own by its own). ``request_policy.shared_skip_misses`` then spares
-            the replies a robot cannot place (:func:`~cerpe.algorithm.policy.skip_for_shared`).
+            peer's is a second, independent registration that can verify it (and the one offered
+            as the anchor when it has more inliers than the robot's best). Not taken: one on fewer
+            than ``anchor_min_inliers`` inliers, and any while the pair's anchor is the robot's own
+            measurement (its own estimates outrank the peer's; an anchor a shared estimate set is
+            replaced by newer shared ones as its own by its own). ``request_policy.shared_skip_misses``
+            then spares the replies a robot cannot place
+            (:func:`~cerpe.algorithm.policy.skip_for_shared`).
     """
 
     tau: float | None = None

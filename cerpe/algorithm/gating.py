@@ -157,8 +157,8 @@ class GateSide:
     def wants_image(self, other: str) -> bool:
         """Whether to request ``other``'s image this step: the gate and the request policy
         (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens; with ``share_estimates``
-        the ``peer-shares`` rule may skip it). A skipped
-        request is kept (``PairRecord.request_skipped``); the pair then propagates its anchor."""
+        the ``peer-shares`` rule may skip it). A skipped request is kept (``PairRecord.request_skipped``,
+        reason ``request-skipped: <rule>``); the pair then propagates its anchor."""
         st = self._state()
         gate = self.gate_open(other)
         conf = self.config.request_policy

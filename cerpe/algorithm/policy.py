@@ -132,7 +132,7 @@ class PolicyConfig:
     rot_sigma_per_m: float = 0.0
     hard_tries: int = 1  # 2 tried 15 % more on synthetic CAD development seed 1, placing no more (3 of 36)
     hard_backoff_max_steps: int = 32
-    # only with share_estimates; 2 (1, 3 tried) on development data: scripts' figures in the commit that says so
+    # only with share_estimates: 2 (0, 1, 3 tried) by cerpe dev on development data, figures in the commit that added it
     shared_skip_misses: int = 2
     shared_retry_steps: int = 8
 
