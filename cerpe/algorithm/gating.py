@@ -173,7 +173,10 @@ class GateSide:
         return ask
 
     def note_request(self, other: str, info: PairInfo) -> None:
-        """After the pass: what the request to ``other`` brought (:func:`~cerpe.algorithm.policy.after_request`)."""
+        """After the pass: what the request to ``other`` brought (:func:`~cerpe.algorithm.policy.after_request`).
+        The image placed when this robot's own registration gave the estimate offered to anchor verification;
+        with ``share_estimates`` a peer's estimate on more inliers is offered instead, and the request counts
+        as a miss: its image added only a weaker second view (the ``peer-shares`` rule reads this)."""
         self.asks[other] = after_request(self.config.request_policy, self.asks.get(other), self._state().step,
                                          info.direct_T is not None and info.direct_via != SHARED_VIA,
                                          info.verdict, info.check_rot_rad,

@@ -48,12 +48,13 @@ between the misses and restarted it every few steps (synthetic CAD development s
 placed nothing).
 
 With ``CerpeConfig.share_estimates`` (our extension) one more rule, in every mode but ``always``: a robot
-whose last ``shared_skip_misses`` requests to a peer placed nothing, while that peer's estimates of the pair
-keep arriving (one at the previous step), skips the request (``peer-shares``) and asks again only every
+whose last ``shared_skip_misses`` requests to a peer were misses (the image placed nothing, or gave only a
+weaker estimate than the peer's shared one, which was offered instead), while that peer's estimates of the
+pair keep arriving (one at the previous step), skips the request (``peer-shares``) and asks again only every
 ``shared_retry_steps`` steps: registration is not symmetric (a robot places a peer's image through its own
-keyframes), so the image it cannot place costs the peer a reply for nothing while the peer's own
-registration gives the pair its estimate (0 misses: off; without ``share_estimates`` it never acts, so the
-paper's rows are unchanged).
+keyframes), so the image it cannot place (or places worse) costs the peer a reply for nothing while the
+peer's own registration gives the pair its estimate (0 misses: off; without ``share_estimates`` it never
+acts, so the paper's rows are unchanged).
 
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
