@@ -37,16 +37,18 @@ def test_estimate_frame_round_trip_and_bad_frames():
         EstimateMessage(0, 0, ((1, T1, -5),)).encode()
 
 
-def _team(world, share: bool, channel: Channel | None = None, perturb=None, register=None) -> Team:
+def _team(world, share: bool, channel: Channel | None = None, perturb=None, register=None,
+          policy: dict | None = None) -> Team:
     # r0's passes never place r1's image (r0 has no view of where r1 is); r1's place r0's
     bb = GTBackbone(world, seed=1, invalid=lambda cur, key: cur[0] == "r0" and len(key) == 3, perturb=perturb,
                     register=register)
     return Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20, share_estimates=share), channel)
+                CerpeConfig(min_scale_pixels=20, share_estimates=share, request_policy=policy or {}), channel)
 
 
-def _records(world, share: bool, channel: Channel | None = None, perturb=None, register=None):
-    team = _team(world, share, channel, perturb, register)
+def _records(world, share: bool, channel: Channel | None = None, perturb=None, register=None,
+             policy: dict | None = None):
+    team = _team(world, share, channel, perturb, register, policy)
     return list(team.run_encounter(world.to_encounter()))
 
 
@@ -144,14 +146,8 @@ def test_a_robot_that_cannot_place_its_peer_skips_requests_while_the_peer_shares
     skips 7-9 while r1 shares, asks at 25 (r1 shared nothing since 9), skips 26-28 and asks again at 29.
     r0's estimates are those of sharing without the rule (its own images never placed); r1 sends fewer replies."""
     world = make_world(2, 30, seed=4)
-    bb = GTBackbone(world, seed=1, invalid=lambda cur, key: cur[0] == "r0" and len(key) == 3)
-    conf = CerpeConfig(min_scale_pixels=20, share_estimates=True,
-                       request_policy={"shared_skip_misses": 2, "shared_retry_steps": 4})
-    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), conf)
-    on = list(team.run_encounter(world.to_encounter()))
-    plain_conf = CerpeConfig(min_scale_pixels=20, share_estimates=True, request_policy={"shared_skip_misses": 0})
-    plain = list(Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1, invalid=bb.invalid),
-                      SensorDepthDouble(), plain_conf).run_encounter(world.to_encounter()))
+    on = _records(world, True, policy={"shared_skip_misses": 2, "shared_retry_steps": 4})
+    plain = _records(world, True, policy={"shared_skip_misses": 0})
     skipped = [res.step for res in on for p in res.pairs if p.ego == "r0" and p.request_skipped]
     assert skipped == [7, 8, 9, 26, 27, 28]
     for res, ref in zip(on, plain):
