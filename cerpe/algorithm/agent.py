@@ -29,7 +29,7 @@ from ..scale import recover_scale
 from .anchors import NOT_REPORTED, Anchor, PairAnchors
 from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
-from .direct import SHARED_VIA, direct_estimates, estimate_message, shared_estimate
+from .direct import REASON_SHARED, SHARED_VIA, direct_estimates, estimate_message, shared_estimate
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import GateSide
 from .graph import DirectEstimate, PairGraph
@@ -540,7 +540,7 @@ class RobotAgent(GateSide):
                                                   if a is pair.anchor or st.step - a.step <= keep] + [est]
                 if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
                     pair.anchor, info.verdict = est, "unchecked"
-                    return "direct", T, "shared-estimate" if via == SHARED_VIA else "", st.step
+                    return "direct", T, REASON_SHARED if via == SHARED_VIA else "", st.step
                 others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
                           for k2, _, T2, _ in ests[1:] if k2 != ests[0][0]]
                 check = pair.offer(est, others)
@@ -559,7 +559,7 @@ class RobotAgent(GateSide):
                               f"the anchor of step {check.against} is kept")
                 elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
                     why = ("unverified" if check.verdict == "unverified" else "",
-                           "shared-estimate" if via == SHARED_VIA else "")
+                           REASON_SHARED if via == SHARED_VIA else "")
                     return "direct", T, "; ".join(w for w in why if w), st.step
                 else:
                     self.degrade("anchor:inconsistent")

@@ -23,6 +23,7 @@ from .state import StepState
 Estimate = tuple[int, int, np.ndarray, int]
 # pass index and step of a shared estimate: the peer's registration, through none of this robot's views
 SHARED_VIA = -2
+REASON_SHARED = "shared-estimate"  # the reason of a reported estimate that the peer shared
 
 
 def via_to_current(st: StepState, via: int, X: np.ndarray) -> np.ndarray | None:
