@@ -116,3 +116,17 @@ def test_bad_requests_are_one_clear_error(tmp_path: Path, monkeypatch, capsys) -
     assert "field 'manifest'" in err and "moved.yaml not found" in err and "Traceback" not in err
     assert cli.main(["export", str(run), "--manifest", str(tmp_path / "none.yaml")]) == 2
     assert "--manifest: manifest" in capsys.readouterr().err
+
+
+def test_an_online_robots_run_folder_exports_that_robot_only(tmp_path: Path, monkeypatch) -> None:
+    """`cerpe online` writes one run folder per robot, with only that robot as ego: its model, no empty others."""
+    run = fake_run(tmp_path, monkeypatch, "cerpe", n_steps=4, n_enc=1)
+    for name, col in (("robots.csv", "robot"), ("steps.csv", "ego")):
+        df = pd.read_csv(run / "enc0" / name)
+        df[df[col] == "r1"].to_csv(run / "enc0" / name, index=False)
+    done = json.loads((run / "enc0" / "DONE.json").read_text())
+    done["n_pair_rows"] = 4
+    (run / "enc0" / "DONE.json").write_text(json.dumps(done))
+    written = ex.export_colmap(run, tmp_path / "out", setting=_setting(n_steps=4, n_enc=1))
+    assert written == [tmp_path / "out" / "enc0" / "r1" / "estimate", tmp_path / "out" / "enc0" / "r1" / "gt"]
+    assert pycolmap.Reconstruction(str(written[0])).num_images() == 4 + 2  # its 4 frames, r0's at steps 2, 3

@@ -249,7 +249,9 @@ def export_colmap(rundir: Path | str, out: Path | str | None = None, manifest: P
         steps = run.steps[run.steps["encounter"] == name]
         robots = run.robots[run.robots["encounter"] == name]
         all_images: list[ColmapImage] = []
-        for ego in egos or [r.robot_id for r in enc.robots]:
+        # by default the robots the run has odometry of (one, in an online robot's run folder)
+        has_odom = set(robots.loc[np.isfinite(robots["odom_tx"].to_numpy(float)), "robot"].astype(str))
+        for ego in egos or [r.robot_id for r in enc.robots if r.robot_id in has_odom]:
             cameras, est, gt, skipped = encounter_models(enc, steps, robots, ego)
             base = out / name / ego
             _write_model(base / "estimate", cameras, est)
@@ -274,7 +276,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--manifest", type=Path, default=None,
                    help="the manifest the run read (default: the path in run.json)")
     p.add_argument("--encounter", nargs="+", default=(), help="only these encounters (default: all)")
-    p.add_argument("--ego", nargs="+", default=(), help="only these ego robots (default: every robot)")
+    p.add_argument("--ego", nargs="+", default=(),
+                   help="only these ego robots (default: every robot the run has odometry of)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: RUNDIR/colmap)")
     p.add_argument("--no-images", action="store_true", help="do not place the images beside the models")
 
