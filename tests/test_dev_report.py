@@ -193,8 +193,13 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
     assert base["e_pos_on_woem_frames_m"].isna().all()  # no metric scale: no predicted-scale e_pos
     assert len(res["gate"]) == 1 and np.isfinite(res["gate"]["tau"].iloc[0])
     out = tmp / "out"
-    for name in ("report.csv", "report.md", "report_gate.csv", "report-before.csv", "report-before.md"):
+    for name in ("report.csv", "report.md", "report_gate.csv", "report_checks.csv", "report-before.csv",
+                 "report-before.md"):
         assert (out / name).is_file(), name
+    # the checks of a synthetic set: no real-set comparison, the carried and graph checks from the table
+    checks = res["checks"]
+    assert set(checks["check"]) == {"18 wrong carried", "20 graph e_pos", "20 graph e_rot / success"}
+    assert set(checks["result"]) <= {"pass", "FAIL", "n/a"} and "the open issues' development checks:" in lines[-3]
     assert pd.read_csv(out / "report-before.csv").shape[0] == len(dev.METHODS) == 5
     md = (out / "report.md").read_text()
     assert "succ>covis %" in md and json.loads(md.split("```json")[1].split("```")[0])["synthetic"]["seeds"] == [2]
@@ -212,3 +217,43 @@ def test_dev_reuses_finished_runs(fixture_report, monkeypatch):
     again = dev.dev_report(tmp / "out", seeds=[2], preset="fixture", manifests_dir=tmp / "manifests",
                            sets=["dev-fixture-synthetic-indoor-*"], progress=False, echo=lambda s: None)
     pd.testing.assert_frame_equal(again["table"], res["table"])
+
+
+def _method_row(set_name: str, method: str, **kw) -> dict:
+    base = {"set": set_name, "method": method, "e_pos_m": float("nan"), "e_pos_gt_scale_m": float("nan"),
+            "e_rot_rad": float("nan"), "e_rot_median_rad": float("nan"), "success_pct": 0.0, "right_pct": 0.0,
+            "carried_longest_steps": 0}
+    return {**base, **kw}
+
+
+def test_checks_known_answers() -> None:
+    """The issues' checks on a hand-made table: a real set CERPE wins, one where the baseline's wrong poses
+    "succeed" (CERPE places nothing: a failure, not n/a), the graph bound either side of 0.7 x min, and n/a
+    for a missing method."""
+    from cerpe.pipeline.devreport import checks
+
+    t = pd.DataFrame([
+        _method_row("win", "cerpe", e_rot_rad=0.02, e_rot_median_rad=0.02, success_pct=64.3, e_pos_m=1.0),
+        _method_row("win", "aliked-lightglue", e_rot_rad=1.2, e_rot_median_rad=1.0, success_pct=42.9),
+        _method_row("win", "cerpe-wo-em", e_pos_m=0.8, e_rot_rad=0.02, success_pct=50.0),
+        _method_row("win", "cerpe-graph", e_pos_m=0.55, e_rot_rad=0.02, success_pct=64.3),
+        _method_row("room", "cerpe", success_pct=0.0),
+        _method_row("room", "aliked-lightglue", e_rot_rad=1.1, e_rot_median_rad=1.2, success_pct=74.0),
+        _method_row("synth", "cerpe", e_pos_m=0.6, e_rot_rad=0.01, success_pct=60.0, carried_longest_steps=4),
+        _method_row("synth", "cerpe-graph", e_pos_m=0.5, e_rot_rad=0.011, success_pct=60.0),
+    ])
+    c = checks(t, real=["win", "room"]).set_index(["check", "set"])["result"]
+    assert c[("18 real: CERPE vs ALIKED+LG", "win")] == "pass"
+    assert c[("18 real: CERPE vs ALIKED+LG", "room")] == "FAIL"
+    assert ("18 real: CERPE vs ALIKED+LG", "synth") not in c  # not a real set
+    assert c[("18 wrong carried", "win")] == "pass" and c[("18 wrong carried", "synth")] == "FAIL"
+    assert c[("20 graph e_pos", "win")] == "pass"  # 0.55 <= 0.7 x min(1.0, 0.8) = 0.56
+    assert c[("20 graph e_pos", "synth")] == "FAIL"  # 0.5 > 0.7 x 0.6 (no w/o EM row: CERPE alone)
+    assert c[("20 graph e_rot / success", "win")] == "pass" and c[("20 graph e_rot / success", "synth")] == "FAIL"
+    assert ("20 graph e_pos", "room") not in c  # no cerpe-graph row
+    t.loc[t["set"] == "win", "e_pos_m"] = float("nan")  # no predicted scale (RGB only): the GT-scale figures
+    t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_m"] = 0.3
+    t.loc[(t["set"] == "win") & (t["method"] == "cerpe"), "e_pos_gt_scale_m"] = 0.4
+    c = checks(t, real=["win"]).set_index(["check", "set"])
+    assert c.loc[("20 graph e_pos", "win"), "result"] == "FAIL"
+    assert "(GT scale)" in c.loc[("20 graph e_pos", "win"), "figures"]

@@ -179,7 +179,7 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
     Returns ``{"table", "gate", "sets", "errors", "paths"}``; ``echo`` prints a line
     (each skipped set, the report).
     """
-    from .devreport import format_markdown, format_text, report
+    from .devreport import checks, format_markdown, format_text, report
 
     bad = [m for m in methods if m not in METHODS]
     if bad:
@@ -195,6 +195,7 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
     entries: list[DevSet] = []
     if real:
         entries += real_sets(Path(manifests_dir or ROOT / "datasets_manifest"))
+    real_names = {e.name for e in entries}
     if preset != "none":
         from ..synth import SUITES
 
@@ -215,24 +216,26 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
         runs += done
         errors += errs
     table, gate = report(runs)
+    check = checks(table, real=real_names)
     prov = {"git_revision": git_revision(), "code_cerpe": code_hash("cerpe"), "code_baselines": code_hash("sift-ransac"),
             "profile": profile, "overrides": overrides or {},
             "synthetic": {"preset": preset, "seeds": [int(s) for s in seeds]},
             "sets": {e.name: e.status + (f": {e.detail}" if e.detail else "") for e in entries},
             "methods": list(methods), "command": " ".join(sys.argv), "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    text = format_text(table, gate)
+    text = format_text(table, gate, check)
     echo(text)
     paths = []
     for stem in ["report"] + ([f"report-{label}"] if label else []):
         for suffix, content in ((".csv", table.to_csv(index=False, float_format="%.6g")),
                                 ("_gate.csv", gate.to_csv(index=False, float_format="%.6g")),
-                                (".md", format_markdown(table, gate, prov))):
+                                ("_checks.csv", check.to_csv(index=False)),
+                                (".md", format_markdown(table, gate, prov, check))):
             p = out / f"{stem}{suffix}"
             atomic_write_text(p, content)
             paths.append(p)
     echo(f"written: {', '.join(str(p) for p in paths)}")
     echo(f"done in {time.perf_counter() - t0:.0f} s")
-    return {"table": table, "gate": gate, "sets": entries, "errors": errors, "paths": paths}
+    return {"table": table, "gate": gate, "checks": check, "sets": entries, "errors": errors, "paths": paths}
 
 
 # --------------------------------------------------------------------------- CLI

@@ -27,7 +27,8 @@ One row per (set, method) (:func:`method_row`):
   put on the wire per step).
 
 :func:`gate_row` adds the descriptor gate's quality per set from CERPE's ``steps.csv``:
-the co-visibility label (``covis_*``) beside the old ordered label.
+the co-visibility label (``covis_*``) beside the old ordered label. :func:`checks` reads the
+table against the open issues' development checks (issues 18 and 20), one verdict per check and set.
 """
 from __future__ import annotations
 
@@ -165,6 +166,71 @@ def report(runs: Iterable[tuple[str, Path]]) -> tuple[pd.DataFrame, pd.DataFrame
     return table, pd.DataFrame(gates, columns=list(GATE_COLS))
 
 
+# --------------------------------------------------------------------------- the issues' checks
+GRAPH_BOUND = 0.7  # issue 20: cerpe-graph e_pos (predicted scale) <= this x min(CERPE, CERPE w/o EM)
+CHECK_COLS: tuple[str, ...] = ("check", "set", "result", "figures")
+
+
+def _verdict(ok: bool | None) -> str:
+    return "n/a" if ok is None else "pass" if ok else "FAIL"
+
+
+def checks(table: pd.DataFrame, real: Iterable[str] = ()) -> pd.DataFrame:
+    """The development checks of the open issues, one row per check and set (:data:`CHECK_COLS`),
+    from :func:`report`'s table: a verdict (``pass`` / ``FAIL``, ``n/a`` where a method's row or a
+    figure is missing) and the figures it compares, so a stop's claims are one command's output.
+
+    * ``18 real: CERPE vs ALIKED+LG`` (sets in ``real``): CERPE's success >= ALIKED+LightGlue's and its
+      mean and median e_rot <= theirs; the figures add both ``right %`` (estimates within
+      :data:`RIGHT_ROT_RAD`), since success counts wrong poses too.
+    * ``18 wrong carried``: no CERPE estimate more than :data:`WRONG_RAD` rad wrong carried for more
+      than :data:`CARRIED_MAX_STEPS` steps.
+    * ``20 graph e_pos``: cerpe-graph e_pos (predicted scale; GT scale where the set has none) <=
+      :data:`GRAPH_BOUND` x min(CERPE, CERPE w/o EM); ``20 graph e_rot / success``: <= CERPE's / >= CERPE's.
+    """
+    real = set(real)
+    by = {(str(r["set"]), str(r["method"])): r for _, r in table.iterrows()}
+    rows = []
+
+    def fig(r, k, nd=3):
+        return _f(float(r[k]), nd) if r is not None else "--"
+
+    for name in dict.fromkeys(table["set"].astype(str)):
+        ce, al = by.get((name, "cerpe")), by.get((name, "aliked-lightglue"))
+        wo, gr = by.get((name, "cerpe-wo-em")), by.get((name, "cerpe-graph"))
+        if name in real:
+            ok = None
+            if ce is not None and al is not None:
+                vals = [float(ce[k]) - float(al[k]) for k in ("success_pct", "e_rot_rad", "e_rot_median_rad")]
+                if all(np.isfinite(vals)):
+                    ok = vals[0] >= 0 and vals[1] <= 0 and vals[2] <= 0
+                elif np.isfinite(vals[0]):  # one of them has no estimate at all: its e_rot is not a figure
+                    ok = False if vals[0] < 0 else None
+            rows.append({"check": "18 real: CERPE vs ALIKED+LG", "set": name, "result": _verdict(ok),
+                         "figures": f"success {fig(ce, 'success_pct', 1)} vs {fig(al, 'success_pct', 1)}, e_rot mean "
+                                    f"{fig(ce, 'e_rot_rad')} vs {fig(al, 'e_rot_rad')}, median {fig(ce, 'e_rot_median_rad')} "
+                                    f"vs {fig(al, 'e_rot_median_rad')}; right % {fig(ce, 'right_pct', 1)} vs "
+                                    f"{fig(al, 'right_pct', 1)}"})
+        if ce is not None:
+            longest = int(ce["carried_longest_steps"])
+            rows.append({"check": "18 wrong carried", "set": name, "result": _verdict(longest <= CARRIED_MAX_STEPS),
+                         "figures": f"longest {longest} steps (bound {CARRIED_MAX_STEPS})"})
+        if gr is not None and ce is not None:
+            key = "e_pos_m" if np.isfinite(float(gr["e_pos_m"])) else "e_pos_gt_scale_m"
+            ref = [float(r[key]) for r in (ce, wo) if r is not None and np.isfinite(float(r[key]))]
+            g = float(gr[key])
+            ok = None if not ref or not np.isfinite(g) else g <= GRAPH_BOUND * min(ref)
+            rows.append({"check": "20 graph e_pos", "set": name, "result": _verdict(ok),
+                         "figures": f"{_f(g)} vs {GRAPH_BOUND:g} x {_f(min(ref) if ref else float('nan'))}"
+                                    f"{' (GT scale)' if key != 'e_pos_m' else ''}"})
+            er = (float(gr["e_rot_rad"]), float(ce["e_rot_rad"]))
+            su = (float(gr["success_pct"]), float(ce["success_pct"]))
+            ok = None if not all(np.isfinite(er + su)) else er[0] <= er[1] and su[0] >= su[1]
+            rows.append({"check": "20 graph e_rot / success", "set": name, "result": _verdict(ok),
+                         "figures": f"e_rot {_f(er[0])} vs {_f(er[1])}, success {_f(su[0], 1)} vs {_f(su[1], 1)}"})
+    return pd.DataFrame(rows, columns=list(CHECK_COLS))
+
+
 # --------------------------------------------------------------------------- formatting
 def _f(v: float, nd: int = 3) -> str:
     return "--" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
@@ -202,21 +268,31 @@ LEGEND = ("e_pos on w/o EM frames: e_pos (predicted scale) over the frames where
           "tau, beside the old ordered label (overlap_gt >= 0.2 per direction) and its symmetric-score ceiling.")
 
 
-def format_text(table: pd.DataFrame, gate: pd.DataFrame) -> str:
+CHECK_HEADER = ["check", "set", "result", "figures (CERPE or cerpe-graph vs the reference)"]
+
+
+def format_text(table: pd.DataFrame, gate: pd.DataFrame, check: pd.DataFrame | None = None) -> str:
     """The report as fixed-width text (what ``cerpe dev`` prints)."""
     out = [text_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
     if len(gate):
         out += ["", "descriptor gate (CERPE's pairs and steps):",
                 text_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+    if check is not None and len(check):
+        out += ["", "the open issues' development checks:",
+                text_table(CHECK_HEADER, [list(map(str, r)) for r in check.itertuples(index=False)], left=4)]
     return "\n".join(out + ["", LEGEND])
 
 
-def format_markdown(table: pd.DataFrame, gate: pd.DataFrame, provenance: dict | None = None) -> str:
+def format_markdown(table: pd.DataFrame, gate: pd.DataFrame, provenance: dict | None = None,
+                    check: pd.DataFrame | None = None) -> str:
     """The report as Markdown (tables, legend, and the provenance as a JSON block)."""
     out = ["# cerpe development report", "", md_table(HEADER, [_cells(r) for _, r in table.iterrows()])]
     if len(gate):
         out += ["", "Descriptor gate (CERPE's pairs and steps):", "",
                 md_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
+    if check is not None and len(check):
+        out += ["", "The open issues' development checks:", "",
+                md_table(CHECK_HEADER, [list(map(str, r)) for r in check.itertuples(index=False)])]
     out += ["", LEGEND]
     if provenance:
         out += ["", "```json", json.dumps(provenance, indent=1, sort_keys=True, default=str), "```"]
