@@ -17,5 +17,5 @@ def md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 2) -> str:
     """A fixed-width table: the first ``left`` columns left-aligned, the rest right-aligned."""
     w = [max(len(h), *(len(r[k]) for r in rows)) if rows else len(h) for k, h in enumerate(header)]
-    line = lambda cells: "  ".join(c.ljust(w[k]) if k < left else c.rjust(w[k]) for k, c in enumerate(cells))
+    line = lambda cells: "  ".join(c.ljust(w[k]) if k < left else c.rjust(w[k]) for k, c in enumerate(cells)).rstrip()
     return "\n".join([line(header), line(["-" * n for n in w])] + [line(r) for r in rows])
