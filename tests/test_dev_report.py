@@ -239,12 +239,18 @@ def test_checks_known_answers() -> None:
         _method_row("win", "cerpe-graph", e_pos_m=0.55, e_rot_rad=0.02, success_pct=64.3),
         _method_row("room", "cerpe", success_pct=0.0),
         _method_row("room", "aliked-lightglue", e_rot_rad=1.1, e_rot_median_rad=1.2, success_pct=74.0),
+        _method_row("dark", "cerpe", e_rot_rad=0.05, e_rot_median_rad=0.04, success_pct=20.0),
+        _method_row("dark", "aliked-lightglue", success_pct=0.0),
+        _method_row("none", "cerpe"),
+        _method_row("none", "aliked-lightglue"),
         _method_row("synth", "cerpe", e_pos_m=0.6, e_rot_rad=0.01, success_pct=60.0, carried_longest_steps=4),
         _method_row("synth", "cerpe-graph", e_pos_m=0.5, e_rot_rad=0.011, success_pct=60.0),
     ])
-    c = checks(t, real=["win", "room"]).set_index(["check", "set"])["result"]
+    c = checks(t, real=["win", "room", "dark", "none"]).set_index(["check", "set"])["result"]
     assert c[("18 real: CERPE vs ALIKED+LG", "win")] == "pass"
     assert c[("18 real: CERPE vs ALIKED+LG", "room")] == "FAIL"
+    assert c[("18 real: CERPE vs ALIKED+LG", "dark")] == "pass"  # the baseline has no estimate to compare
+    assert c[("18 real: CERPE vs ALIKED+LG", "none")] == "n/a"  # neither has one
     assert ("18 real: CERPE vs ALIKED+LG", "synth") not in c  # not a real set
     assert c[("18 wrong carried", "win")] == "pass" and c[("18 wrong carried", "synth")] == "FAIL"
     assert c[("20 graph e_pos", "win")] == "pass"  # 0.55 <= 0.7 x min(1.0, 0.8) = 0.56
