@@ -16,13 +16,14 @@ Runs the methods (``cerpe``, ``cerpe-wo-em``, ``cerpe-graph``: our extension, ``
 then prints per set and method the figures of :mod:`cerpe.pipeline.devreport` (e_pos at
 predicted / GT scale, e_rot mean and median, success, success after co-visibility,
 placed collaborator views / image requests, anchors rejected, wrong estimates carried,
-bytes per robot per step) and the descriptor gate's quality per set.
+bytes per robot per step), the descriptor gate's quality per set, and the open issues'
+development checks (:func:`cerpe.pipeline.devreport.checks`: a verdict per check and set).
 
 Everything is cached and resumable under ``--out`` (default ``build/dev/``):
 ``synth/<preset>/<world>-seed<N>/`` (rendered suites), ``manifests/`` (their manifests),
 ``runs/<set>/<method>/`` (run folders as ``cerpe run`` writes them: a run of the current
 code and manifest is reused, one of older code is replaced). The report is written as
-``report.{csv,md}`` and ``report_gate.csv`` there; ``--label before`` also writes
+``report.{csv,md}``, ``report_gate.csv`` and ``report_checks.csv`` there; ``--label before`` also writes
 ``report-before.*`` so that a later session can diff before and after.
 """
 from __future__ import annotations
