@@ -38,8 +38,8 @@ _register("eval", "cerpe.pipeline.evaluate", "compute the paper's metrics for a 
 _register("export", "cerpe.pipeline.export", "export a run folder's estimates and ground truth as COLMAP text models")
 _register("bench", "cerpe.pipeline.bench", "benchmark per-stage latency, memory and bytes")
 _register("paper", "cerpe.pipeline.paper", "build every table and figure (what `make paper` runs)")
-_register("dev", "cerpe.pipeline.dev", "development report: the four methods on the real development sets and "
-          "synthetic development seeds (never the paper-default suite)")
+_register("dev", "cerpe.pipeline.dev", "development report: the five methods on the real development sets and "
+          "synthetic development seeds (never the paper-default suite), and the open issues' checks")
 _register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over Zenoh")
 _register("data", "cerpe.datasets.data_cli", "list public datasets, download one (resumable, checked) and print its manifest")
 
