@@ -269,7 +269,9 @@ def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_pa
     """`cerpe export` on a real CERPE run: the manifest run.json names is loaded (no setting handed in), and the
     models' relative poses are the run's estimates."""
     pycolmap = pytest.importorskip("pycolmap")
-    from cerpe.geometry import se3_from_tq_xyzw, se3_inverse
+    from test_export_colmap import _T, _rows_pose
+
+    from cerpe.geometry import se3_inverse
     from cerpe.pipeline.export import export_colmap
 
     tmp, res, _ = fixture_report
@@ -281,13 +283,6 @@ def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_pa
     row = est.iloc[0]
     model = pycolmap.Reconstruction(str(tmp_path / "colmap" / row["encounter"] / row["ego"] / "estimate"))
     ims = {im.name.split("_")[0]: im for im in model.images.values()}  # "<robot>/<step>" -> image
-
-    def T(im):
-        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        return np.vstack([cfw.matrix(), [0, 0, 0, 1]])
-
     step = f"{int(row['step']):06d}"
-    rel = T(ims[f"{row['other']}/{step}"]) @ se3_inverse(T(ims[f"{row['ego']}/{step}"]))
-    want = se3_from_tq_xyzw(row[["est_tx", "est_ty", "est_tz"]].to_numpy(float),
-                            row[["est_qx", "est_qy", "est_qz", "est_qw"]].to_numpy(float))
-    np.testing.assert_allclose(rel, want, atol=1e-6)
+    rel = _T(ims[f"{row['other']}/{step}"]) @ se3_inverse(_T(ims[f"{row['ego']}/{step}"]))
+    np.testing.assert_allclose(rel, _rows_pose(row, "est"), atol=1e-6)

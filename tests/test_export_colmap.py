@@ -13,8 +13,9 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")  # a dependency of cerpe (pyproject.toml); skip only if broken
 
 from cerpe import cli  # noqa: E402
-from cerpe.geometry import se3_from_tq_xyzw, se3_inverse  # noqa: E402
+from cerpe.geometry import se3_inverse  # noqa: E402
 from cerpe.pipeline import export as ex  # noqa: E402
+from cerpe.pipeline.evaluate import poses_from_columns  # noqa: E402
 from cerpe.scene import Encounter, Setting  # noqa: E402
 
 from test_pipeline_run_eval import K, _setting, fake_run  # noqa: E402
@@ -27,8 +28,8 @@ def _T(image) -> np.ndarray:
 
 
 def _rows_pose(row: pd.Series, prefix: str) -> np.ndarray:
-    return se3_from_tq_xyzw(row[[f"{prefix}_{c}" for c in ("tx", "ty", "tz")]].to_numpy(float),
-                            row[[f"{prefix}_{c}" for c in ("qx", "qy", "qz", "qw")]].to_numpy(float))
+    """The ``[4,4]`` pose of one results row's ``<prefix>_*`` columns."""
+    return poses_from_columns(row.to_frame().T, prefix)[0]
 
 
 @pytest.fixture()

@@ -40,7 +40,7 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, atomic_write_text, read_json
 from ..errors import CerpeError
-from ..geometry import e_pos, e_rot_quat, gt_scale_translation
+from ..geometry import e_pos, e_rot_quat, gt_scale_translation, se3_from_tq_xyzw
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,19 @@ RIGHT_ROT_RAD = 0.3  # an estimate farther off in rotation is wrong (``right_pct
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",
                       *(f"est_{c}" for c in POSE), *(f"gt_{c}" for c in POSE))
+
+
+def poses_from_columns(df: pd.DataFrame, prefix: str) -> np.ndarray:
+    """``[N,4,4]`` poses of the ``<prefix>_tx .. <prefix>_qw`` columns of a results table (``est``, ``gt``,
+    ``dir``, ``odom``); NaN matrices where a row has none."""
+    v = df[[f"{prefix}_{c}" for c in POSE]].to_numpy(float)
+    out = np.full((len(v), 4, 4), np.nan)
+    ok = np.all(np.isfinite(v), axis=1)
+    if ok.any():
+        out[ok] = se3_from_tq_xyzw(v[ok, :3], v[ok, 3:])
+    return out
+
+
 SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct",
                 "right_pct")
 

@@ -39,14 +39,13 @@ import pandas as pd
 
 from ..atomicio import atomic_write_text, ensure_dir
 from ..errors import CerpeError
-from ..geometry import is_finite_transform, matrix_to_quat_wxyz, se3_from_tq_xyzw, se3_inverse
+from ..geometry import is_finite_transform, matrix_to_quat_wxyz, se3_inverse
 from ..scene import CameraIntrinsics, Encounter, Setting
-from .evaluate import load_run
+from .evaluate import load_run, poses_from_columns
 from .provenance import file_digest
 
 log = logging.getLogger(__name__)
 
-POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 POINTS3D_HEADER = "# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, " \
                   "TRACK[] as (IMAGE_ID, POINT2D_IDX)\n# Number of points: 0, mean track length: 0\n"
 
@@ -105,14 +104,6 @@ def image_name(robot: str, step: int, ref: object) -> str:
 
 
 # --------------------------------------------------------------------------- run folder -> models
-def _pose(row: pd.Series, prefix: str) -> np.ndarray | None:
-    vals = [row.get(f"{prefix}_{c}", np.nan) for c in POSE_COLS]
-    if not np.all(np.isfinite(np.asarray(vals, float))):
-        return None
-    T = se3_from_tq_xyzw(np.asarray(vals[:3], float), np.asarray(vals[3:], float))
-    return T if is_finite_transform(T) else None
-
-
 def encounter_models(enc: Encounter, steps: pd.DataFrame, robots: pd.DataFrame, ego: str
                      ) -> tuple[dict[int, CameraIntrinsics], list[ColmapImage], list[ColmapImage], dict[str, int]]:
     """The estimate and ground-truth models of ``ego`` in encounter ``enc``.
@@ -130,24 +121,26 @@ def encounter_models(enc: Encounter, steps: pd.DataFrame, robots: pd.DataFrame, 
     skipped = {"no-odometry": 0, "no-estimate": 0, "no-gt": 0}
     est: list[ColmapImage] = []
     gt_poses: list[tuple[str, int, np.ndarray | None]] = []  # name, camera id, T_world_cam (GT)
-    odo = robots[robots["robot"].astype(str) == ego].drop_duplicates("step", keep="last").set_index("step")
+    odo = robots[robots["robot"].astype(str) == ego].drop_duplicates("step", keep="last")
+    X_by_step = dict(zip(odo["step"].astype(int), poses_from_columns(odo, "odom")))
     pairs = steps[steps["ego"].astype(str) == ego]
+    T_est = poses_from_columns(pairs, "est")
     for t in range(enc.n_steps):
-        X = _pose(odo.loc[t], "odom") if t in odo.index else None
-        if X is None:
+        X = X_by_step.get(t)
+        if X is None or not is_finite_transform(X):
             skipped["no-odometry"] += 1
             continue
         name = image_name(ego, t, enc.robots[i].images[t])
         est.append(ColmapImage(len(est) + 1, i + 1, name, se3_inverse(X)))
         gt_poses.append((name, i + 1, enc.robots[i].T_world_cam[t]))
-        for _, row in pairs[pairs["step"] == t].iterrows():
-            other = str(row["other"])
+        for k in np.flatnonzero(pairs["step"].to_numpy() == t):
+            other = str(pairs["other"].iloc[k])
             if other not in ids:
                 raise ExportError(f"steps.csv of {enc.name}: other robot {other!r} is not in the manifest's "
                                   f"encounter (robots: {', '.join(ids)}): another manifest?")
             j = ids.index(other)
-            T_cj_ci = _pose(row, "est")
-            if T_cj_ci is None:
+            T_cj_ci = T_est[k]
+            if not is_finite_transform(T_cj_ci):
                 skipped["no-estimate"] += 1
                 continue
             name_j = image_name(other, t, enc.robots[j].images[t])

@@ -21,8 +21,8 @@ import pandas as pd
 
 from ..algorithm.graph import DirectEstimate, GraphConfig, PairGraph
 from ..errors import CerpeError
-from ..geometry import pose_cov_sigmas, se3_from_tq_xyzw, se3_inverse, se3_to_tq_xyzw
-from .evaluate import POSE, load_run
+from ..geometry import pose_cov_sigmas, se3_inverse, se3_to_tq_xyzw
+from .evaluate import POSE, load_run, poses_from_columns
 
 
 class GraphDevError(CerpeError, ValueError):
@@ -31,15 +31,6 @@ class GraphDevError(CerpeError, ValueError):
 
 # own-odometry failures as the agent counts them (``own_ok`` of PairGraph.step)
 OWN_FAILURES = ("ego:no-estimate", "frame:blank", "ego:no-keyframe")
-
-
-def _poses(df: pd.DataFrame, prefix: str) -> np.ndarray:
-    v = df[[f"{prefix}_{c}" for c in POSE]].to_numpy(float)
-    out = np.full((len(v), 4, 4), np.nan)
-    ok = np.all(np.isfinite(v), axis=1)
-    if ok.any():
-        out[ok] = se3_from_tq_xyzw(v[ok, :3], v[ok, 3:])
-    return out
 
 
 def depth_rel_sigma(run_meta: dict) -> float | None:
@@ -66,12 +57,12 @@ def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd
     steps = pair_steps.sort_values("step").reset_index(drop=True)
     ego = ego_rows.set_index("step")
     other = other_rows.set_index("step")
-    X_i_all, X_j_all = _poses(ego.reset_index(), "odom"), _poses(other.reset_index(), "odom")
+    X_i_all, X_j_all = poses_from_columns(ego.reset_index(), "odom"), poses_from_columns(other.reset_index(), "odom")
     X_i = dict(zip(ego.index, X_i_all))
     X_j = dict(zip(other.index, X_j_all))
     failed = {t: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)
               for t, d in ego["degradations"].items()}
-    T_dir = _poses(steps, "dir")
+    T_dir = poses_from_columns(steps, "dir")
     graph = PairGraph(conf, rel_sigma)
     est = np.full((len(steps), 4, 4), np.nan)
     src, anchor, s_pos, s_rot = [], [], np.full(len(steps), np.nan), np.full(len(steps), np.nan)
@@ -156,7 +147,7 @@ def direct_samples(steps: pd.DataFrame) -> pd.DataFrame:
     perturbation's, in camera i's frame, as the noise model), the translation error along the line
     between the cameras ``along_m`` (signed) and across it ``perp_m``, their distance ``dist_m``
     (ground truth), ``inliers``, ``verdict``, ``encounter``, ``step``, ``ego``, ``other``."""
-    T_dir, T_gt = _poses(steps, "dir"), _poses(steps, "gt")
+    T_dir, T_gt = poses_from_columns(steps, "dir"), poses_from_columns(steps, "gt")
     ok = np.all(np.isfinite(T_dir.reshape(len(steps), -1)), axis=1) & np.all(np.isfinite(T_gt.reshape(len(steps), -1)), axis=1)
     D = se3_inverse(T_gt[ok]) @ T_dir[ok]
     from ..geometry import rotation_angle
@@ -187,7 +178,7 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
     from ..geometry import rotation_angle
 
     r = robot_rows.sort_values("step")
-    X = _poses(r, "odom")
+    X = poses_from_columns(r, "odom")
     steps = r["step"].astype(int).to_numpy()
     bad = r["degradations"].map(lambda d: isinstance(d, str) and any(f in d.split(";") for f in OWN_FAILURES)).to_numpy()
     if jump_rad > 0 and len(X) > 1:
