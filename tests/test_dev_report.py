@@ -198,7 +198,8 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
         assert (out / name).is_file(), name
     # the checks of a synthetic set: no real-set comparison, the carried and graph checks from the table
     checks = res["checks"]
-    assert set(checks["check"]) == {"18 wrong carried", "20 graph e_pos", "20 graph e_rot / success"}
+    assert set(checks["check"]) == {"18 wrong carried", "20 graph e_pos", "20 graph e_pos, w/o EM's frames",
+                                    "20 graph e_rot / success"}
     assert set(checks["result"]) <= {"pass", "FAIL", "n/a"} and "the open issues' development checks:" in lines[-3]
     assert pd.read_csv(out / "report-before.csv").shape[0] == len(dev.METHODS) == 5
     md = (out / "report.md").read_text()
@@ -221,6 +222,7 @@ def test_dev_reuses_finished_runs(fixture_report, monkeypatch):
 
 def _method_row(set_name: str, method: str, **kw) -> dict:
     base = {"set": set_name, "method": method, "e_pos_m": float("nan"), "e_pos_gt_scale_m": float("nan"),
+            "e_pos_on_woem_frames_m": float("nan"),
             "e_rot_rad": float("nan"), "e_rot_median_rad": float("nan"), "success_pct": 0.0, "right_pct": 0.0,
             "carried_longest_steps": 0}
     return {**base, **kw}
@@ -235,8 +237,9 @@ def test_checks_known_answers() -> None:
     t = pd.DataFrame([
         _method_row("win", "cerpe", e_rot_rad=0.02, e_rot_median_rad=0.02, success_pct=64.3, e_pos_m=1.0),
         _method_row("win", "aliked-lightglue", e_rot_rad=1.2, e_rot_median_rad=1.0, success_pct=42.9),
-        _method_row("win", "cerpe-wo-em", e_pos_m=0.8, e_rot_rad=0.02, success_pct=50.0),
-        _method_row("win", "cerpe-graph", e_pos_m=0.55, e_rot_rad=0.02, success_pct=64.3),
+        _method_row("win", "cerpe-wo-em", e_pos_m=0.8, e_rot_rad=0.02, success_pct=50.0, e_pos_on_woem_frames_m=0.8),
+        _method_row("win", "cerpe-graph", e_pos_m=0.55, e_rot_rad=0.02, success_pct=64.3,
+                    e_pos_on_woem_frames_m=0.57),
         _method_row("room", "cerpe", success_pct=0.0),
         _method_row("room", "aliked-lightglue", e_rot_rad=1.1, e_rot_median_rad=1.2, success_pct=74.0),
         _method_row("dark", "cerpe", e_rot_rad=0.05, e_rot_median_rad=0.04, success_pct=20.0),
@@ -257,12 +260,17 @@ def test_checks_known_answers() -> None:
     assert c[("20 graph e_pos", "synth")] == "FAIL"  # 0.5 > 0.7 x 0.6 (no w/o EM row: CERPE alone)
     assert c[("20 graph e_rot / success", "win")] == "pass" and c[("20 graph e_rot / success", "synth")] == "FAIL"
     assert ("20 graph e_pos", "room") not in c  # no cerpe-graph row
+    # like for like on w/o EM's frames: 0.57 > 0.7 x 0.8 = 0.56 although the issue's check passes; no w/o EM row: none
+    assert c[("20 graph e_pos, w/o EM's frames", "win")] == "FAIL"
+    assert ("20 graph e_pos, w/o EM's frames", "synth") not in c
     t.loc[t["set"] == "win", "e_pos_m"] = float("nan")  # no predicted scale (RGB only): the GT-scale figures
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_m"] = 0.3
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe"), "e_pos_gt_scale_m"] = 0.4
+    t.loc[t["set"] == "win", "e_pos_on_woem_frames_m"] = float("nan")  # no predicted scale on any frame
     c = checks(t, real=["win"]).set_index(["check", "set"])
     assert c.loc[("20 graph e_pos", "win"), "result"] == "FAIL"
     assert "(GT scale)" in c.loc[("20 graph e_pos", "win"), "figures"]
+    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "n/a"
 
 
 def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_path):

@@ -187,6 +187,11 @@ def checks(table: pd.DataFrame, real: Iterable[str] = ()) -> pd.DataFrame:
       than :data:`CARRIED_MAX_STEPS` steps.
     * ``20 graph e_pos``: cerpe-graph e_pos (predicted scale; GT scale where the set has none) <=
       :data:`GRAPH_BOUND` x min(CERPE, CERPE w/o EM); ``20 graph e_rot / success``: <= CERPE's / >= CERPE's.
+    * ``20 graph e_pos, w/o EM's frames``: the same bound like for like, over the frames CERPE w/o EM
+      reports (``e_pos_on_woem_frames_m``; there CERPE's estimate is w/o EM's). The issue's own check
+      compares means over different frames: w/o EM answers only at accepted direct estimates, the graph
+      and CERPE also between them, where propagation adds odometry drift. Not the issue's check: beside
+      it, so that a reader sees which part of a miss is the frames and which the estimates.
     """
     real = set(real)
     by = {(str(r["set"]), str(r["method"])): r for _, r in table.iterrows()}
@@ -225,6 +230,11 @@ def checks(table: pd.DataFrame, real: Iterable[str] = ()) -> pd.DataFrame:
             rows.append({"check": "20 graph e_pos", "set": name, "result": _verdict(ok),
                          "figures": f"{_f(g)} vs {GRAPH_BOUND:g} x {_f(min(ref) if ref else float('nan'))}"
                                     f"{' (GT scale)' if key != 'e_pos_m' else ''}"})
+            if wo is not None:
+                same = (float(gr["e_pos_on_woem_frames_m"]), float(wo["e_pos_on_woem_frames_m"]))
+                ok = None if not np.isfinite(same).all() else same[0] <= GRAPH_BOUND * same[1]
+                rows.append({"check": "20 graph e_pos, w/o EM's frames", "set": name, "result": _verdict(ok),
+                             "figures": f"{_f(same[0])} vs {GRAPH_BOUND:g} x {_f(same[1])}"})
             er = (float(gr["e_rot_rad"]), float(ce["e_rot_rad"]))
             su = (float(gr["success_pct"]), float(ce["success_pct"]))
             ok = None if not all(np.isfinite(er + su)) else er[0] <= er[1] and su[0] >= su[1]
