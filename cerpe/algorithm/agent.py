@@ -8,14 +8,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Mapping
 
 import numpy as np
 
 from ..compress import make_codec
-from ..geometry import pose_cov_sigmas, se3_inverse
+from ..geometry import se3_inverse
 from ..memory import Keyframe, KeyframeMemory
-from ..messages import EstimateMessage, ImageReply, ImageRequest, PoseMessage
+from ..messages import ImageReply, ImageRequest, PoseMessage
 from ..protocols import (
     BackboneOutput,
     DescriptorEncoder,
@@ -24,26 +23,23 @@ from ..protocols import (
     PoseBackbone,
     View,
 )
-from ..records import PairRecord, RobotRecord
+from ..records import RobotRecord
 from ..scale import recover_scale
-from .anchors import NOT_REPORTED, Anchor, PairAnchors
+from .anchors import Anchor, PairAnchors
 from .bridge import PoseLog
 from .config import AlgorithmError, CerpeConfig
-from .direct import REASON_SHARED, SHARED_VIA, direct_estimates, estimate_message, shared_estimate
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import GateSide
-from .graph import DirectEstimate, PairGraph
+from .graph import PairGraph
 from .policy import try_hard
-from .poses import check_pose, ego_motion
-from .state import PairInfo, Previous, StepState
+from .poses import ego_motion
+from .relative import PairSide
+from .state import Previous, StepState
 
 log = logging.getLogger(__name__)
 
-# reasons that describe the switch's anchors only (the graph keeps every direct estimate)
-_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held"})
 
-
-class RobotAgent(GateSide):
+class RobotAgent(GateSide, PairSide):
     """One robot: its memory, odometry ``X`` (identity at its first step), anchors per peer.
 
     Phases, in order: :meth:`begin_step`, :meth:`descriptor_frame`,
@@ -370,223 +366,6 @@ class RobotAgent(GateSide):
     def pose_frame(self) -> bytes:
         st = self._state()
         return PoseMessage(self.index, st.step, self.X).encode()
-
-    # ---------------------------------------------------------------- 8. relative poses
-    def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
-        """Remember robot ``other``'s broadcast odometry pose (and advance its odometer)."""
-        X = check_pose(X_j, f"{self._where()}: pose of robot {other}")
-        self.poses[other] = (int(step), X)
-        self._odometer(other, int(step), X)
-        if other != self.robot_id:
-            self._log_pose(other, int(step), X)
-
-    def reply_missing(self, other: str) -> None:
-        """The gate opened for ``other`` but no reply came (request or reply lost): counted; the anchor is carried."""
-        self.degrade("msg:reply-missing")
-        self._state().gate_reason.setdefault(other, "reply-missing")
-
-    def _log_pose(self, other: str, step: int, X: np.ndarray) -> None:
-        log_ = self.pose_logs.setdefault(other, PoseLog())
-        for _ in range(log_.note(step, X)):  # anchors stored with a bridged pose, now interpolated
-            self.degrade("pose:bridged-next")
-
-    def _odometer(self, robot: str, step: int, X: np.ndarray) -> float:
-        """Metres ``robot`` travelled: the distances between the successive poses seen of it, summed."""
-        last = self.odometers.get(robot)
-        if last is not None and step <= last[0]:
-            return last[2]
-        total = 0.0 if last is None else last[2] + float(np.linalg.norm(X[:3, 3] - last[1]))
-        self.odometers[robot] = (step, X[:3, 3].copy(), total)
-        return total
-
-    # ---------------------------------------------------------------- 7b. shared estimates (our extension)
-    def estimate_frame(self, index_of: Mapping[str, int]) -> bytes:
-        """The ``estimate`` frame of this step (``CerpeConfig.share_estimates``): the best own direct
-        estimate of each peer (wire index ``index_of``) whose image this pass held; sent even when it
-        holds none, so that a peer waiting for it need not wait out its deadline."""
-        st = self._state()
-        best = {}
-        for other in st.collab_index:
-            ests, _ = self._directs(st, other)
-            if ests and other in index_of:
-                best[int(index_of[other])] = ests[0]
-        return estimate_message(self.index, st.step, best).encode()
-
-    def note_estimates(self, other: str, msg: EstimateMessage) -> None:
-        """Keep robot ``other``'s estimate of this robot from its ``estimate`` frame of this step, unless
-        it stands on fewer than ``anchor_min_inliers`` registration inliers (where this robot placed
-        nothing itself, the peer's estimates stood on a median of 24 inliers in the synthetic indoor
-        development runs, with 4-10 times the median rotation error of the robot's own)."""
-        st = self._state()
-        if int(msg.step) != st.step:
-            self.degrade("msg:stale-estimate")
-            return
-        got = shared_estimate(msg, self.index)
-        bar = int(self.config.anchor_min_inliers)
-        if got is not None and not 0 <= got[3] < bar:  # below the bar that replaces an anchor: too weak
-            st.shared[other] = got
-            self.shared_steps[other] = st.step
-
-    def _directs(self, st: StepState, other: str) -> tuple[list, str]:
-        """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
-        if other not in st.directs:
-            st.directs[other] = direct_estimates(st, other, self.X, self.degrade)
-        return st.directs[other]
-
-    def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
-        """This step's estimate of ``T_cj_ci`` for robot ``other``: ``(source, T or None, reason, anchor_step)``."""
-        st = self._state()
-        t0 = time.perf_counter()
-        try:
-            return self._relative(st, other)
-        finally:
-            st.timings["propagation"] += time.perf_counter() - t0
-
-    def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
-        """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
-        st = self._state()
-        source, T, reason, anchor_step = self.relative(other)
-        cov = switch = None
-        if self.config.backend == "graph":
-            switch = (source, T, reason, anchor_step)
-            source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
-        info = st.pair_info.get(other, PairInfo())
-        if st.requested.get(other):  # what the request policy reads: did the image place, did it set the anchor?
-            self.note_request(other, info)
-        best, via = st.memory_scores.get(other, (float("nan"), -1))
-        return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
-                          gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate_open(other),
-                          source=source, T_cj_ci=T, reason=reason, bytes_pair=int(bytes_pair),
-                          anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
-                          direct_via=info.direct_via, anchor_verdict=info.verdict,
-                          check_rot_rad=info.check_rot_rad, check_trans_m=info.check_trans_m, cov=cov,
-                          T_direct=info.direct_T, direct_inliers=info.direct_inliers, switch=switch,
-                          request_skipped=other in st.skipped)
-
-    def _graph_relative(self, st: StepState, other: str,
-                        reason: str) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
-        """``backend="graph"``: the pair graph's estimate instead of the switch's (:mod:`~cerpe.algorithm.graph`).
-
-        The graph takes this step's odometry poses and this step's direct estimate (the
-        one anchor verification judged, whatever its verdict: the robust kernel weighs
-        it). ``source`` is ``direct`` when that estimate became a node, ``propagated``
-        otherwise, ``none`` before the first node; ``anchor_step`` is the newest node's step.
-        """
-        t0 = time.perf_counter()
-        info = st.pair_info.get(other, PairInfo())
-        graph = self.graphs.get(other)
-        if graph is None:
-            graph = self.graphs[other] = PairGraph(self.config.graph, getattr(self.depth, "rel_sigma", None))
-        pose = self.poses.get(other)
-        direct = (None if info.direct_T is None else
-                  DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
-                                 depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
-        res = graph.step(st.step, self.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
-                         direct, own_ok=st.ego_status in ("ok", "first"), stamp_s=st.stamp_s)
-        st.timings["graph"] += time.perf_counter() - t0
-        for what in res.degradations:
-            self.degrade(what)
-        if res.cov is not None:  # what the request policy reads at the next gate
-            pos, rot = pose_cov_sigmas(res.cov)
-            self.sigmas[other] = (float(rot), float(pos))
-        # what the switch said about its own anchors does not describe the graph's estimate
-        reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
-                           and not r.startswith(("direct-rejected", "direct-weak")))
-        if res.T_cj_ci is None:
-            if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
-                return "none", None, "; ".join(r for r in (reason, "unverified-expired") if r), res.node_step, None
-            if res.uninformative:  # predicted rotation sigma above graph.max_sigma_rot_rad (an odometry failure)
-                return "none", None, "; ".join(r for r in (reason, "graph-uninformative") if r), res.node_step, None
-            return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
-        return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
-
-    def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
-        pose = self.poses.get(other)
-        fresh = pose is not None and pose[0] == st.step
-        pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
-        info = st.pair_info.setdefault(other, PairInfo())
-        if fresh and self.config.verify_anchors and pair.track(st.step, self.X, pose[1]):
-            self.degrade("anchor:odometry-jump")
-        # the peer's estimate (share_estimates) only while the pair's anchor (if any) is not this robot's own:
-        # it stands in where this robot cannot place the peer, it does not replace what this robot measured
-        asked, shared = st.requested.get(other, self.gate_open(other)), st.shared.get(other)
-        if pair.anchor is not None and not any(pair.anchor is a for a in self.shared_anchors.get(other, ())):
-            shared = None
-        if asked or shared is not None:
-            ests, reason = self._directs(st, other) if asked else ([], "")
-            if shared is not None:  # the peer's registration: another view of the pair (share_estimates)
-                # first when it stands on more inliers than this robot's best: the one offered as the anchor
-                ests = [shared] + ests if ests and 0 <= ests[0][3] < shared[3] else ests + [shared]
-            if ests:
-                via, T = ests[0][1], ests[0][2]
-                info.direct_via, info.direct_T, info.direct_inliers = via, T, ests[0][3]
-                plog = self.pose_logs.get(other)
-                X_j = pose[1] if fresh else None if plog is None else plog.exact(st.step)
-                bridged = X_j is None
-                if bridged:  # the pose message is lost: bridge it (corrected when the next one comes)
-                    X_j = None if plog is None else plog.bridged(st.step)
-                    if X_j is None:
-                        self.degrade("anchor:not-stored-pose-missing")
-                        return "direct", T, "anchor-not-stored: pose message missing", st.step
-                    self.degrade("pose:bridged")
-                est = Anchor(st.step, T, self.X.copy(), X_j.copy(), self._odometer(self.robot_id, st.step, self.X),
-                             self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale,
-                             int(info.direct_inliers))
-                if bridged:
-                    plog.defer(st.step, est)
-                if via == SHARED_VIA:  # remembered while it may become the anchor (a candidate that verifies late)
-                    keep = int(self.config.anchor_candidate_steps) + 1
-                    self.shared_anchors[other] = [a for a in self.shared_anchors.get(other, ())
-                                                  if a is pair.anchor or st.step - a.step <= keep] + [est]
-                if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
-                    pair.anchor, info.verdict = est, "unchecked"
-                    return "direct", T, REASON_SHARED if via == SHARED_VIA else "", st.step
-                others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
-                          for k2, _, T2, _ in ests[1:] if k2 != ests[0][0]]
-                check = pair.offer(est, others)
-                info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
-                if check.verdict == "replaced":
-                    self.degrade("anchor:replaced")
-                for _ in check.dropped:  # unverified candidates the group that verified left out
-                    self.degrade("anchor:inconsistent")
-                # nothing agrees with it yet; a peer's estimate (share_estimates), which this robot could not
-                # check by a registration of its own, is held until another estimate verifies it
-                if check.verdict == "unverified" and (not self.config.report_unverified or via == SHARED_VIA):
-                    return "none", None, "unverified-held", -1
-                if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
-                    self.degrade("anchor:weak")
-                    reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchor_min_inliers}; "
-                              f"the anchor of step {check.against} is kept")
-                elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
-                    why = ("unverified" if check.verdict == "unverified" else "",
-                           REASON_SHARED if via == SHARED_VIA else "")
-                    return "direct", T, "; ".join(w for w in why if w), st.step
-                else:
-                    self.degrade("anchor:inconsistent")
-                    reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
-                              f"of step {check.against}")
-        else:  # closed; say why when there was no score at all (lost, blank, mismatched)
-            reason = f"request-skipped: {st.skipped[other]}" if other in st.skipped else st.gate_reason.get(other, "")
-            if not self.config.propagate:
-                return "none", None, reason or "gate-closed", -1
-        if not self.config.propagate:
-            return "none", None, reason, -1
-        anchor, verified = pair.carried(st.step)
-        if anchor is None:
-            why = ("no-anchor" if not pair.candidates else
-                   "unverified-expired" if self.config.report_unverified else "unverified-held")
-            return "none", None, "; ".join(r for r in (reason, why) if r), -1
-        if pose is None:
-            return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1
-        X_j = pose[1]
-        if not fresh:
-            self.degrade("pose:stale")
-            reason = "; ".join(r for r in (reason, "stale-pose") if r)
-            plog = self.pose_logs.get(other)
-            X_j = X_j if plog is None else plog.bridged(st.step)  # the last velocity carried on
-        if not verified:
-            reason = "; ".join(r for r in (reason, "unverified") if r)
-        return "propagated", anchor.propagated(self.X, X_j), reason, anchor.step
 
     # ---------------------------------------------------------------- 9. memory
     def manage_memory(self) -> bool:
