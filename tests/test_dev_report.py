@@ -191,6 +191,7 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
     woem = t[t["method"] == "cerpe-wo-em"].iloc[0]  # on its own frames it is its own mean
     assert woem["e_pos_on_woem_frames_m"] == pytest.approx(woem["e_pos_m"], nan_ok=True)
     assert base["e_pos_on_woem_frames_m"].isna().all()  # no metric scale: no predicted-scale e_pos
+    assert woem["e_pos_gt_scale_on_woem_frames_m"] == pytest.approx(woem["e_pos_gt_scale_m"], nan_ok=True)
     assert len(res["gate"]) == 1 and np.isfinite(res["gate"]["tau"].iloc[0])
     out = tmp / "out"
     for name in ("report.csv", "report.md", "report_gate.csv", "report_checks.csv", "report-before.csv",
@@ -222,7 +223,7 @@ def test_dev_reuses_finished_runs(fixture_report, monkeypatch):
 
 def _method_row(set_name: str, method: str, **kw) -> dict:
     base = {"set": set_name, "method": method, "e_pos_m": float("nan"), "e_pos_gt_scale_m": float("nan"),
-            "e_pos_on_woem_frames_m": float("nan"),
+            "e_pos_on_woem_frames_m": float("nan"), "e_pos_gt_scale_on_woem_frames_m": float("nan"),
             "e_rot_rad": float("nan"), "e_rot_median_rad": float("nan"), "success_pct": 0.0, "right_pct": 0.0,
             "carried_longest_steps": 0}
     return {**base, **kw}
@@ -270,7 +271,12 @@ def test_checks_known_answers() -> None:
     c = checks(t, real=["win"]).set_index(["check", "set"])
     assert c.loc[("20 graph e_pos", "win"), "result"] == "FAIL"
     assert "(GT scale)" in c.loc[("20 graph e_pos", "win"), "figures"]
-    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "n/a"
+    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "n/a"  # no GT-scale figures either
+    t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_on_woem_frames_m"] = 0.2
+    t.loc[(t["set"] == "win") & (t["method"] == "cerpe-wo-em"), "e_pos_gt_scale_on_woem_frames_m"] = 0.3
+    c = checks(t, real=["win"]).set_index(["check", "set"])
+    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "pass"  # 0.2 <= 0.7 x 0.3
+    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "figures"] == "0.200 vs 0.7 x 0.300 (GT scale)"
 
 
 def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_path):

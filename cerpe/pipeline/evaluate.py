@@ -447,8 +447,9 @@ FRAME_KEY = ("encounter", "step", "ego", "other")
 
 
 def e_pos_on_reference_frames(frames: pd.DataFrame, reference: str = REFERENCE_METHOD,
-                              by: Sequence[str] = ("setting",)) -> pd.DataFrame:
-    """Each method's mean ``e_pos_m`` over the frames where ``reference`` reports a position.
+                              by: Sequence[str] = ("setting",), column: str = "e_pos_m") -> pd.DataFrame:
+    """Each method's mean ``column`` (``e_pos_m``; ``e_pos_gt_scale_m`` for methods without a predicted
+    scale) over the frames where ``reference`` reports one.
 
     Methods that report on different frames are not compared by their own means: CERPE w/o EM
     answers only where a direct estimate was accepted, CERPE and the graph also between them
@@ -466,10 +467,10 @@ def e_pos_on_reference_frames(frames: pd.DataFrame, reference: str = REFERENCE_M
     cols = [*by, "method", "e_pos_on_ref_frames_m", "n_ref_frames"]
     if frames.empty or not set(key) <= set(frames.columns):
         return pd.DataFrame(columns=cols)
-    pos = frames[np.isfinite(pd.to_numeric(frames["e_pos_m"], errors="coerce"))]
+    pos = frames[np.isfinite(pd.to_numeric(frames[column], errors="coerce"))]
     ref = pos.loc[pos["method"] == reference, key].drop_duplicates()
     on = pos.merge(ref, on=key, how="inner")
-    g = on.groupby([*by, "method"], sort=True)["e_pos_m"]
+    g = on.groupby([*by, "method"], sort=True)[column]
     out = pd.DataFrame({"e_pos_on_ref_frames_m": g.mean(), "n_ref_frames": g.size()}).reset_index()
     every = frames[[*by, "method"]].drop_duplicates()
     out = every.merge(out, on=[*by, "method"], how="left")
