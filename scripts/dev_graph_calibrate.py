@@ -57,6 +57,7 @@ from cerpe.pipeline.graphdev import (  # noqa: E402
     GraphDevError,
     along_gains_on_floors,
     depth_rel_sigma,
+    dev_sets,
     direct_samples,
     fit_direct_kinds,
     odometry_samples,
@@ -65,15 +66,10 @@ from cerpe.pipeline.graphdev import (  # noqa: E402
 
 
 def _sets(runs: Path) -> list[Path]:
-    out = []
-    for d in sorted(runs.iterdir()):
-        if not (d / "cerpe-graph" / "run.json").is_file():
-            continue
-        meta = json.loads((d / "cerpe-graph" / "run.json").read_text())
-        if "paper-default" in meta.get("manifest", "") or meta.get("setting", "").startswith("synthetic-"):
-            raise SystemExit(f"{d}: a paper-default run (test data); calibrate on development runs only")
-        out.append(d)
-    return out
+    try:
+        return dev_sets(runs)
+    except GraphDevError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 def direct_table(sets: list[Path]) -> pd.DataFrame:

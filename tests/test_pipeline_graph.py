@@ -259,3 +259,46 @@ def test_oracles_correct_the_direct_translations_from_ground_truth():
     np.testing.assert_allclose(t(oracle_steps(d, "exact-translation")), gt)
     with pytest.raises(GraphDevError, match="unknown oracle"):
         oracle_steps(d, "magic")
+
+
+def test_dev_graph_replay_judges_replays_by_the_dev_checks(runs, tmp_path):
+    """scripts/dev_graph_replay.py: at the defaults a replay is judged as `cerpe dev` judges the recorded runs;
+    another setting moves the graph's figures; a paper-default run and an unknown key are refused."""
+    import importlib.util
+    import json
+    import subprocess
+    import sys
+
+    from cerpe.pipeline.devreport import checks, report
+    from cerpe.pipeline.graphdev import GraphDevError, dev_sets
+
+    root, _, _, out = runs
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "toy").symlink_to(root, target_is_directory=True)
+    spec = importlib.util.spec_from_file_location("dev_graph_replay", Path(__file__).parents[1] / "scripts" /
+                                                  "dev_graph_replay.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    sets = dev_sets(tmp_path / "runs")
+    assert [d.name for d in sets] == ["toy"]
+    summary, per_set = script.judge(sets, CerpeConfig().graph)
+    table, _ = report([("toy", out["cerpe"]), ("toy", out["cerpe-graph"])])
+    want = checks(table)
+    for c in want.itertuples(index=False):
+        if c.check.startswith("20 "):
+            assert summary[c.check] == [int(c.result == "pass"), int(c.result != "n/a")], c.check
+    rows = table.set_index("method")
+    assert summary["geo_ratio"] == pytest.approx(rows.loc["cerpe-graph", "e_pos_m"] / rows.loc["cerpe", "e_pos_m"])
+    assert per_set == [f"toy {summary['geo_ratio']:.3f}"]
+    loose, _ = script.judge(sets, dataclasses.replace(CerpeConfig().graph, direct_rot_rad=0.2, direct_trans_rel=0.5))
+    assert loose["geo_ratio"] != pytest.approx(summary["geo_ratio"])
+    assert script.grid(["kernel_k=1,2", "kernel=huber"]) == [{"kernel_k": 1, "kernel": "huber"},
+                                                             {"kernel_k": 2, "kernel": "huber"}]
+    bad = tmp_path / "paper" / "synthetic-cad" / "cerpe-graph"
+    bad.mkdir(parents=True)
+    (bad / "run.json").write_text(json.dumps({"manifest": "build/paper-default/synthetic-cad.yaml"}))
+    with pytest.raises(GraphDevError, match="paper-default"):
+        dev_sets(tmp_path / "paper")
+    res = subprocess.run([sys.executable, str(Path(__file__).parents[1] / "scripts" / "dev_graph_replay.py"),
+                          "--runs", str(tmp_path / "runs"), "--set", "kernel_kk=1"], capture_output=True, text=True)
+    assert res.returncode != 0 and "unknown option(s) 'kernel_kk'; known:" in res.stderr and "kernel_k," in res.stderr

@@ -149,12 +149,17 @@ def gate_row(run: Run, set_name: str | None = None) -> dict:
 
 
 def report(runs: Iterable[tuple[str, Path]]) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """``(table, gate)`` over ``(set name, run folder)`` pairs: :func:`method_row` for every
+    """``(table, gate)`` over ``(set name, run folder)`` pairs: :func:`report_runs` of the loaded folders."""
+    return report_runs((name, load_run(path)) for name, path in runs)
+
+
+def report_runs(runs: Iterable[tuple[str, Run]]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(table, gate)`` over ``(set name, loaded run)`` pairs: :func:`method_row` for every
     run (with ``e_pos_on_woem_frames_m`` over the set's CERPE w/o EM frames), :func:`gate_row`
-    for every run of a method with a gate (``cerpe``)."""
+    for every run of a method with a gate (``cerpe``). A run's ``steps`` may be a replay's
+    (``scripts/dev_graph_replay.py``)."""
     rows, gates, frames = [], [], []
-    for name, path in runs:
-        run = load_run(path)
+    for name, run in runs:
         f = frame_errors(run.steps, run.metric_scale, run.every)
         rows.append(method_row(run, name, f))
         frames.append(f.assign(set=name, method=run.method))

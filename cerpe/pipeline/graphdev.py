@@ -13,6 +13,7 @@ In process the channel is lossless, so robot j's broadcast pose at step t is its
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Iterator
 
@@ -31,6 +32,20 @@ class GraphDevError(CerpeError, ValueError):
 
 # own-odometry failures as the agent counts them (``own_ok`` of PairGraph.step)
 OWN_FAILURES = ("ego:no-estimate", "frame:blank", "ego:no-keyframe")
+
+
+def dev_sets(runs: Path) -> list[Path]:
+    """The set folders under a ``cerpe dev`` runs folder that hold a ``cerpe-graph`` run, by name;
+    a paper-default run (test data: never tuned on) is refused, naming the folder."""
+    out = []
+    for d in sorted(Path(runs).iterdir()) if Path(runs).is_dir() else []:
+        if not (d / "cerpe-graph" / "run.json").is_file():
+            continue
+        meta = json.loads((d / "cerpe-graph" / "run.json").read_text())
+        if "paper-default" in meta.get("manifest", "") or meta.get("setting", "").startswith("synthetic-"):
+            raise GraphDevError(f"{d}: a paper-default run (test data); tune on development runs only")
+        out.append(d)
+    return out
 
 
 def depth_rel_sigma(run_meta: dict) -> float | None:
