@@ -33,15 +33,7 @@ from cerpe.config import ConfigError, merge_conf  # noqa: E402
 from cerpe.pipeline.devreport import checks, report_runs  # noqa: E402
 from cerpe.pipeline.evaluate import load_run  # noqa: E402
 from cerpe.pipeline.graphdev import GraphDevError, dev_sets, replay_run  # noqa: E402
-
-
-def _value(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
+from cerpe.pipeline.run import RunError, parse_sets  # noqa: E402
 
 
 def grid(pairs: list[str]) -> list[dict]:
@@ -52,7 +44,10 @@ def grid(pairs: list[str]) -> list[dict]:
         if not sep or not vals:
             raise SystemExit(f"--set {p!r}: expected KEY=V1[,V2...]")
         keys.append(key.strip())
-        values.append([_value(v.strip()) for v in vals.split(",")])
+        try:  # each value as `cerpe run --set` reads one (YAML)
+            values.append([parse_sets([f"{key.strip()}={v.strip()}"])[key.strip()] for v in vals.split(",")])
+        except RunError as exc:
+            raise SystemExit(str(exc)) from None
     return [dict(zip(keys, combo)) for combo in itertools.product(*values)]
 
 
