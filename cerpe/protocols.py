@@ -30,6 +30,9 @@ class BackboneError(CerpeError, ValueError):
 
 # BackboneOutput.reasons of a collaborator view whose placement by keypoints the images contradict
 REASON_APPEARANCE = "appearance-mismatch"
+# grey-level standard deviation (0-255 scale) below which an image is blank (black, white, constant grey):
+# the algorithm broadcasts a zero descriptor for it, and plug-ins describe and match nothing in it
+BLANK_STD = 2.0
 
 
 @dataclass
