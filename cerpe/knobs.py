@@ -138,6 +138,10 @@ class Group:
     def check(self) -> None:
         """Rules between this group's knobs (none by default)."""
 
+    def override(self, values: Mapping[str, Any]) -> Any:
+        """This tree with ``values`` (dotted keys or nested dicts) applied, checked (:func:`override`)."""
+        return override(self, values)
+
 
 def _check_value(path: str, tp: Any, meta: Mapping[str, Any], value: Any) -> Any:
     choices = meta.get("choices")

@@ -19,6 +19,7 @@ from typing import Any, Hashable, Iterator, Literal, Mapping
 import numpy as np
 
 from .errors import CerpeError
+from .knobs import Group, KnobError, knob
 from .scene import CameraIntrinsics
 
 Branch = Literal["empty", "large-change", "moderate-change", "skip"]
@@ -29,43 +30,28 @@ class KeyframeMemoryError(CerpeError, ValueError):
 
 
 @dataclass(frozen=True)
-class MemoryConfig:
-    """Parameters of the keyframe rule.
+class MemoryConfig(Group):
+    """The keyframe rule's parameters (the paper's ``tau_m``, ``tau_k``, ``Delta_k``, ``L``).
 
-    Attributes:
-        tau_m: similarity below which a frame counts as a *moderate* viewpoint change
-            (paper: 0.9); it is only accepted after more than ``delta_k`` steps.
-        tau_k: similarity below which a frame is a *large* change and is accepted
-            immediately (paper: 0.2). Must satisfy ``tau_k <= tau_m``.
-        delta_k: minimum step gap for the moderate branch. The paper says "fixed"
-            without a value; we use 3 steps, i.e. 0.3 s at the 10 Hz of the CAD and
-            OpenMARS data. Reasons: a multi-view backbone needs baseline between the
-            views it triangulates, and at urban speeds (5-15 m/s) 0.3 s gives 1.5-4.5 m
-            between keyframes while a memory of ``capacity=5`` still spans only
-            1.5-2 s, so the newest keyframe (through which ego-motion is composed)
-            stays close to the current view. Smaller gaps fill the memory with
-            near-duplicates when the similarity dips for a frame or two (motion
-            blur, a passing car); larger ones let the keyframe fall behind on turns,
-            where the ``tau_k`` branch takes over anyway.
-        capacity: the paper's ``L`` (5): number of keyframes kept.
+    ``delta_k``: the paper says "fixed" without a value; 3 steps is 0.3 s at the 10 Hz of the CAD
+    and OpenMARS data: a multi-view backbone needs baseline between the views it triangulates, and at
+    urban speeds (5-15 m/s) 0.3 s gives 1.5-4.5 m between keyframes while a memory of 5 still spans
+    only 1.5-2 s, so the newest keyframe (through which ego-motion is composed) stays close to the
+    current view. ``tau_m``/``tau_k`` None: the descriptor's calibrated values (the paper's 0.9 / 0.2
+    are SALAD's); :class:`KeyframeMemory` needs them resolved.
     """
 
-    tau_m: float = 0.9
-    tau_k: float = 0.2
-    delta_k: int = 3
-    capacity: int = 5
+    tau_m: float | None = knob(None, "similarity to the newest keyframe below which a frame is a moderate change, "
+                               "kept after more than delta_k steps (cosine; None: the descriptor's value)",
+                               low=-1.0, high=1.0)
+    tau_k: float | None = knob(None, "similarity below which a frame is a large change, kept at once (cosine; "
+                               "None: the descriptor's value)", low=-1.0, high=1.0)
+    delta_k: int = knob(3, "steps a moderate change must be from the newest keyframe to be kept", low=0)
+    capacity: int = knob(5, "keyframes kept (the paper's L); the oldest is evicted", low=1)
 
-    def __post_init__(self) -> None:
-        for name in ("tau_m", "tau_k"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and -1.0 <= v <= 1.0):
-                raise KeyframeMemoryError(f"memory config: {name} must be a cosine in [-1, 1], got {v}")
-        if self.tau_k > self.tau_m:
-            raise KeyframeMemoryError(f"memory config: tau_k ({self.tau_k}) must not exceed tau_m ({self.tau_m})")
-        if int(self.delta_k) != self.delta_k or self.delta_k < 0:
-            raise KeyframeMemoryError(f"memory config: delta_k must be a non-negative integer, got {self.delta_k}")
-        if int(self.capacity) != self.capacity or self.capacity < 1:
-            raise KeyframeMemoryError(f"memory config: capacity must be an integer >= 1, got {self.capacity}")
+    def check(self) -> None:
+        if self.tau_m is not None and self.tau_k is not None and self.tau_k > self.tau_m:
+            raise KnobError(f"memory.tau_k ({self.tau_k}) must not exceed memory.tau_m ({self.tau_m})")
 
 
 def should_insert(c: float | None, delta: int | None, conf: MemoryConfig) -> tuple[bool, Branch]:
@@ -161,7 +147,10 @@ class KeyframeMemory:
     """FIFO of at most ``conf.capacity`` keyframes with the paper's insertion rule."""
 
     def __init__(self, conf: MemoryConfig | None = None) -> None:
-        self.conf = conf or MemoryConfig()
+        self.conf = conf or MemoryConfig(tau_m=0.9, tau_k=0.2)
+        if self.conf.tau_m is None or self.conf.tau_k is None:
+            raise KeyframeMemoryError("keyframe memory: tau_m and tau_k must be resolved (the descriptor's or the "
+                                      "paper's values), got None")
         self._frames: deque[Keyframe] = deque()
 
     def __len__(self) -> int:

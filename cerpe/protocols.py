@@ -230,7 +230,9 @@ class MetricDepthSource(Protocol):
     map's scale and low-frequency shape (what a whole placement's points share, so it
     moves a camera placed on them along its line of sight; per-pixel noise averages out):
     about 0.1 for a monocular network, ~0 for a depth sensor. The pose graph's noise model
-    reads it (:class:`cerpe.algorithm.graph.DirectEstimate`); absent: unknown.
+    reads it (:class:`cerpe.algorithm.graph.DirectEstimate`); absent: unknown. Optionally
+    ``metric: bool``: False for a source that never has metric depth (no depth at all): the
+    algorithm then takes s = 1 (counted ``scale:unit-no-depth``) instead of giving up.
     """
 
     name: str

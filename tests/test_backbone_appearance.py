@@ -12,7 +12,7 @@ from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_w
 from test_backbone_offline import K, Room, pose
 
 from cerpe import geometry as G
-from cerpe.algorithm import DEGRADATIONS, CerpeConfig, Team
+from cerpe.algorithm import DEGRADATIONS, AlgorithmConfig, Team
 from cerpe.protocols import REASON_APPEARANCE, View
 
 POSES = {"cur": pose((0, 0, 0), (0, 2, 0)), "near": pose((-0.8, 0.1, 1.0), (3, 35, 0))}
@@ -141,7 +141,7 @@ class ContradictedBackbone(GTBackbone):
 def test_the_agent_counts_a_contradicted_placement_and_has_no_direct_estimate():
     world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
     bb = ContradictedBackbone(world, {("r0", 27)}, seed=1)
-    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), CerpeConfig(min_scale_pixels=20))
+    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), AlgorithmConfig().override({"scale.min_pixels": 20}))
     results = list(team.run_encounter(world.to_encounter()))
     P = {res.step: next(p for p in res.pairs if p.ego == "r0") for res in results}
     deg = Counter(d for res in results for r in res.robots if r.robot == "r0" for d in r.degradations)

@@ -35,14 +35,14 @@ def test_dataset_and_none_depth():
 
 def test_offline_preset_through_team_with_metric_depth():
     """Two robots in a ray-cast room, exact metric depth: ego-motion drift and direct pose error."""
-    from cerpe.algorithm import CerpeConfig, Team
+    from cerpe.algorithm import AlgorithmConfig, Team
     from cerpe.backbones.build import build_plugins
 
     room = Room(0)
     pl = build_plugins("offline", {"descriptor": {"thresholds": {"tau": 0.3, "tau_m": 0.9, "tau_k": 0.2}}},
                        depth="dataset")
     assert pl.descriptor.encoder is pl.backbone.encoder  # one XFeat pass per image
-    team = Team(["a", "b"], pl.descriptor, pl.backbone, pl.depth, CerpeConfig(delta_k=2))
+    team = Team(["a", "b"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"memory.delta_k": 2}))
     traj = [lambda t: pose((0.08 * t, 0, 0.1 * t), (0, 1.0 * t, 0)),
             lambda t: pose((0.5 - 0.05 * t, 0.1, 0.2 + 0.08 * t), (0, -10 + 0.5 * t, 0))]
     X: dict[str, list[np.ndarray]] = {"a": [], "b": []}

@@ -205,7 +205,7 @@ def test_the_agent_hands_every_view_its_role():
     """current, keyframes, previous frame, collaborators: the roles the backbone sees."""
     from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
-    from cerpe.algorithm import CerpeConfig, Team
+    from cerpe.algorithm import AlgorithmConfig, Team
 
     class RoleSpy(GTBackbone):
         roles: list = []
@@ -216,7 +216,7 @@ def test_the_agent_hands_every_view_its_role():
 
     world = make_world(2, 8, seed=1)
     bb = RoleSpy(world, seed=1)
-    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), CerpeConfig(min_scale_pixels=20))
+    team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), AlgorithmConfig().override({"scale.min_pixels": 20}))
     list(team.run_encounter(world.to_encounter()))
     seen = {role for call in bb.roles for _, role in call}
     assert seen == {"current", "keyframe", "previous", "collaborator"}

@@ -69,7 +69,7 @@ def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():
     """Collaborator views arrive with try_hard until the pair has a verified anchor, without after."""
     from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
-    from cerpe.algorithm import CerpeConfig, Team
+    from cerpe.algorithm import AlgorithmConfig, Team
 
     class HardSpy(GTBackbone):
         def infer(self, views):
@@ -81,7 +81,7 @@ def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():
         bb = HardSpy(world, seed=1)
         bb.seen = []
         team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(),
-                    CerpeConfig(min_scale_pixels=20, **conf))
+                    AlgorithmConfig().override({"scale.min_pixels": 20, **conf}))
         list(team.run_encounter(world.to_encounter()))
         return sorted(bb.seen)
 
@@ -92,7 +92,7 @@ def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():
         assert flags == sorted(flags, reverse=True), flags  # once anchored, never again in this world
     # asking for every image, gate or not (the first ones before the gate opens, when nothing has missed
     # yet): only gated ones, those the paper's policy asks for, may try hard
-    always = run(request_policy={"mode": "always"})
+    always = run(**{"policy.mode": "always"})
     gated = {(s, t) for s, t, _ in seen}
     assert len(always) > len(seen) and min(t for _, t, _ in always) < min(t for _, t in gated)
     assert all((s, t) in gated for s, t, h in always if h)

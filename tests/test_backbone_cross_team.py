@@ -30,7 +30,7 @@ def _r1(t: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def revisit():
-    from cerpe.algorithm import CerpeConfig, Team
+    from cerpe.algorithm import AlgorithmConfig, Team
     from cerpe.backbones.build import build_plugins
     from cerpe.scene import Encounter, RobotStream
 
@@ -45,7 +45,7 @@ def revisit():
     # the cheap stage only: the descriptor cannot tell this room's walls apart, so the gate opens at every
     # step and the learned stage would run (in vain) on every non-overlapping pair; it has its own tests
     plugins = build_plugins("offline", {"backbone": {"cross": {"enabled": True, "matcher": "none"}}}, depth="sensor")
-    team = Team(enc.robot_ids, plugins.descriptor, plugins.backbone, plugins.depth, CerpeConfig())
+    team = Team(enc.robot_ids, plugins.descriptor, plugins.backbone, plugins.depth, AlgorithmConfig())
     return enc, list(team.run_encounter(enc)), plugins.backbone
 
 

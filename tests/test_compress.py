@@ -9,7 +9,7 @@ import zlib
 import numpy as np
 import pytest
 
-from cerpe.algorithm import CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.algorithm.degradations import known
 from cerpe.compress import CompressError, DescriptorCodec, fit_projection, load_projection, save_projection
 from cerpe.memory import cosine
@@ -203,7 +203,7 @@ def _inputs(world, t):
 @pytest.mark.parametrize("name", ["pca-int8", "pca-pq"])
 def test_gate_on_decoded_messages_equals_direct_quantised_cosine(world, tmp_path, name):
     desc, path = _fit_on(world, tmp_path)
-    cfg = CerpeConfig(min_scale_pixels=20, descriptor_codec=name, descriptor_projection=str(path))
+    cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "messages.descriptor_codec": name, "messages.projection": str(path)})
     team = Team(world.robot_ids, desc, GTBackbone(world), SensorDepthDouble(), cfg)
     codec = team.agents[0].codec
     assert team.agents[0].gate_tau == 0.3
@@ -223,8 +223,7 @@ def test_gate_on_decoded_messages_equals_direct_quantised_cosine(world, tmp_path
 def _tampered_team(world, tmp_path, tamper):
     """A team whose robot r1 broadcasts a tampered descriptor frame at step 6."""
     desc, path = _fit_on(world, tmp_path)
-    cfg = CerpeConfig(min_scale_pixels=20, descriptor_codec="pca-int8", descriptor_projection=str(path),
-                      descriptor_codec_tau=-1.0)  # the gate opens whenever a descriptor decodes
+    cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "messages.descriptor_codec": "pca-int8", "messages.projection": str(path), "messages.codec_tau": -1.0})  # the gate opens whenever a descriptor decodes
     team = Team(world.robot_ids, desc, GTBackbone(world), SensorDepthDouble(), cfg)
     agent = team.agents[1]
     honest = agent.descriptor_frame
@@ -265,7 +264,7 @@ def test_bad_compressed_descriptor_counts_once_and_closes_that_pair_for_that_ste
 
 def test_unknown_reply_codec_in_a_team_counts_once(world):
     team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20))
+                AlgorithmConfig().override({"scale.min_pixels": 20}))
     honest = team.agents[1].image_reply
     team.agents[1].image_reply = lambda req: (dataclasses.replace(honest(req), codec="jpeg")
                                               if req.step != 6 else _unknown(honest(req)))
@@ -289,19 +288,20 @@ def _unknown(rep):
 
 def test_codec_config_is_checked(world, tmp_path):
     from cerpe.algorithm import AlgorithmError
+    from cerpe.knobs import KnobError
 
-    with pytest.raises(AlgorithmError, match="descriptor_codec"):
-        CerpeConfig(descriptor_codec="zip")
-    with pytest.raises(AlgorithmError, match="reply_codec"):
-        CerpeConfig(reply_codec="png")
-    with pytest.raises(AlgorithmError, match="reply_scale"):
-        CerpeConfig(reply_scale=0.0)
+    with pytest.raises(KnobError, match="messages.descriptor_codec"):
+        AlgorithmConfig().override({"messages.descriptor_codec": "zip"})
+    with pytest.raises(KnobError, match="messages.reply_codec"):
+        AlgorithmConfig().override({"messages.reply_codec": "png"})
+    with pytest.raises(KnobError, match="messages.reply_scale"):
+        AlgorithmConfig().override({"messages.reply_scale": 0.0})
     _, path = _fit_on(world, tmp_path)
     proj96, _ = _projection()
     p96 = save_projection(proj96, tmp_path / "p96.npz")
     with pytest.raises(AlgorithmError, match="projection takes 96"):
         Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble(),
-             CerpeConfig(descriptor_codec="pca-pq", descriptor_projection=str(p96)))
+             AlgorithmConfig().override({"messages.descriptor_codec": "pca-pq", "messages.projection": str(p96)}))
     assert PoseMessage(0, 0, np.eye(4)).encode()  # the pose frame is unchanged: 70 B
     assert len(PoseMessage(0, 0, np.eye(4)).encode()) == 70
 
@@ -321,11 +321,11 @@ def test_shipped_projection_fits_the_offline_descriptor_in_one_kilobyte():
 
 
 def test_compressed_messages_preset_runs_a_team_with_webp_replies(world, tmp_path):
-    from cerpe.algorithm.config import COMPRESSED_MESSAGES
+    from cerpe.method_config import PRESETS
 
     desc, path = _fit_on(world, tmp_path)
-    cfg = CerpeConfig(**{**COMPRESSED_MESSAGES, "descriptor_projection": str(path), "descriptor_codec_tau": -1.0},
-                      min_scale_pixels=20)
+    cfg = AlgorithmConfig().override({**PRESETS["pays-compressed"], "policy.mode": "gate", "messages.projection": str(path),
+                                      "messages.codec_tau": -1.0, "scale.min_pixels": 20})
     team = Team(world.robot_ids, desc, GTBackbone(world), SensorDepthDouble(), cfg)
     res = [team.step(*_inputs(world, t)) for t in range(6)]
     assert all(r.degradations == [] for x in res for r in x.robots)

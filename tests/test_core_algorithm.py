@@ -12,17 +12,17 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from cerpe.algorithm import CerpeConfig, Team, run_encounter
+from cerpe.algorithm import AlgorithmConfig, Team, run_encounter
 from cerpe.geometry import e_pos, e_rot
 from cerpe.messages import DescriptorMessage
 from cerpe.records import STAGES
 from cerpe.transport import Channel
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, World, make_world
 
-CFG = CerpeConfig(min_scale_pixels=20)  # 32x24 test images: ~30 % of pixels see a point
+CFG = AlgorithmConfig().override({"scale.min_pixels": 20})  # 32x24 test images: ~30 % of pixels see a point
 
 
-def run(world: World, config: CerpeConfig = CFG, channel: Channel | None = None, backbone=None, depth=None,
+def run(world: World, config: AlgorithmConfig = CFG, channel: Channel | None = None, backbone=None, depth=None,
         descriptor=None):
     backbone = backbone or GTBackbone(world, seed=1)
     team = Team(world.robot_ids, descriptor or OverlapDescriptor(world), backbone,
@@ -58,7 +58,7 @@ def expected_sources(windows: list[tuple[int, int]], n_steps: int, propagate: bo
 @pytest.mark.parametrize("track_previous", [True, False])
 def test_two_robots_exact_with_gt_backbone(track_previous):
     world = make_world(2, 40, seed=1)
-    team, bb, results = run(world, CerpeConfig(min_scale_pixels=20, track_previous=track_previous))
+    team, bb, results = run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "odometry.track_previous": track_previous}))
     errs = pair_errors(world, results)
     want = expected_sources([(5, 10), (25, 30)], 40)
     for step, ego, other, source, ep, er in errs:
@@ -105,7 +105,7 @@ def test_backbone_metric_unit_skips_the_scale_step_only_when_configured(trust):
     METHOD.md step 4 recovers s = 0.5 and the odometry is exact."""
     world = make_world(2, 12, seed=3)
     bb = GTBackbone(world, unit_range=(2.0, 2.0), claim_metric=True, seed=1)
-    _, _, results = run(world, CerpeConfig(min_scale_pixels=20, backbone_metric_unit=trust), backbone=bb)
+    _, _, results = run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "scale.metric_unit": trust}), backbone=bb)
     last = results[-1].robots[0]
     scales = {r.scale for res in results[1:] for r in res.robots}
     moved = np.linalg.norm(world.gt_odometry(0, results[-1].step)[:3, 3])
@@ -156,7 +156,7 @@ def test_three_robots_pair_specific_windows():
 
 def test_without_em_gives_none_when_gate_closed():
     world = make_world(2, 40, seed=1)
-    _, _, results = run(world, CerpeConfig(min_scale_pixels=20, propagate=False))
+    _, _, results = run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "backend.propagate": False}))
     want = expected_sources([(5, 10), (25, 30)], 40, propagate=False)
     for step, ego, other, source, ep, er in pair_errors(world, results):
         assert source == want[step]
@@ -191,7 +191,7 @@ def test_lossy_channel_run_completes_with_counted_degradations(verify):
     world = make_world(3, 40, seed=5, windows={(0, 1): [(3, 8), (20, 26)], (0, 2): [(10, 15)],
                                                (1, 2): [(10, 15), (30, 35)]})
     ch = Channel(p_drop=0.1, p_garble=0.1, seed=3)
-    team, _, results = run(world, CerpeConfig(min_scale_pixels=20, verify_anchors=verify), channel=ch)
+    team, _, results = run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "anchors.verify": verify}), channel=ch)
     degr = Counter(d for res in results for r in res.robots for d in r.degradations)
     assert degr["msg:lost"] == ch.counts["msg:lost"] > 0
     assert degr["msg:garbled"] == ch.counts["msg:garbled"] > 0
@@ -287,15 +287,15 @@ def test_thresholds_precedence_explicit_over_descriptor_over_paper():
     world = make_world(2, 12, seed=1)
     strict = OverlapDescriptor(world, thresholds={"tau": 0.7, "tau_m": 0.95, "tau_k": 0.1})
     team = Team(world.robot_ids, strict, GTBackbone(world), SensorDepthDouble(), CFG)
-    assert (team.config.tau, team.config.tau_m, team.config.tau_k) == (0.7, 0.95, 0.1)
+    assert (team.config.gate.tau, team.config.memory.tau_m, team.config.memory.tau_k) == (0.7, 0.95, 0.1)
     assert team.agents[0].memory.conf.tau_m == 0.95
     assert all(p.source == "none" for res in team.run_encounter(world.to_encounter()) for p in res.pairs)
     team = Team(world.robot_ids, strict, GTBackbone(world), SensorDepthDouble(),
-                CerpeConfig(tau=0.5, min_scale_pixels=20))
-    assert team.config.tau == 0.5 and team.config.tau_m == 0.95
+                AlgorithmConfig().override({"gate.tau": 0.5, "scale.min_pixels": 20}))
+    assert team.config.gate.tau == 0.5 and team.config.memory.tau_m == 0.95
     assert any(p.source == "direct" for res in team.run_encounter(world.to_encounter()) for p in res.pairs)
     plain = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble())
-    assert (plain.config.tau, plain.config.tau_m, plain.config.tau_k) == (0.2, 0.9, 0.2)
+    assert (plain.config.gate.tau, plain.config.memory.tau_m, plain.config.memory.tau_k) == (0.2, 0.9, 0.2)
 
 
 def test_module_level_run_encounter_and_rerun_resets():
@@ -331,7 +331,7 @@ def test_ego_motion_chains_through_the_backbones_reference_view():
     used for the odometry even when the previous frame and newer keyframes are placed too."""
     world = make_world(2, 25, seed=4)
     bb = _ReferenceBackbone(world)
-    team, _, results = run(world, CerpeConfig(min_scale_pixels=20, track_previous=True), backbone=bb)
+    team, _, results = run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "odometry.track_previous": True}), backbone=bb)
     assert any(len(c) > 3 for c in bb.calls)  # passes with several own views did happen
     for res in results:
         for k, r in enumerate(res.robots):

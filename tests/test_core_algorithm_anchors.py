@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cerpe.algorithm import anchors as anchors_mod
 from cerpe.algorithm.anchors import (
     Anchor,
     AnchorConfig,
@@ -15,9 +16,17 @@ from cerpe.algorithm.anchors import (
 )
 from cerpe.geometry import make_se3, paper_T_ij, random_se3, rotation_angle, so3_exp
 
-CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, rot_drift_per_step=0.01, trans_drift_frac=0.1, trans_rel=0.0,
-                    replace_after=3, max_unverified_steps=3, candidate_steps=10, agree_rot_rad=0.05,
-                    agree_trans_m=0.1, verify_support=1, verify_fraction=0.0, max_odo_rot_step=0.0)
+CONF = AnchorConfig(rot_tol_rad=0.1, trans_tol_m=0.3, replace_after=3, max_unverified_steps=3, candidate_steps=10,
+                    verify_support=1, verify_fraction=0.0, max_odo_rot_step=0.0)
+# the module's constants, at values that make the known answers below simple
+CONSTANTS = {"ROT_DRIFT_PER_STEP": 0.01, "TRANS_DRIFT_FRAC": 0.1, "TRANS_REL": 0.0, "AGREE_ROT_RAD": 0.05,
+             "AGREE_TRANS_M": 0.1}
+
+
+@pytest.fixture(autouse=True)
+def _constants(monkeypatch):
+    for name, value in CONSTANTS.items():
+        monkeypatch.setattr(anchors_mod, name, value)
 
 
 class Pair:
@@ -59,7 +68,7 @@ def test_true_estimates_agree_after_propagation_over_any_gap(seed):
     assert r == pytest.approx(0.5, abs=1e-9)
 
 
-def test_tolerance_grows_with_steps_travel_and_distance():
+def test_tolerance_grows_with_steps_travel_and_distance(monkeypatch):
     p = Pair(1)
     a = p.est(0)
     r1, t1 = tolerance(CONF, a, p.est(1))
@@ -67,10 +76,10 @@ def test_tolerance_grows_with_steps_travel_and_distance():
     assert r1 == pytest.approx(0.11) and r9 == pytest.approx(0.19)
     assert t1 == pytest.approx(0.3 + 0.1 * (p.odo("i", 1) + p.odo("j", 1)))
     assert t9 > t1
-    rel = AnchorConfig(trans_rel=0.5)
     b = p.est(1)
-    assert tolerance(rel, a, b)[1] == pytest.approx(tolerance(AnchorConfig(trans_rel=0.0), a, b)[1]
-                                                    + 0.5 * np.linalg.norm(b.T_cj_ci[:3, 3]))
+    without = tolerance(CONF, a, b)[1]
+    monkeypatch.setattr(anchors_mod, "TRANS_REL", 0.5)
+    assert tolerance(CONF, a, b)[1] == pytest.approx(without + 0.5 * np.linalg.norm(b.T_cj_ci[:3, 3]))
     b.metric = False  # no metric depth: translations are not compared
     assert tolerance(CONF, a, b)[1] == np.inf
 
@@ -186,7 +195,7 @@ def test_consistent_is_symmetric_in_rotation_for_random_errors():
         ok, r, t = consistent(CONF, p.est(a), p.est(b, err))
         r2, _ = disagreement(p.est(b, err), p.est(a))
         assert r == pytest.approx(r2, abs=1e-9)
-        assert ok == (r <= CONF.rot_tol_rad + CONF.rot_drift_per_step * (b - a) and t <= tolerance(
+        assert ok == (r <= CONF.rot_tol_rad + CONSTANTS['ROT_DRIFT_PER_STEP'] * (b - a) and t <= tolerance(
             CONF, p.est(a), p.est(b, err))[1])
 
 
@@ -243,13 +252,13 @@ def test_verify_fraction_asks_most_recent_candidates_to_agree():
 
 @pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
 def test_config_refuses_a_verify_fraction_outside_0_1(value):
-    from cerpe.algorithm import CerpeConfig
-    from cerpe.algorithm.config import AlgorithmError
+    from cerpe.algorithm import AlgorithmConfig
+    from cerpe.knobs import KnobError
 
-    with pytest.raises(AlgorithmError, match="anchor_verify_fraction must be in"):
-        CerpeConfig(anchor_verify_fraction=value)
-    assert CerpeConfig(anchor_verify_fraction=0.5, report_unverified=False).anchor_config() == AnchorConfig(
-        verify_fraction=0.5, report_unverified=False)
+    with pytest.raises(KnobError, match="anchors.verify_fraction"):
+        AlgorithmConfig().override({"anchors.verify_fraction": value})
+    assert AlgorithmConfig().override({"anchors.verify_fraction": 0.5, "anchors.report_unverified": False}).anchors == \
+        AnchorConfig(verify_fraction=0.5, report_unverified=False)
 
 
 def test_an_odometry_jump_makes_the_pair_forget_its_anchor_and_candidates():

@@ -4,12 +4,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cerpe.algorithm import AlgorithmError, CerpeConfig, RobotAgent, Team, direct_relative, ego_motion
+from cerpe.knobs import KnobError
+from cerpe.algorithm import AlgorithmError, AlgorithmConfig, RobotAgent, Team, direct_relative, ego_motion
 from cerpe.errors import CerpeError
 from cerpe.protocols import FrameContext
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
-CFG = CerpeConfig(min_scale_pixels=20)
+CFG = AlgorithmConfig().override({"scale.min_pixels": 20})
 
 
 @pytest.fixture(scope="module")
@@ -209,20 +210,22 @@ def test_team_level_consistency_checks(world):
         list(team.run_encounter(other))
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    (dict(tau=1.2), "tau"), (dict(tau_m=float("nan")), "tau_m"), (dict(descriptor_dtype="bf16"), "descriptor_dtype"),
-    (dict(jpeg_quality=101), "jpeg_quality"), (dict(min_scale_pixels=0), "min_scale_pixels"),
+@pytest.mark.parametrize("key, value", [
+    ("gate.tau", 1.2), ("memory.tau_m", float("nan")), ("messages.descriptor_dtype", "bf16"),
+    ("messages.reply_quality", 101), ("scale.min_pixels", 0), ("scale.min_pixels", "abc"),
+    ("messages.reply_quality", float("nan")),
 ])
-def test_bad_config(kwargs, field):
-    with pytest.raises(AlgorithmError, match=field):
-        CerpeConfig(**kwargs)
+def test_bad_config(key, value):
+    with pytest.raises(KnobError, match=key.replace(".", r"\.")):
+        AlgorithmConfig().override({key: value})
 
 
 def test_inconsistent_thresholds_rejected():
-    from cerpe.memory import KeyframeMemoryError
-
-    with pytest.raises(KeyframeMemoryError, match="tau_k"):
-        CerpeConfig(tau_m=0.3, tau_k=0.5).resolved()
+    with pytest.raises(KnobError, match="tau_k"):
+        AlgorithmConfig().override({"memory.tau_m": 0.3, "memory.tau_k": 0.5})
+    # one set, the other the descriptor's: checked once resolved
+    with pytest.raises(KnobError, match="tau_k"):
+        AlgorithmConfig().override({"memory.tau_k": 0.95}).resolved({"tau_m": 0.9})
 
 
 def _corrupt_replies(agent, how: str, at_step: int) -> None:

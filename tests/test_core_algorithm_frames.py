@@ -12,13 +12,13 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from cerpe.algorithm import DEGRADATIONS, CerpeConfig, Team
+from cerpe.algorithm import DEGRADATIONS, AlgorithmConfig, Team
 from cerpe.algorithm.degradations import known
 from cerpe.protocols import FrameContext, View
 from cerpe.transport import Channel
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
-CFG = CerpeConfig(min_scale_pixels=20)
+CFG = AlgorithmConfig().override({"scale.min_pixels": 20})
 BLANK = {10: 0, 11: 255, 12: 128}  # r0's frames at these steps: black, white, constant grey
 
 
@@ -96,15 +96,18 @@ def test_the_descriptors_low_texture_flag_makes_a_frame_blank():
     assert not any(("r1", 7) in keys for keys in bb.calls)
 
 
-def test_min_image_std_is_checked_and_can_be_turned_off():
-    with pytest.raises(Exception, match="min_image_std"):
-        CerpeConfig(min_image_std=-1.0)
+def test_blank_std_is_the_one_threshold(monkeypatch):
+    from cerpe.algorithm import agent as agent_mod
+
     world = make_world(2, 14, seed=3)
     enc = _with_blank(world, {8: 40})
-    team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20, min_image_std=0.0))
-    res = list(team.run_encounter(enc))
-    assert "frame:blank" not in res[8].robots[0].degradations  # 0: only flags and zero descriptors count
+    res = list(Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble(),
+                    AlgorithmConfig().override({"scale.min_pixels": 20})).run_encounter(enc))
+    assert "frame:blank" in res[8].robots[0].degradations
+    monkeypatch.setattr(agent_mod, "BLANK_STD", 0.0)  # 0: only flags and zero descriptors count
+    res = list(Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world), SensorDepthDouble(),
+                    AlgorithmConfig().override({"scale.min_pixels": 20})).run_encounter(enc))
+    assert "frame:blank" not in res[8].robots[0].degradations
 
 
 class MemoBackbone(GTBackbone):
@@ -168,7 +171,7 @@ def test_blank_frames_with_the_offline_backbone():
     blank = {3: 0, 4: 255, 5: 128}
 
     def run(with_blank):
-        team = Team(["a"], pl.descriptor, pl.backbone, pl.depth, CerpeConfig(delta_k=2))
+        team = Team(["a"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"memory.delta_k": 2}))
         out = []
         for t, (img, depth) in enumerate(frames):
             if with_blank and t in blank:

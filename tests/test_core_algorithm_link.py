@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cerpe.algorithm import CerpeConfig, Link, Mailbox, Team
+from cerpe.algorithm import AlgorithmConfig, Link, Mailbox, Team
 from cerpe.algorithm.channel_link import ChannelHub
 from cerpe.messages import DescriptorMessage, ImageRequest, PoseMessage
 from cerpe.online.zenoh_link import ZenohLink
@@ -60,7 +60,7 @@ def test_lossy_team_is_deterministic():
 
     def run():
         team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(),
-                    CerpeConfig(min_scale_pixels=20), Channel(p_drop=0.15, p_garble=0.1, seed=4))
+                    AlgorithmConfig().override({"scale.min_pixels": 20}), Channel(p_drop=0.15, p_garble=0.1, seed=4))
         return [([(p.ego, p.other, p.source, p.reason, repr(p.gate_score), p.bytes_pair,
                    None if p.T_cj_ci is None else p.T_cj_ci.tobytes()) for p in res.pairs],
                  [(r.T_odom_cam.tobytes(), r.degradations, r.bytes_sent, r.keyframe) for r in res.robots])

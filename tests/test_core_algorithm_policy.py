@@ -1,5 +1,5 @@
-"""The image-request policy (issue 21 item 3): the rules on their own, then end to end with the
-ground-truth doubles (tests/gt_backbone.py), where anchors verify and the policy can skip."""
+"""The image-request policy: the rules on their own, then end to end with the ground-truth doubles
+(tests/gt_backbone.py), where anchors verify and the policy can skip."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
 
-from cerpe.algorithm import AlgorithmError, CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
+from cerpe.algorithm import policy as policy_mod
 from cerpe.algorithm.policy import (
     AskLog,
     PairView,
@@ -43,7 +44,7 @@ def test_pays_skips_a_fresh_certain_anchor_and_asks_otherwise():
     # the propagation model: rotation grows per step, position per metre travelled
     assert decide(PAYS, True, dataclasses.replace(FRESH, steps_since=12)) == (True, "uncertain")  # 0.01+0.042
     assert decide(PAYS, True, dataclasses.replace(FRESH, travelled_m=5.1)) == (True, "uncertain")  # 0.05+0.255
-    assert propagation_sigma(PAYS, PairView(True, steps_since=10, travelled_m=2.0)) == pytest.approx((0.045, 0.15))
+    assert propagation_sigma(PairView(True, steps_since=10, travelled_m=2.0)) == pytest.approx((0.045, 0.15))
     # never without the gate, except "always"
     assert decide(PAYS, False, PairView(anchored=False)) == (False, "gate-closed")
     assert decide(PolicyConfig(), False, None) == (False, "gate-closed")
@@ -52,20 +53,22 @@ def test_pays_skips_a_fresh_certain_anchor_and_asks_otherwise():
 
 
 @pytest.mark.parametrize("bad", [{"mode": "sometimes"}, {"max_steps": -1}, {"max_steps": 1.5},
-                                 {"max_sigma_rot_rad": float("nan")}, {"pos_sigma_per_m": -0.1},
-                                 {"shared_skip_misses": -1}, {"shared_retry_steps": 0}])
+                                 {"max_sigma_rot_rad": float("nan")}, {"max_sigma_pos_m": -0.1},
+                                 {"miss_limit": -1}, {"miss_backoff_steps": True}, {"recheck_rot_rad": -0.1},
+                                 {"recheck_limit": -1}, {"backoff_pending_exempt": 1},
+                                 {"unanchored_backoff_steps": -2}])
 def test_bad_policy_config_is_one_clear_error(bad):
     with pytest.raises(PolicyError, match=next(iter(bad))):
         PolicyConfig(**bad)
-    with pytest.raises((PolicyError, AlgorithmError)):
-        CerpeConfig(request_policy=bad)
-    with pytest.raises(AlgorithmError, match="unknown request_policy"):
-        CerpeConfig(request_policy={"modus": "pays"})
+    with pytest.raises(PolicyError, match="policy." + next(iter(bad))):
+        AlgorithmConfig().override({"policy": bad})
+    with pytest.raises(PolicyError, match="unknown key 'policy.modus'; known under policy: mode, "):
+        AlgorithmConfig().override({"policy.modus": "pays"})
 
 
 def _run(policy: dict, backend: str = "switch"):
     world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
-    cfg = CerpeConfig(min_scale_pixels=20, request_policy=policy, backend=backend)
+    cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "policy": policy, "backend.kind": backend})
     team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(), cfg)
     results = list(team.run_encounter(world.to_encounter()))
     P = {res.step: next(p for p in res.pairs if p.ego == "r0" and p.other == "r1") for res in results}
@@ -110,9 +113,10 @@ def test_pays_with_zero_thresholds_and_always_are_the_papers_records_where_the_g
         sum(p.source == "direct" for res in base for p in res.pairs)
 
 
-def test_graph_backend_reads_the_graphs_sigma_instead_of_the_propagation_model():
+def test_graph_backend_reads_the_graphs_sigma_instead_of_the_propagation_model(monkeypatch):
     # a propagation model that always says "uncertain": the switch asks, the graph's own sigma does not
-    policy = {"mode": "pays", "rot_sigma0_rad": 10.0, "max_sigma_pos_m": 1.0}  # graph: 0.46 m at step 7
+    monkeypatch.setattr(policy_mod, "ROT_SIGMA0_RAD", 10.0)
+    policy = {"mode": "pays", "max_sigma_pos_m": 1.0}  # graph: 0.46 m at step 7
     _, _, S = _run(policy)
     assert not S[8].request_skipped and S[8].bytes_pair > 0
     _, _, G = _run(policy, backend="graph")
@@ -139,10 +143,7 @@ def test_backoff_rule_known_answers():
     assert decide(PAYS, True, missed) == (True, "no-anchor")
     assert decide(dataclasses.replace(conf, mode="gate"), True, missed) == (True, "gate")
     assert decide(dataclasses.replace(conf, mode="always"), False, missed) == (True, "always")
-    with pytest.raises(PolicyError, match="miss_limit"):
-        PolicyConfig(miss_limit=-1)
-    with pytest.raises(PolicyError, match="miss_backoff_steps"):
-        PolicyConfig(miss_backoff_steps=True)
+    assert [backoff_steps(conf, m) for m in range(6)] == [0, 0, 0, 3, 3, 3]  # a constant wait
 
 
 def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
@@ -150,7 +151,7 @@ def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
     early = lambda current, key: len(key) == 3 and key[1] < 5  # a collaborator's image places from step 5 on
 
     def run(policy):
-        cfg = CerpeConfig(min_scale_pixels=20, request_policy=policy, tau=-1.0)  # the gate opens at every step
+        cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "policy": policy, "gate.tau": -1.0})  # the gate opens at every step
         team = Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1, invalid=early),
                     SensorDepthDouble(), cfg)
         return {res.step: next(p for p in res.pairs if p.ego == "r0" and p.other == "r1")
@@ -158,7 +159,6 @@ def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
 
     P = run({"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3})
     B = run({"mode": "pays"})
-    A = run({"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3, "backoff_anchored_only": True})
     assert all(P[t].gate_open for t in P)
     # nothing places before step 5: three requests that place nothing, then one every third step
     asked = [t for t in range(10) if P[t].bytes_pair > 0]
@@ -168,57 +168,30 @@ def test_agent_backs_off_from_an_open_gate_whose_images_place_nothing():
     assert P[5].source == "direct" and [P[t].anchor_verdict for t in (5, 6, 7)] == ["unverified", "unverified",
                                                                                    "verified"]
     assert sum(p.bytes_pair > 0 for p in P.values()) < sum(p.bytes_pair > 0 for p in B.values())
-    # backing off from anchored pairs only: without an anchor it asks at every step, and places at 5 as before
-    assert [t for t in range(6) if A[t].bytes_pair > 0] == [0, 1, 2, 3, 4, 5] and A[5].source == "direct"
 
 
 
-def test_growing_backoff_and_anchored_only_known_answers():
-    conf = PolicyConfig(mode="pays", miss_limit=2, miss_backoff_steps=3, miss_backoff_growth=2.0,
-                        miss_backoff_max_steps=12)
-    assert [backoff_steps(conf, m) for m in range(6)] == [0, 0, 3, 6, 12, 12]
-    assert [backoff_steps(PolicyConfig(mode="pays", miss_limit=2, miss_backoff_steps=3), m)
-            for m in range(5)] == [0, 0, 3, 3, 3]  # growth 1: the constant wait of before
-    missed = PairView(anchored=False, misses=3, steps_since_ask=5)
-    assert decide(conf, True, missed) == (False, "backoff")  # third miss: waits 6 steps
-    assert decide(conf, True, dataclasses.replace(missed, steps_since_ask=6)) == (True, "no-anchor")
-    old = dataclasses.replace(FRESH, steps_since=40, misses=4, steps_since_ask=11)
-    assert decide(conf, True, old) == (False, "backoff")
-    assert decide(conf, True, dataclasses.replace(old, steps_since_ask=12)) == (True, "stale")
-    # with backoff_anchored_only a pair without an anchor (no estimate while it waits) never backs off
-    only = dataclasses.replace(conf, backoff_anchored_only=True)
-    assert decide(only, True, missed) == (True, "no-anchor")
-    assert decide(only, True, dataclasses.replace(missed, pending=True)) == (True, "no-anchor")
-    assert decide(only, True, old) == (False, "backoff")
-    with pytest.raises(PolicyError, match="miss_backoff_growth"):
-        PolicyConfig(miss_backoff_growth=0.5)
-    with pytest.raises(PolicyError, match="miss_backoff_max_steps"):
-        PolicyConfig(miss_backoff_max_steps=-1)
-    with pytest.raises(PolicyError, match="backoff_anchored_only"):
-        PolicyConfig(backoff_anchored_only=1)
-
-
-NEW_RULES = {"unanchored_backoff_steps": 2, "backoff_pending_exempt": True, "recheck_rot_rad": 0.03, "recheck_limit": 2, "min_inliers": 50,
-             "rot_sigma_per_m": 0.01}
+NEW_RULES = {"miss_limit": 3, "miss_backoff_steps": 3, "unanchored_backoff_steps": 2, "backoff_pending_exempt": True,
+             "recheck_rot_rad": 0.03, "recheck_limit": 2}
 
 
 def test_after_request_logs_misses_and_what_set_the_anchor():
     conf = PolicyConfig(mode="pays", recheck_rot_rad=0.03)
     log = after_request(conf, None, 4, placed=False)
     assert log == AskLog(4, 1, hard_misses=1) and after_request(conf, log, 5, placed=False).misses == 2
-    # a placed estimate that set the anchor: misses reset, its disagreement and inliers kept
-    log = after_request(conf, log, 6, True, "verified", 0.05, 120)
-    assert (log.step, log.misses, log.anchor_rot_rad, log.anchor_inliers, log.rechecks) == (6, 0, 0.05, 120, 1)
-    log = after_request(conf, log, 7, True, "accepted", 0.04, 90)
-    assert log.rechecks == 2 and log.anchor_inliers == 90
+    # a placed estimate that set the anchor: misses reset, its disagreement kept
+    log = after_request(conf, log, 6, True, "verified", 0.05)
+    assert (log.step, log.misses, log.anchor_rot_rad, log.rechecks) == (6, 0, 0.05, 1)
+    log = after_request(conf, log, 7, True, "accepted", 0.04)
+    assert log.rechecks == 2
     # rejected or unverified: the anchor stays, and so does what set it
-    kept = after_request(conf, log, 8, True, "rejected", 0.3, 10)
-    assert (kept.anchor_rot_rad, kept.anchor_inliers, kept.rechecks, kept.misses) == (0.04, 90, 2, 0)
+    kept = after_request(conf, log, 8, True, "rejected", 0.3)
+    assert (kept.anchor_rot_rad, kept.rechecks, kept.misses) == (0.04, 2, 0)
     # two estimates in a row that agree end the streak
-    assert after_request(conf, log, 9, True, "accepted", 0.01, 90).rechecks == 0
-    assert after_request(PAYS, log, 9, True, "accepted", 0.5, 90).rechecks == 0  # the rule off: no streak
-    assert AskLog(3, 2, 0.1, 7, 1, 5).view(10) == {"misses": 2, "hard_misses": 5, "steps_since_ask": 7,
-                                                   "anchor_rot_rad": 0.1, "anchor_inliers": 7, "rechecks": 1}
+    assert after_request(conf, log, 9, True, "accepted", 0.01).rechecks == 0
+    assert after_request(PAYS, log, 9, True, "accepted", 0.5).rechecks == 0  # the rule off: no streak
+    assert AskLog(3, 2, 0.1, 1, 5).view(10) == {"misses": 2, "hard_misses": 5, "steps_since_ask": 7,
+                                                "anchor_rot_rad": 0.1, "rechecks": 1}
 
 
 def test_hard_misses_run_on_through_placements_that_set_no_anchor():
@@ -227,14 +200,14 @@ def test_hard_misses_run_on_through_placements_that_set_no_anchor():
     assert (log.misses, log.hard_misses) == (2, 2)
     # a rejected or unverified placement: misses restart, hard_misses neither count it nor restart
     for verdict in ("rejected", "unverified", ""):
-        kept = after_request(conf, log, 3, True, verdict, 0.4, 11)
+        kept = after_request(conf, log, 3, True, verdict, 0.4)
         assert (kept.misses, kept.hard_misses) == (0, 2)
         assert after_request(conf, kept, 4, placed=False).hard_misses == 3
     # an estimate that set the anchor restarts both
-    assert after_request(conf, log, 3, True, "verified", 0.01, 90).hard_misses == 0
+    assert after_request(conf, log, 3, True, "verified", 0.01).hard_misses == 0
 
 
-def test_recheck_weak_and_metre_rules_known_answers():
+def test_recheck_and_backoff_rules_known_answers():
     conf = PolicyConfig(mode="pays", recheck_rot_rad=0.03, recheck_limit=2)
     doubt = dataclasses.replace(FRESH, anchor_rot_rad=0.05, rechecks=1)
     assert decide(PAYS, True, doubt) == (False, "anchor-fresh")  # off by default
@@ -245,17 +218,6 @@ def test_recheck_weak_and_metre_rules_known_answers():
     assert decide(conf, False, doubt) == (False, "gate-closed")  # only through an open gate
     assert decide(dataclasses.replace(conf, recheck_limit=0), True, dataclasses.replace(doubt, rechecks=2)) == \
         (False, "anchor-fresh")  # a limit of 0: one recheck
-    # the anchor's registration had few inliers (unknown: -1, never asks)
-    weak = PolicyConfig(mode="pays", min_inliers=50)
-    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=49)) == (True, "weak")
-    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=50)) == (False, "anchor-fresh")
-    assert decide(weak, True, dataclasses.replace(FRESH, anchor_inliers=-1)) == (False, "anchor-fresh")
-    # rotation sigma per metre: 0.01 + 0.0035 * 1 + 0.01 * 4 = 0.0535 > 0.05
-    metres = PolicyConfig(mode="pays", rot_sigma_per_m=0.01)
-    moved = dataclasses.replace(FRESH, travelled_m=4.0)
-    assert propagation_sigma(metres, moved) == pytest.approx((0.0535, 0.25))
-    assert decide(metres, True, moved) == (True, "uncertain") and decide(PAYS, True, moved) == (False, "anchor-fresh")
-    assert decide(metres, True, dataclasses.replace(FRESH, travelled_m=3.5)) == (False, "anchor-fresh")  # 0.0485
     # a pair whose candidates wait to verify does not back off with backoff_pending_exempt
     back = PolicyConfig(mode="pays", miss_limit=3, miss_backoff_steps=3)
     waiting = PairView(anchored=False, pending=True, misses=3, steps_since_ask=1)
@@ -273,10 +235,6 @@ def test_recheck_weak_and_metre_rules_known_answers():
     # the paper's mode reads none of them
     assert decide(PolicyConfig(**NEW_RULES), True, doubt) == (True, "gate")
     assert decide(PolicyConfig(**NEW_RULES), False, doubt) == (False, "gate-closed")
-    for bad in ({"recheck_rot_rad": -0.1}, {"recheck_limit": -1}, {"min_inliers": 2.5}, {"rot_sigma_per_m": float("inf")},
-                {"backoff_pending_exempt": 1}, {"unanchored_backoff_steps": -2}):
-        with pytest.raises(PolicyError, match=next(iter(bad))):
-            PolicyConfig(**bad)
 
 
 def test_gate_mode_records_are_unchanged_by_the_new_rules():
@@ -299,27 +257,24 @@ def test_agent_rechecks_an_anchor_its_estimate_disagreed_with():
     assert R[9].request_skipped and R[9].bytes_pair == 0
 
 
-def test_try_hard_while_unanchored_backing_off_by_powers_of_two():
-    conf = PolicyConfig(hard_tries=2, hard_backoff_max_steps=8)
-    asked = [m for m in range(40) if try_hard(conf, PairView(anchored=False, hard_misses=m))]
+def test_try_hard_while_unanchored_backing_off_by_powers_of_two(monkeypatch):
+    # the shipped schedule, one try: 0, 1, 2, 4, 8, 16, 32, then every 32
+    assert [m for m in range(100) if try_hard(PairView(anchored=False, hard_misses=m))] == [
+        0, 1, 2, 4, 8, 16, 32, 64, 96]
+    monkeypatch.setattr(policy_mod, "HARD_TRIES", 2)
+    monkeypatch.setattr(policy_mod, "HARD_BACKOFF_MAX_STEPS", 8)
+    asked = [m for m in range(40) if try_hard(PairView(anchored=False, hard_misses=m))]
     # misses before the request: 0, 1 (the tries), then where misses - 1 is 1, 2, 4, 8, then every 8
     assert asked == [0, 1, 2, 3, 5, 9, 17, 25, 33]
-    assert not any(try_hard(conf, PairView(anchored=True, hard_misses=m)) for m in range(40))
+    assert not any(try_hard(PairView(anchored=True, hard_misses=m)) for m in range(40))
     # the schedule reads hard_misses, not the misses in a row that a placement restarts
-    assert not try_hard(conf, PairView(anchored=False, misses=0, hard_misses=4))
-    # the default, one try: 0, 1, 2, 4, 8, 16, 32, then every 32
-    assert [m for m in range(100) if try_hard(PolicyConfig(), PairView(anchored=False, hard_misses=m))] == [
-        0, 1, 2, 4, 8, 16, 32, 64, 96]
-    assert not try_hard(PolicyConfig(hard_tries=0), PairView(anchored=False))
-    with pytest.raises(PolicyError, match="hard_backoff_max_steps"):
-        PolicyConfig(hard_backoff_max_steps=0)
+    assert not try_hard(PairView(anchored=False, misses=0, hard_misses=4))
 
 
-def test_skip_for_shared_known_answers():
-    conf = PolicyConfig(shared_skip_misses=2, shared_retry_steps=4)
+def test_skip_for_shared_known_answers(monkeypatch):
+    monkeypatch.setattr(policy_mod, "SHARED_RETRY_STEPS", 4)
     base = dict(anchored=False, misses=2, steps_since_shared=1, steps_since_ask=1)
-    assert skip_for_shared(conf, PairView(**base))
-    assert not skip_for_shared(conf, PairView(**{**base, "misses": 1}))  # its own images may still place
-    assert not skip_for_shared(conf, PairView(**{**base, "steps_since_shared": 2}))  # the peer stopped sharing
-    assert not skip_for_shared(conf, PairView(**{**base, "steps_since_ask": 4}))  # time to look again
-    assert not skip_for_shared(PolicyConfig(shared_skip_misses=0), PairView(**base))  # off
+    assert skip_for_shared(PairView(**base))
+    assert not skip_for_shared(PairView(**{**base, "misses": 1}))  # its own images may still place
+    assert not skip_for_shared(PairView(**{**base, "steps_since_shared": 2}))  # the peer stopped sharing
+    assert not skip_for_shared(PairView(**{**base, "steps_since_ask": 4}))  # time to look again

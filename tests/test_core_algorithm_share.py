@@ -1,4 +1,4 @@
-"""Shared direct estimates (``CerpeConfig.share_estimates``, our extension): the wire frame and a team
+"""Shared direct estimates (``AlgorithmConfig.share_estimates``, our extension): the wire frame and a team
 in which only one robot can place the other's image (tests/gt_backbone.py)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from cerpe.algorithm import CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.algorithm.direct import SHARED_VIA
 from cerpe.geometry import e_pos, e_rot, make_se3, random_se3, so3_exp
 from cerpe.messages import EstimateMessage, MessageError, decode
@@ -43,7 +43,7 @@ def _team(world, share: bool, channel: Channel | None = None, perturb=None, regi
     bb = GTBackbone(world, seed=1, invalid=lambda cur, key: cur[0] == "r0" and len(key) == 3, perturb=perturb,
                     register=register)
     return Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20, share_estimates=share, request_policy=policy or {}), channel)
+                AlgorithmConfig().override({"scale.min_pixels": 20, "messages.share_estimates": share, "policy": policy or {}}), channel)
 
 
 def _records(world, share: bool, channel: Channel | None = None, perturb=None, register=None,
@@ -132,7 +132,7 @@ def test_shared_estimates_do_not_replace_an_anchor_of_the_robot_own():
     world = make_world(2, 30, seed=4)
     bb = GTBackbone(world, seed=1, invalid=lambda cur, key: cur[0] == "r0" and len(key) == 3 and key[1] >= 20)
     team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20, share_estimates=True))
+                AlgorithmConfig().override({"scale.min_pixels": 20, "messages.share_estimates": True}))
     P = {res.step: next(q for q in res.pairs if q.ego == "r0") for res in team.run_encounter(world.to_encounter())}
     assert all(P[t].source == "direct" and P[t].direct_via != SHARED_VIA for t in range(5, 10))
     for t in range(25, 30):
@@ -141,13 +141,17 @@ def test_shared_estimates_do_not_replace_an_anchor_of_the_robot_own():
         assert e_pos(P[t].T_cj_ci[:3, 3], gt[:3, 3]) < 1e-5 and e_rot(P[t].T_cj_ci, gt) < 1e-6
 
 
-def test_a_robot_that_cannot_place_its_peer_skips_requests_while_the_peer_shares():
-    """request_policy.shared_skip_misses 2 (the default), shared_retry_steps 4: r0 asks at 5 and 6 (both place nothing),
+def test_a_robot_that_cannot_place_its_peer_skips_requests_while_the_peer_shares(monkeypatch):
+    """policy.SHARED_SKIP_MISSES 2 (shipped), SHARED_RETRY_STEPS 4: r0 asks at 5 and 6 (both place nothing),
     skips 7-9 while r1 shares, asks at 25 (r1 shared nothing since 9), skips 26-28 and asks again at 29.
     r0's estimates are those of sharing without the rule (its own images never placed); r1 sends fewer replies."""
+    from cerpe.algorithm import policy as policy_mod
+
     world = make_world(2, 30, seed=4)
-    on = _records(world, True, policy={"shared_skip_misses": 2, "shared_retry_steps": 4})
-    plain = _records(world, True, policy={"shared_skip_misses": 0})
+    monkeypatch.setattr(policy_mod, "SHARED_RETRY_STEPS", 4)
+    on = _records(world, True)
+    monkeypatch.setattr(policy_mod, "SHARED_SKIP_MISSES", 1 << 30)  # the rule never acts
+    plain = _records(world, True)
     skipped = [res.step for res in on for p in res.pairs if p.ego == "r0" and p.request_skipped]
     assert skipped == [7, 8, 9, 26, 27, 28]
     for res, ref in zip(on, plain):

@@ -16,7 +16,7 @@ from gt_backbone import (
     make_world,
 )
 
-from cerpe.algorithm import CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.geometry import (
     e_rot,
     make_se3,
@@ -25,10 +25,10 @@ from cerpe.geometry import (
     so3_exp,
 )
 
-CFG = CerpeConfig(min_scale_pixels=20)
+CFG = AlgorithmConfig().override({"scale.min_pixels": 20})
 
 
-def run(world: World, config: CerpeConfig = CFG, descriptor=None, **backbone):
+def run(world: World, config: AlgorithmConfig = CFG, descriptor=None, **backbone):
     bb = GTBackbone(world, seed=1, **backbone)
     team = Team(world.robot_ids, descriptor or OverlapDescriptor(world), bb, SensorDepthDouble(), config)
     return bb, list(team.run_encounter(world.to_encounter()))
@@ -88,9 +88,9 @@ def test_a_weak_estimate_that_agrees_keeps_the_anchor_and_is_counted():
     assert degradations(results, "r0")["anchor:weak"] == 1 and degradations(results, "r0")["anchor:inconsistent"] == 0
     assert degradations(results, "r1")["anchor:weak"] == 0
     # without propagation (w/o EM) the weak step reports nothing; with the rule off it is reported
-    _, results = run(world, dataclasses.replace(CFG, propagate=False), support=support, perturb=nudge)
+    _, results = run(world, CFG.override({"backend.propagate": False}), support=support, perturb=nudge)
     assert pair(results, "r0", "r1")[27].source == "none"
-    _, results = run(world, dataclasses.replace(CFG, anchor_min_inliers=0), support=support, perturb=nudge)
+    _, results = run(world, CFG.override({"anchors.min_inliers": 0}), support=support, perturb=nudge)
     p = pair(results, "r0", "r1")[27]
     assert p.source == "direct" and p.anchor_verdict == "accepted" and gt_error(world, p)[0] > 0.04
 
@@ -107,7 +107,7 @@ def _world_turn(world: World, key, angle: float, about: np.ndarray) -> np.ndarra
 def test_persistent_disagreement_replaces_a_wrong_anchor(n):
     world = make_world(2, 40, seed=1)
     centre = world.T_world_cam[0, 7, :3, 3]
-    _, results = run(world, dataclasses.replace(CFG, anchor_replace_after=n),
+    _, results = run(world, CFG.override({"anchors.replace_after": n}),
                      perturb=lambda cur, via, key: _world_turn(world, key, 0.6, centre)
                      if len(key) == 3 and 5 <= key[1] < 10 else None)
     for ego, other in (("r0", "r1"), ("r1", "r0")):
@@ -129,7 +129,7 @@ def test_persistent_disagreement_replaces_a_wrong_anchor(n):
 def test_unverified_estimate_is_not_carried_beyond_max_unverified_steps():
     world = make_world(2, 16, seed=2, windows={(0, 1): [(5, 6)]})
     for limit in (3, 1):
-        _, results = run(world, dataclasses.replace(CFG, max_unverified_steps=limit))
+        _, results = run(world, CFG.override({"anchors.max_unverified_steps": limit}))
         for ego, other in (("r0", "r1"), ("r1", "r0")):
             P = pair(results, ego, other)
             assert (P[5].source, P[5].reason, P[5].anchor_verdict) == ("direct", "unverified", "unverified")
@@ -147,7 +147,7 @@ def test_unverified_estimates_are_held_without_report_unverified():
     injected after the anchor is still rejected and counted)."""
     world = make_world(2, 40, seed=1)  # overlap windows 5-9 and 25-29
     wrong = {("r1", 27, "jpeg")}
-    config = dataclasses.replace(CFG, report_unverified=False)
+    config = CFG.override({"anchors.report_unverified": False})
     _, results = run(world, config, perturb=lambda cur, via, key: turned(0.5) if key in wrong else None)
     P = pair(results, "r0", "r1")
     assert [P[t].anchor_verdict for t in range(5, 10)] == ["unverified"] * 2 + ["verified"] + ["accepted"] * 2
@@ -180,7 +180,7 @@ def test_an_odometry_jump_drops_the_anchor_instead_of_carrying_it_wrong():
         assert [P[t].anchor_verdict for t in range(25, 30)] == ["unverified"] * 2 + ["verified"] + ["accepted"] * 2
         assert all(max(gt_error(world, P[t])) < 1e-5 for t in range(25, 40))
         assert degradations(results, ego)["anchor:odometry-jump"] == 1
-    _, results = run(world, dataclasses.replace(CFG, anchor_max_odo_rot_step=0.0), perturb=jump)
+    _, results = run(world, CFG.override({"anchors.max_odo_rot_step": 0.0}), perturb=jump)
     P = pair(results, "r0", "r1")
     assert all(P[t].source == "propagated" and gt_error(world, P[t])[0] > 1.4 for t in range(15, 29))
     assert P[29].anchor_verdict == "replaced" and degradations(results, "r0")["anchor:odometry-jump"] == 0
@@ -237,14 +237,14 @@ def test_robots_anchor_through_a_keyframe_when_one_sees_later_what_the_other_saw
     world = make_follow_world(n_steps=30, delay=15, seed=5)
     places = {(r, s + d): f"place-{s}" for s in (5, 6, 7) for r, d in (("r0", 0), ("r1", 15))}
     desc = OverlapDescriptor(world, places=places)
-    config = dataclasses.replace(CFG, tau_m=0.99, tau_k=0.2, delta_k=0, memory_capacity=20)  # keep every frame
+    config = CFG.override({"memory.tau_m": 0.99, "memory.tau_k": 0.2, "memory.delta_k": 0, "memory.capacity": 20})  # keep every frame
     register = lambda own, col: 80 if places.get(own) is not None and places.get(own) == places.get(col[:2]) \
         else 0
     old = lambda cur, key: cur[0] == "r0" and cur[1] >= 20 and (len(key) == 3 or key[1] < 10)
     bb, results = run(world, config, desc, register=register, invalid=old)
     P = pair(results, "r0", "r1")
     for t in range(30):
-        assert P[t].gate_score < config.resolved().tau  # never at the same time
+        assert P[t].gate_score < config.resolved().gate.tau  # never at the same time
     for t, kf in ((20, 5), (21, 6), (22, 7)):
         assert ("r0", kf) in bb.calls[2 * t]  # the keyframe is in r0's pass
         p = P[t]
@@ -258,7 +258,7 @@ def test_robots_anchor_through_a_keyframe_when_one_sees_later_what_the_other_saw
     Q = pair(results, "r1", "r0")  # r1 never saw what r0 sees
     assert all(not Q[t].gate_open and Q[t].source == "none" for t in range(30))
     # the paper's gate (current frame only) never opens here
-    _, results = run(world, dataclasses.replace(config, gate_memory=False), desc, register=register, invalid=old)
+    _, results = run(world, config.override({"gate.memory_aware": False}), desc, register=register, invalid=old)
     assert all(p.source == "none" and not p.gate_open for res in results for p in res.pairs)
 
 
@@ -266,7 +266,7 @@ def test_verify_anchors_false_is_the_papers_switching():
     """Every direct estimate becomes the anchor, wrong or not; every other step propagates the last one."""
     world = make_world(2, 40, seed=1)
     wrong = {("r1", 27, "jpeg"), ("r0", 7, "jpeg")}
-    config = dataclasses.replace(CFG, verify_anchors=False, gate_memory=False)
+    config = CFG.override({"anchors.verify": False, "gate.memory_aware": False})
     _, results = run(world, config, rot_noise_rad=0.01, trans_noise=0.05,
                      perturb=lambda cur, via, key: turned(0.5) if key in wrong else None)
     X = {(r.robot, res.step): r.T_odom_cam for res in results for r in res.robots}

@@ -4,13 +4,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cerpe.algorithm.config import PAPER_THRESHOLDS
+from cerpe.knobs import KnobError
 from cerpe.memory import Keyframe, KeyframeMemory, KeyframeMemoryError, MemoryConfig, cosine, should_insert
 
-CONF = MemoryConfig()  # paper: tau_m 0.9, tau_k 0.2, L 5; delta_k 3
+CONF = MemoryConfig(tau_m=0.9, tau_k=0.2)  # paper: tau_m 0.9, tau_k 0.2, L 5; delta_k 3
 
 
 def test_defaults_are_the_papers():
-    assert (CONF.tau_m, CONF.tau_k, CONF.capacity, CONF.delta_k) == (0.9, 0.2, 5, 3)
+    # thresholds None: the descriptor's calibration, else the paper's (resolved by the algorithm's config)
+    default = MemoryConfig()
+    assert (default.tau_m, default.tau_k, default.capacity, default.delta_k) == (None, None, 5, 3)
+    assert (PAPER_THRESHOLDS["tau_m"], PAPER_THRESHOLDS["tau_k"]) == (0.9, 0.2)
+    assert KeyframeMemory().conf == CONF
+    with pytest.raises(KeyframeMemoryError, match="resolved"):
+        KeyframeMemory(MemoryConfig())
 
 
 @pytest.mark.parametrize("c, delta, expected", [
@@ -73,7 +81,7 @@ def test_memory_follows_hand_computed_sequence():
 
 
 def test_capacity_one_keeps_only_newest():
-    mem = KeyframeMemory(MemoryConfig(capacity=1))
+    mem = KeyframeMemory(MemoryConfig(tau_m=0.9, tau_k=0.2, capacity=1))
     for s in range(4):
         mem.insert(_kf(s, s * 2.0))
     assert [kf.step for kf in mem] == [3]
@@ -85,11 +93,11 @@ def test_cosine_of_zero_vector_is_nan():
 
 
 @pytest.mark.parametrize("kwargs, field", [
-    (dict(tau_m=1.5), "tau_m"), (dict(tau_k=float("nan")), "tau_k"), (dict(tau_k=0.95), "tau_k"),
+    (dict(tau_m=1.5), "tau_m"), (dict(tau_k=float("nan")), "tau_k"), (dict(tau_m=0.9, tau_k=0.95), "tau_k"),
     (dict(delta_k=-1), "delta_k"), (dict(capacity=0), "capacity"), (dict(delta_k=2.5), "delta_k"),
 ])
 def test_bad_config_names_field(kwargs, field):
-    with pytest.raises(KeyframeMemoryError, match=field):
+    with pytest.raises(KnobError, match=field):
         MemoryConfig(**kwargs)
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cerpe.algorithm import DEGRADATIONS, AlgorithmError, CerpeConfig, Team
+from cerpe.algorithm import DEGRADATIONS, AlgorithmConfig, Team
+from cerpe.knobs import KnobError
 from cerpe.geometry import make_se3, se3_inverse
 from cerpe.scale import ScaleError, StepLengthRule, step_ratios
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world
@@ -39,10 +40,9 @@ def test_rule_known_answers():
 def test_rule_refuses_bad_values(kw):
     with pytest.raises(ScaleError):
         StepLengthRule(**kw)
-    with pytest.raises(AlgorithmError, match="step rule"):
-        CerpeConfig(**{{"max_ratio": "ego_max_step_ratio", "max_accel_mps2": "ego_max_accel_mps2",
-                        "noise_m": "ego_step_noise_m", "window": "ego_step_window",
-                        "min_history": "ego_step_min_history"}[k]: v for k, v in kw.items()})
+    if "max_accel_mps2" in kw:  # the rule's one knob
+        with pytest.raises(KnobError, match="odometry.max_accel_mps2"):
+            AlgorithmConfig().override({"odometry.max_accel_mps2": kw["max_accel_mps2"]})
 
 
 def test_step_ratios_figures():
@@ -70,7 +70,7 @@ def _collapse(world, robot: str, step: int, frac: float = 0.2):
     return perturb
 
 
-def _run(world, config: CerpeConfig, perturb=None):
+def _run(world, config: AlgorithmConfig, perturb=None):
     bb = GTBackbone(world, unit_range=(1.0, 1.0), claim_metric=True, seed=1, perturb=perturb)
     team = Team(world.robot_ids, OverlapDescriptor(world), bb, SensorDepthDouble(), config)
     return list(team.run_encounter(world.to_encounter()))
@@ -86,10 +86,10 @@ def _step_lengths(X: np.ndarray) -> np.ndarray:
 
 def test_collapsed_step_is_held_and_counted():
     world = make_world(2, 20, seed=4)
-    cfg = CerpeConfig(min_scale_pixels=20)
+    cfg = AlgorithmConfig().override({"scale.min_pixels": 20})
     perturb = _collapse(world, "r0", COLLAPSED)
     held = _run(world, cfg, perturb)
-    free = _run(world, CerpeConfig(min_scale_pixels=20, ego_max_accel_mps2=0.0), perturb)
+    free = _run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "odometry.max_accel_mps2": 0.0}), perturb)
     true = _step_lengths(np.stack([world.gt_odometry(0, t) for t in range(world.n_steps)]))
     got, raw = _step_lengths(_odometry(held, "r0")), _step_lengths(_odometry(free, "r0"))
     k = COLLAPSED - 1  # index of step COLLAPSED's length
@@ -107,8 +107,8 @@ def test_collapsed_step_is_held_and_counted():
 
 def test_consistent_sequence_is_unchanged():
     world = make_world(3, 20, seed=5)
-    on = _run(world, CerpeConfig(min_scale_pixels=20))
-    off = _run(world, CerpeConfig(min_scale_pixels=20, ego_max_accel_mps2=0.0))
+    on = _run(world, AlgorithmConfig().override({"scale.min_pixels": 20}))
+    off = _run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "odometry.max_accel_mps2": 0.0}))
     for rid in world.robot_ids:
         np.testing.assert_allclose(_odometry(on, rid), _odometry(off, rid), atol=1e-12)
     assert not any("ego:step-held" in r.degradations for res in on for r in res.robots)
@@ -118,8 +118,8 @@ def test_held_step_grows_the_graph_sigma():
     """The pose graph counts a held step's odometry as lost: its sigma after the step is larger."""
     world = make_world(2, 20, seed=4)
     perturb = _collapse(world, "r0", COLLAPSED)
-    held = _run(world, CerpeConfig(min_scale_pixels=20, backend="graph"), perturb)
-    free = _run(world, CerpeConfig(min_scale_pixels=20, backend="graph", ego_max_accel_mps2=0.0), perturb)
+    held = _run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "backend.kind": "graph"}), perturb)
+    free = _run(world, AlgorithmConfig().override({"scale.min_pixels": 20, "backend.kind": "graph", "odometry.max_accel_mps2": 0.0}), perturb)
 
     def sigma(results, step):
         return [p.as_row()["sigma_pos_m"] for res in results if res.step == step for p in res.pairs if p.ego == "r0"][0]

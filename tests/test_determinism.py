@@ -1,6 +1,6 @@
 """Runs are deterministic: an encounter's records do not depend on what ran before it.
 
-Issue 17: the offline backbone used to keep motion and moving-pixel state keyed by
+The offline backbone once kept motion and moving-pixel state keyed by
 (robot, step) across encounters, so an encounter run after another differed from
 the same encounter run alone, and a resumed run from an uninterrupted one.
 """
@@ -40,7 +40,7 @@ def _records(results):
 
 
 def _run(plugins, enc):
-    cfg = algorithm.CerpeConfig().resolved(plugins.descriptor.thresholds)
+    cfg = algorithm.AlgorithmConfig().resolved(plugins.descriptor.thresholds)
     return list(algorithm.run_encounter(enc, plugins.descriptor, plugins.backbone, plugins.depth, config=cfg))
 
 

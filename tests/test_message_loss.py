@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cerpe.algorithm import CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.algorithm.bridge import PoseLog
 from cerpe.geometry import e_rot, interpolate_pose, random_se3
 from cerpe.messages import ImageReply, PoseMessage, decode
@@ -34,7 +34,7 @@ class _Drop(Channel):
 
 def _team(world, channel=None, **cfg):
     return Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(),
-                CerpeConfig(min_scale_pixels=20, **cfg), channel)
+                AlgorithmConfig().override({"scale.min_pixels": 20, **cfg}), channel)
 
 
 def _pairs(results, ego="r0", other="r1"):
@@ -230,8 +230,7 @@ def gt_plugins(monkeypatch):
 
     def plugins_and_config(method, profile, metric_depth, depth_options=None, overrides=None):
         assert not overrides, "the ground-truth doubles take no overrides here"
-        cfg = CerpeConfig(min_scale_pixels=20, propagate=method != "cerpe-wo-em",
-                          backend="graph" if method == "cerpe-graph" else "switch")
+        cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "backend.propagate": method != "cerpe-wo-em", "backend.kind": "graph" if method == "cerpe-graph" else "switch"})
         plugins = type("P", (), {"descriptor": OverlapDescriptor(world), "backbone": GTBackbone(world, seed=1),
                                  "depth": SensorDepthDouble()})
         return plugins, cfg, {"cerpe": dataclasses.asdict(cfg), "preset": profile}

@@ -24,7 +24,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from cerpe.algorithm import CerpeConfig, RobotAgent, Team  # noqa: E402
+from cerpe.algorithm import AlgorithmConfig, RobotAgent, Team  # noqa: E402
 from cerpe.algorithm.direct import SHARED_VIA  # noqa: E402
 from cerpe.config import ConfigError  # noqa: E402
 from cerpe.geometry import se3_to_tq_xyzw  # noqa: E402
@@ -37,7 +37,7 @@ from cerpe.scene import Setting  # noqa: E402
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world  # noqa: E402
 from test_online_zenoh_link import endpoint, free_ports  # noqa: E402
 
-CFG = CerpeConfig(min_scale_pixels=20)
+CFG = AlgorithmConfig().override({"scale.min_pixels": 20})
 FAST = {"step_timeout_s": 5.0, "connect_timeout_s": 10.0, "linger_s": 3.0, "ros": {"key_format": "off"}}
 
 
@@ -140,7 +140,7 @@ def test_shared_estimates_online_equal_team():
     """share_estimates over Zenoh: r0 cannot place r1's image, r1's estimate reaches it in the
     'estimate' frame of the same step; every record equals the in-process team's."""
     world = make_world(2, 12, seed=3, windows={(0, 1): [(3, 6), (9, 11)]})
-    cfg = dataclasses.replace(CFG, share_estimates=True)
+    cfg = CFG.override({"messages.share_estimates": True})
 
     def blind(cur, key):
         return cur[0] == "r0" and len(key) == 3

@@ -211,7 +211,7 @@ def test_real_vggt_small_through_adapter() -> None:
 @pytest.mark.optional_model
 def test_real_vggt_small_algorithm1_end_to_end() -> None:
     torch = pytest.importorskip("torch")
-    from cerpe.algorithm import CerpeConfig, Team
+    from cerpe.algorithm import AlgorithmConfig, Team
     from cerpe.backbones.depth import DatasetDepth
     from cerpe.backbones.salad_dinov2 import SaladDinoV2Descriptor, SaladDinoV2Model
     from cerpe.protocols import FrameContext
@@ -223,7 +223,7 @@ def test_real_vggt_small_algorithm1_end_to_end() -> None:
                                   {"num_clusters": 4, "cluster_dim": 8, "token_dim": 8, "hidden_dim": 16})
     desc = SaladDinoV2Descriptor({"device": "cpu", "image_size": (56, 56)}, model=desc_model)
     # tau = -1: the gate always opens, so image replies and collaborator views go through VGGT.
-    team = Team(["r0", "r1", "r2"], desc, bb, DatasetDepth(), CerpeConfig(tau=-1.0, delta_k=1))
+    team = Team(["r0", "r1", "r2"], desc, bb, DatasetDepth(), AlgorithmConfig().override({"gate.tau": -1.0, "memory.delta_k": 1}))
     rng = np.random.default_rng(2)
     sources = []
     for step in range(2):

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from cerpe import plotting
-from cerpe.algorithm import CerpeConfig, Team
+from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.datasets.formats import read_trajectory
 from cerpe.geometry import pose_cov_in_parent, pose_cov_sigmas, se3_from_tq_xyzw
 from cerpe.pipeline import evaluate as ev
@@ -28,8 +28,7 @@ def _gt_prepare(world):
     """``run.prepare_method`` with the ground-truth doubles: CERPE or cerpe-graph on ``world``."""
 
     def prepare(method, profile, seed, depth=None, every=1, depth_options=None):
-        cfg = CerpeConfig(min_scale_pixels=20, propagate=method != "cerpe-wo-em",
-                          backend="graph" if method == "cerpe-graph" else "switch")
+        cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "backend.propagate": method != "cerpe-wo-em", "backend.kind": "graph" if method == "cerpe-graph" else "switch"})
 
         def steps(enc):
             team = Team(world.robot_ids, OverlapDescriptor(world),
@@ -91,7 +90,7 @@ def test_run_folder_has_sigmas_and_covariance_beside_the_tum_file(runs):
 def test_replay_of_the_recorded_pass_gives_the_runs_estimates(runs):
     _, _, _, out = runs
     run = ev.load_run(out["cerpe-graph"])
-    rep = replay_run(out["cerpe-graph"], CerpeConfig().graph)
+    rep = replay_run(out["cerpe-graph"], AlgorithmConfig().graph)
     key = ["encounter", "ego", "other", "step"]
     a = run.steps.sort_values(key).reset_index(drop=True)
     b = rep.sort_values(key).reset_index(drop=True)
@@ -99,7 +98,7 @@ def test_replay_of_the_recorded_pass_gives_the_runs_estimates(runs):
     cols = [f"est_{c}" for c in POSE] + ["sigma_pos_m", "sigma_rot_rad"]
     np.testing.assert_allclose(a[cols].to_numpy(float), b[cols].to_numpy(float), atol=1e-6)
     # replaying the paper's CERPE pass (same records) gives the same graph estimates: the pass is the same
-    rep2 = replay_run(out["cerpe"], CerpeConfig().graph).sort_values(key).reset_index(drop=True)
+    rep2 = replay_run(out["cerpe"], AlgorithmConfig().graph).sort_values(key).reset_index(drop=True)
     np.testing.assert_allclose(rep2[cols].to_numpy(float), b[cols].to_numpy(float), atol=1e-6)
 
 
@@ -281,7 +280,7 @@ def test_dev_graph_replay_judges_replays_by_the_dev_checks(runs, tmp_path):
     spec.loader.exec_module(script)
     sets = dev_sets(tmp_path / "runs")
     assert [d.name for d in sets] == ["toy"]
-    summary, per_set = script.judge(sets, CerpeConfig().graph)
+    summary, per_set = script.judge(sets, AlgorithmConfig().graph)
     table, _ = report([("toy", out["cerpe"]), ("toy", out["cerpe-graph"])])
     want = checks(table)
     for c in want.itertuples(index=False):
@@ -290,7 +289,7 @@ def test_dev_graph_replay_judges_replays_by_the_dev_checks(runs, tmp_path):
     rows = table.set_index("method")
     assert summary["geo_ratio"] == pytest.approx(rows.loc["cerpe-graph", "e_pos_m"] / rows.loc["cerpe", "e_pos_m"])
     assert per_set == [f"toy {summary['geo_ratio']:.3f}"]
-    loose, _ = script.judge(sets, dataclasses.replace(CerpeConfig().graph, direct_rot_rad=0.2, direct_trans_rel=0.5))
+    loose, _ = script.judge(sets, dataclasses.replace(AlgorithmConfig().graph, direct_rot_rad=0.2, direct_trans_rel=0.5))
     assert loose["geo_ratio"] != pytest.approx(summary["geo_ratio"])
     assert script.grid(["kernel_k=1,2", "kernel=huber"]) == [{"kernel_k": 1, "kernel": "huber"},
                                                              {"kernel_k": 2, "kernel": "huber"}]

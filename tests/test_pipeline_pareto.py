@@ -106,12 +106,12 @@ def test_overrides_reach_the_cerpe_config_strictly():
 
 @pytest.mark.parametrize("name", list(pareto.PARETO_SETTINGS))
 def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
-    from cerpe.algorithm import CerpeConfig
+    from cerpe.algorithm import AlgorithmConfig
 
     overrides = pareto.PARETO_SETTINGS[name]
     conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides=overrides)
-    cfg = CerpeConfig(**overrides)
-    assert CerpeConfig(**cfg.as_dict()) == cfg  # the run records as_dict(): it rebuilds the same config
+    cfg = AlgorithmConfig().override({**overrides})
+    assert AlgorithmConfig().override({**cfg.as_dict()}) == cfg  # the run records as_dict(): it rebuilds the same config
     for key, value in overrides.items():
         got = conf["cerpe"][key]
         assert (all(got[k] == v for k, v in value.items()) if isinstance(value, dict) else got == value), key
@@ -119,9 +119,9 @@ def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
 
 def test_lean_preset_backs_off_and_rechecks_over_the_compressed_messages():
     from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN
-    from cerpe.algorithm import CerpeConfig
+    from cerpe.algorithm import AlgorithmConfig
 
-    cfg = CerpeConfig(**LEAN)
+    cfg = AlgorithmConfig().override({**LEAN})
     pol = cfg.request_policy
     assert pol.mode == "pays" and pol.miss_limit == 3 and pol.miss_backoff_steps == 3
     assert pol.unanchored_backoff_steps == 2 and pol.backoff_pending_exempt and not pol.backoff_anchored_only

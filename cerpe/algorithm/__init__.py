@@ -32,16 +32,16 @@ process), ``degradations`` (the counted names).
 """
 from .agent import RobotAgent
 from .anchors import Anchor, AnchorConfig, PairAnchors
-from .config import BACKENDS, PAPER_THRESHOLDS, AlgorithmError, CerpeConfig
+from .config import BACKENDS, PAPER_THRESHOLDS, AlgorithmConfig, AlgorithmError
 from .degradations import DEGRADATIONS
 from .engine import StepEngine, drive
-from .graph import DirectEstimate, GraphConfig, GraphEstimate, PairGraph
+from .graph import GRAPH_MODEL, DirectEstimate, GraphConfig, GraphEstimate, GraphModel, PairGraph
 from .link import Inbox, Link, Mailbox, Received
 from .policy import PairView, PolicyConfig
 from .poses import direct_relative, ego_motion, registered_relative
 from .team import Team, run_encounter
 
-__all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmError", "Anchor", "AnchorConfig", "CerpeConfig",
-           "DirectEstimate", "GraphConfig", "GraphEstimate", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph", "PairView", "PolicyConfig",
+__all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmConfig", "AlgorithmError", "Anchor", "AnchorConfig",
+           "DirectEstimate", "GRAPH_MODEL", "GraphConfig", "GraphEstimate", "GraphModel", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph", "PairView", "PolicyConfig",
            "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
            "registered_relative", "run_encounter"]

@@ -16,6 +16,7 @@ from ..geometry import se3_inverse
 from ..memory import Keyframe, KeyframeMemory
 from ..messages import ImageReply, ImageRequest, PoseMessage
 from ..protocols import (
+    BLANK_STD,
     BackboneOutput,
     DescriptorEncoder,
     FrameContext,
@@ -27,7 +28,7 @@ from ..records import RobotRecord
 from ..scale import recover_scale
 from .anchors import Anchor, PairAnchors
 from .bridge import PoseLog
-from .config import AlgorithmError, CerpeConfig
+from .config import AlgorithmConfig, AlgorithmError
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import GateSide
 from .graph import PairGraph
@@ -51,7 +52,7 @@ class RobotAgent(GateSide, PairSide):
     here, so a new agent starts from nothing.
     """
 
-    def __init__(self, robot_id: str, index: int, config: CerpeConfig, descriptor: DescriptorEncoder,
+    def __init__(self, robot_id: str, index: int, config: AlgorithmConfig, descriptor: DescriptorEncoder,
                  backbone: PoseBackbone, depth: MetricDepthSource) -> None:
         self.robot_id = str(robot_id)
         self.index = int(index)
@@ -59,10 +60,10 @@ class RobotAgent(GateSide, PairSide):
         self.descriptor = descriptor
         self.backbone = backbone
         self.depth = depth
-        self.memory = KeyframeMemory(self.config.memory_config())
+        self.memory = KeyframeMemory(self.config.memory)
         self.X = np.eye(4)
         self.last_scale = float("nan")
-        self.step_rule = self.config.step_rule()
+        self.step_rule = self.config.odometry.step_rule()
         self.ego_base: tuple[float, np.ndarray] | None = None  # (stamp, X) of the last pose the odometry set
         self.ego_speeds: list[tuple[float, float, np.ndarray]] = []  # accepted steps: (speed, stamp, t), newest last
         self.pairs: dict[str, PairAnchors] = {}
@@ -79,16 +80,17 @@ class RobotAgent(GateSide, PairSide):
         self.cur: StepState | None = None
         self.previous: Previous | None = None
         # compressed descriptor messages (cerpe.compress; None: the full descriptor at descriptor_dtype)
-        self.codec = make_codec(self.config.descriptor_codec, self.config.descriptor_projection)
-        self.gate_tau = float(self.config.tau)
+        msgs = self.config.messages
+        self.codec = make_codec(msgs.descriptor_codec, msgs.projection)
+        self.gate_tau = float(self.config.gate.tau)
         if self.codec is not None:
             dim = getattr(descriptor, "dim", None)
             if dim is not None and int(dim) != self.codec.projection.dim:
                 raise AlgorithmError(f"robot {self.robot_id}: descriptor_codec {self.codec.name!r}: the projection "
                                      f"takes {self.codec.projection.dim} values, the descriptor gives {dim}")
-            tau = self.config.descriptor_codec_tau
+            tau = msgs.codec_tau
             self.gate_tau = float(tau if tau is not None else self.codec.tau if self.codec.tau is not None
-                                  else self.config.tau)
+                                  else self.config.gate.tau)
         self._kf_wire: dict[int, np.ndarray] = {}  # keyframe step -> its codec values (the memory-aware gate)
 
     # ---------------------------------------------------------------- helpers
@@ -127,7 +129,7 @@ class RobotAgent(GateSide, PairSide):
             raise AlgorithmError(f"{where}: steps must increase (previous {self.last_step})")
         img = check_frame(image, context, where)
         view = View(key=(self.robot_id, step), image=img, intrinsics=context.intrinsics)
-        d, blank, timings = describe(self.descriptor, view, where, self.config.min_image_std)
+        d, blank, timings = describe(self.descriptor, view, where, BLANK_STD)
         self.cur = StepState(step=step, stamp_s=float(step if stamp_s is None else stamp_s), image=img,
                               context=context, view=view, descriptor=np.zeros_like(d) if blank else d,
                               blank=bool(blank), timings=timings)
@@ -148,9 +150,9 @@ class RobotAgent(GateSide, PairSide):
             t0 = time.perf_counter()
             st.reply_cache = ImageReply.from_image(self.index, st.step, st.image,
                                                    intrinsics_tuple(st.context.intrinsics),
-                                                   quality=self.config.jpeg_quality
-                                                   if self.config.reply_quality is None else self.config.reply_quality,
-                                                   codec=self.config.reply_codec, scale=self.config.reply_scale)
+                                                   quality=self.config.messages.reply_quality,
+                                                   codec=self.config.messages.reply_codec,
+                                                   scale=self.config.messages.reply_scale)
             st.timings["gate"] += time.perf_counter() - t0
         # the newest own pose goes with the image: this step's once odometry ran (or at the first
         # step, identity), else the previous step's; a requester whose pose message is lost bridges from it
@@ -174,7 +176,7 @@ class RobotAgent(GateSide, PairSide):
             st.gate_reason[other] = f"reply-{fault}"
             return None
         # the costliest registration only for a gated image (request_policy "always" asks without the gate)
-        hard = self.gate_open(other) and try_hard(self.config.request_policy, self._pair_view(other, st.step))
+        hard = self.gate_open(other) and try_hard(self._pair_view(other, st.step))
         view = dataclasses.replace(view, try_hard=hard)
         st.collab_views[other] = view
         return view
@@ -195,7 +197,7 @@ class RobotAgent(GateSide, PairSide):
         # computed anyway (no keyframe yet: the scale needs it; track_previous: the next step does)
         rel = getattr(self.depth, "rel_sigma", None)  # the depth source's own word on its scale noise
         rel = None if rel is None else float(rel)
-        if not kfs or self.config.track_previous:
+        if not kfs or self.config.odometry.track_previous:
             st.view = dataclasses.replace(st.view, depth_m=self._current_depth(), depth_rel_sigma=rel)
         st.view = dataclasses.replace(st.view, role="current")
         views = [st.view] + [View(kf.key, kf.image, kf.intrinsics, kf.depth_ref_m, kf.memo, role="keyframe",
@@ -204,7 +206,7 @@ class RobotAgent(GateSide, PairSide):
         st.own_views.update({1 + k: (kf.step, kf.T_odom_cam) for k, kf in enumerate(kfs)})
         prev = self.previous
         st.prev_index = None
-        if self.config.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
+        if self.config.odometry.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
             st.prev_index = len(views)
             st.own_views[st.prev_index] = (prev.step, prev.T_odom_cam)
             views.append(dataclasses.replace(prev.view, role="previous"))
@@ -259,7 +261,7 @@ class RobotAgent(GateSide, PairSide):
         out = st.out
         if out is None:
             return st.scale
-        if out.metric_unit and self.config.backbone_metric_unit:
+        if out.metric_unit and self.config.scale.metric_unit:
             st.scale = 1.0  # not kept as last_scale: that is the fallback of later up-to-scale passes
             return st.scale
         kfs = self.memory.newest_first()
@@ -267,7 +269,7 @@ class RobotAgent(GateSide, PairSide):
             else ([self._current_depth()], [0])
         t0 = time.perf_counter()
         est = recover_scale(metric, [out.depth[k] if out.valid[k] else None for k in idx],
-                            [out.depth_conf[k] for k in idx], min_pixels=self.config.min_scale_pixels)
+                            [out.depth_conf[k] for k in idx], min_pixels=self.config.scale.min_pixels)
         st.timings["scale"] += time.perf_counter() - t0
         for _, reason in est.skipped:
             self.degrade(f"scale:skipped-{reason}")
@@ -276,7 +278,7 @@ class RobotAgent(GateSide, PairSide):
         elif np.isfinite(self.last_scale):
             st.scale = self.last_scale
             self.degrade("scale:fallback-last")
-        elif self.config.unit_scale_without_depth:
+        elif not getattr(self.depth, "metric", True):  # a source that never has metric depth
             st.scale, st.metric_scale = 1.0, False
             self.degrade("scale:unit-no-depth")
         else:
@@ -403,7 +405,7 @@ class RobotAgent(GateSide, PairSide):
         if st.blank:
             return
         self.previous = None
-        if not self.config.track_previous:
+        if not self.config.odometry.track_previous:
             return
         if st.ego_status in ("ok", "held") or (st.ego_status == "first" and st.out is not None):
             # joint_pass attached this frame's depth and memo to st.view

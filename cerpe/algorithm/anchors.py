@@ -38,6 +38,7 @@ from typing import Literal
 import numpy as np
 
 from ..geometry import propagate_relative_pose, rotation_angle, se3_inverse
+from ..knobs import Group, knob
 
 Verdict = Literal["verified", "accepted", "unverified", "rejected", "replaced", "weak"]
 # verdicts whose estimate is not reported (the anchor's propagation is): the agent's rule, which replays share
@@ -47,51 +48,47 @@ NOT_REPORTED: frozenset[str] = frozenset({"rejected", "weak"})
 SETS_ANCHOR: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked"})
 
 
-@dataclass(frozen=True)
-class AnchorConfig:
-    """Tolerances of the checks (radians, metres); see :class:`~cerpe.algorithm.CerpeConfig`.
+# Tolerances that grow with what separates two estimates: rotation per step between them (rad), translation
+# per metre the two robots travelled between them (odometers summed), translation per metre between the
+# cameras (an error in rotation or scale moves a far camera further).
+ROT_DRIFT_PER_STEP = 0.005
+TRANS_DRIFT_FRAC = 0.1
+TRANS_REL = 0.2
+# Two registrations of one step through different own views verify each other within these (rad, m; the
+# translation tolerance also grows by TRANS_REL per metre between the cameras).
+AGREE_ROT_RAD = 0.15
+AGREE_TRANS_M = 0.3
 
-    Two estimates ``k`` steps apart, between which the robots travelled ``d``
-    metres together (odometer of i plus odometer of j), agree when the rotation
-    between them is at most ``rot_tol_rad + rot_drift_per_step * k`` and their
-    translations differ by at most ``trans_tol_m + trans_drift_frac * d +
-    trans_rel * |t|`` (``|t|`` the newer estimate's distance between the cameras:
-    an error in rotation or scale moves a far camera further). Two estimates of one
-    step through different own views (two registrations) agree within
-    ``agree_rot_rad`` and ``agree_trans_m + trans_rel * |t|``. Without an anchor and
-    without such a second registration, the estimates of the last ``candidate_steps``
-    steps verify the largest group of them that agree pairwise (rotation and
-    translation) when it has ``verify_support`` + 1 members and the estimates that
-    agree with all of it in rotation are at least ``verify_fraction`` of the others
-    (estimates that keep disagreeing with each other verify nothing; one off only in
-    translation does not count against a group; see :func:`consensus`).
-    ``report_unverified``: whether an estimate nothing has verified yet is reported
-    (and carried, see :meth:`PairAnchors.carried`).
-    ``min_inliers`` (> 0): with an anchor, an estimate that agrees with it on fewer registration
-    inliers (known: ``Anchor.inliers >= 0``) is weak, not the new anchor. On development runs
-    (synthetic CAD and indoor, seeds 1, 2001, 2002) the anchors accepted on fewer than 40 inliers
-    carried more error per propagated frame than the others (0.41 against 0.31 m); propagating the
-    anchor they would replace instead lowered CERPE's e_pos on all ten synthetic development sets
-    (seeds 1, 2001-2004) and its mean e_rot on nine.
-    ``max_odo_rot_step`` (> 0): when either robot's odometry turns by more than this
-    per step, the pair forgets its anchor and candidates (see :meth:`PairAnchors.track`).
+
+@dataclass(frozen=True)
+class AnchorConfig(Group):
+    """When a direct estimate becomes the pair's anchor (see the module docstring).
+
+    Two estimates ``k`` steps apart, between which the robots travelled ``d`` metres together, agree
+    when the rotation between them is at most ``rot_tol_rad + ROT_DRIFT_PER_STEP * k`` and their
+    translations differ by at most ``trans_tol_m + TRANS_DRIFT_FRAC * d + TRANS_REL * |t|`` (``|t|``
+    the newer estimate's distance between the cameras).
     """
 
-    rot_tol_rad: float = 0.15
-    trans_tol_m: float = 0.3
-    rot_drift_per_step: float = 0.005
-    trans_drift_frac: float = 0.1
-    trans_rel: float = 0.2
-    replace_after: int = 5
-    max_unverified_steps: int = 2
-    candidate_steps: int = 10
-    agree_rot_rad: float = 0.15
-    agree_trans_m: float = 0.3
-    verify_support: int = 2
-    verify_fraction: float = 0.5
-    report_unverified: bool = True
-    max_odo_rot_step: float = 1.0
-    min_inliers: int = 40
+    verify: bool = knob(True, "a direct estimate becomes the anchor only when something independent agrees "
+                        "(False: the paper's switch, every direct estimate is the new anchor)")
+    rot_tol_rad: float = knob(0.15, "two estimates agree within this rotation right after the anchor (rad)", low=0)
+    trans_tol_m: float = knob(0.3, "two estimates agree within this translation right after the anchor (m)", low=0)
+    min_inliers: int = knob(40, "an estimate that agrees with the anchor on fewer registration inliers is weak: "
+                            "the anchor is propagated instead (0: off)", low=0)
+    replace_after: int = knob(5, "rejected estimates that agree with each other and replace the anchor", low=1)
+    candidate_steps: int = knob(10, "steps an unverified or rejected estimate stays available to verify a later "
+                                "one", low=0)
+    verify_support: int = knob(2, "without an anchor, recent agreeing estimates (besides the newest) that "
+                               "verify the newest", low=1)
+    verify_fraction: float = knob(0.5, "and the recent estimates agreeing with that group in rotation must be at "
+                                  "least this fraction of the others (0: any number)", low=0, high=1)
+    report_unverified: bool = knob(True, "report a direct estimate nothing has verified yet (False: hold it "
+                                   "until something agrees)")
+    max_unverified_steps: int = knob(2, "before any anchor is verified, an unverified estimate is carried at "
+                                     "most this many steps (the pose graph likewise)", low=0)
+    max_odo_rot_step: float = knob(1.0, "the pair forgets its anchor when either odometry turns more than "
+                                   "this in one step (rad; 0: never)", low=0)
 
 
 @dataclass
@@ -133,12 +130,12 @@ def disagreement(old: Anchor, new: Anchor) -> tuple[float, float]:
 def tolerance(conf: AnchorConfig, old: Anchor, new: Anchor) -> tuple[float, float]:
     """``(rotation rad, translation m)`` two estimates may differ by (see :class:`AnchorConfig`)."""
     k = abs(new.step - old.step)
-    rot = conf.rot_tol_rad + conf.rot_drift_per_step * k
+    rot = conf.rot_tol_rad + ROT_DRIFT_PER_STEP * k
     if not (old.metric and new.metric):
         return rot, float("inf")
     travelled = abs(new.odo_i - old.odo_i) + abs(new.odo_j - old.odo_j)
-    return rot, (conf.trans_tol_m + conf.trans_drift_frac * travelled
-                 + conf.trans_rel * float(np.linalg.norm(new.T_cj_ci[:3, 3])))
+    return rot, (conf.trans_tol_m + TRANS_DRIFT_FRAC * travelled
+                 + TRANS_REL * float(np.linalg.norm(new.T_cj_ci[:3, 3])))
 
 
 def consistent(conf: AnchorConfig, old: Anchor, new: Anchor) -> tuple[bool, float, float]:
@@ -262,8 +259,8 @@ class PairAnchors:
             return self._against_anchor(est)
         for other in others:
             rot, trans = disagreement(other, est)
-            trans_tol = self.conf.agree_trans_m + self.conf.trans_rel * float(np.linalg.norm(est.T_cj_ci[:3, 3]))
-            if rot <= self.conf.agree_rot_rad and (trans <= trans_tol or not (est.metric and other.metric)):
+            trans_tol = AGREE_TRANS_M + TRANS_REL * float(np.linalg.norm(est.T_cj_ci[:3, 3]))
+            if rot <= AGREE_ROT_RAD and (trans <= trans_tol or not (est.metric and other.metric)):
                 self._set(est)
                 return Check("verified", est.step, rot, trans)
         self.candidates = [c for c in self.candidates if est.step - c.step <= self.conf.candidate_steps]

@@ -72,7 +72,7 @@ class StepEngine:
         # 1. describe; 2. broadcast the descriptor
         a.begin_step(image, context, stamp_s)
         link.begin(t)
-        a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.descriptor_dtype)))
+        a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.messages.descriptor_dtype)))
         yield "descriptor"
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
         # (and that the request policy wants: CerpeConfig.request_policy; the paper's asks them all)
@@ -83,7 +83,7 @@ class StepEngine:
             a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.wants_image(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
-        for _ in range(int(a.config.request_retries)):  # a lost request or reply: ask once more
+        for _ in range(int(a.config.messages.request_retries)):  # a lost request or reply: ask once more
             again = {p: f for p, f in asked.items() if p not in replies.messages}
             if not again:
                 break
@@ -105,7 +105,7 @@ class StepEngine:
         a.estimate_scale()
         a.update_odometry()
         a.count_sent("pose", link.broadcast("pose", a.pose_frame()))
-        share = bool(a.config.share_estimates)  # our extension: the direct estimates of this step too
+        share = bool(a.config.messages.share_estimates)  # our extension: the direct estimates of this step too
         if share:
             a.count_sent("estimate", link.broadcast("estimate", a.estimate_frame(self.index_of)))
         yield "pose"

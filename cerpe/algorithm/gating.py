@@ -20,7 +20,7 @@ if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent
     from ..compress import DescriptorCodec
     from ..memory import KeyframeMemory
     from .anchors import PairAnchors
-    from .config import CerpeConfig
+    from .config import AlgorithmConfig
     from .state import PairInfo, StepState
 
 
@@ -28,7 +28,7 @@ class GateSide:
     """Phases 2 (broadcast) and 3 (gate, request policy) of :class:`~cerpe.algorithm.agent.RobotAgent`."""
 
     if TYPE_CHECKING:
-        config: CerpeConfig
+        config: AlgorithmConfig
         codec: DescriptorCodec | None
         gate_tau: float
         memory: KeyframeMemory
@@ -140,7 +140,7 @@ class GateSide:
         """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
         ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""
         last = self.last_descriptors.get(other)
-        if last is None or not 0 < step - last[0] <= self.config.descriptor_max_age:
+        if last is None or not 0 < step - last[0] <= self.config.messages.stale_descriptor_steps:
             return None
         self.degrade("descriptor:stale-used")
         return last[1]
@@ -150,7 +150,7 @@ class GateSide:
         too (``gate_tau`` is ``tau``, or the codec's own threshold with a compressed descriptor)."""
         st = self._state()
         s = st.scores.get(other, float("nan"))
-        if self.config.gate_memory and np.isfinite(s):
+        if self.config.gate.memory_aware and np.isfinite(s):
             s = st.memory_scores[other][0]
         return bool(np.isfinite(s) and s >= self.gate_tau)
 
@@ -161,11 +161,11 @@ class GateSide:
         reason ``request-skipped: <rule>``); the pair then propagates its anchor."""
         st = self._state()
         gate = self.gate_open(other)
-        conf = self.config.request_policy
-        shares = bool(self.config.share_estimates and conf.shared_skip_misses and conf.mode != "always")
+        conf = self.config.policy
+        shares = bool(self.config.messages.share_estimates and conf.mode != "always")
         view = self._pair_view(other, st.step) if conf.mode == "pays" or shares else None
         ask, why = decide(conf, gate, view)
-        if ask and shares and skip_for_shared(conf, view):
+        if ask and shares and skip_for_shared(view):
             ask, why = False, "peer-shares"
         st.requested[other] = ask
         if gate and not ask:
@@ -177,10 +177,9 @@ class GateSide:
         The image placed when this robot's own registration gave the estimate offered to anchor verification;
         with ``share_estimates`` a peer's estimate on more inliers is offered instead, and the request counts
         as a miss: its image added only a weaker second view (the ``peer-shares`` rule reads this)."""
-        self.asks[other] = after_request(self.config.request_policy, self.asks.get(other), self._state().step,
+        self.asks[other] = after_request(self.config.policy, self.asks.get(other), self._state().step,
                                          info.direct_T is not None and info.direct_via != SHARED_VIA,
-                                         info.verdict, info.check_rot_rad,
-                                         info.direct_inliers)
+                                         info.verdict, info.check_rot_rad)
 
     def _pair_view(self, other: str, step: int) -> PairView:
         """What the request policy reads about a pair before this step's pass (anchors, odometers of

@@ -1,4 +1,4 @@
-"""A robust pose graph per ordered pair of robots: the back end of ``cerpe-graph`` (issue 20).
+"""A robust pose graph per ordered pair of robots: the back end of ``cerpe-graph``.
 
 Not in the paper. CERPE *switches*: a direct estimate when the gate opens, else the
 last anchor propagated with both odometries; every earlier anchor is forgotten and a
@@ -15,7 +15,7 @@ steps both odometries' noise models give (:func:`odometry_cov`). The graph has o
 variable ``O_k`` per step with a direct estimate (a *node*): between consecutive nodes a
 ``BetweenFactorPose3`` (identity, the walk accumulated since), on each node a
 ``PriorFactorPose3`` at ``O_meas = X_j z X_i^-1`` from the direct estimate ``z`` with its
-noise model (:func:`direct_cov`) under a Cauchy or Huber kernel. Between nodes nothing is
+noise model (:func:`direct_cov`) under a Cauchy kernel. Between nodes nothing is
 solved: the estimate at step t is the newest node's estimate moved by both odometries, its
 covariance the node's marginal plus the walk since (a filter's prediction). Poses are
 re-centred on the first node's ``X_i``, ``X_j`` so lever arms are distances travelled.
@@ -37,8 +37,8 @@ import numpy as np
 
 from ..geometry import se3_adjoint
 from .graph_model import (  # noqa: F401 -- the config, estimates and noise models, re-exported
-    CONFIRMED, GRAPH_DEGRADATIONS, KERNELS, DirectEstimate, GraphConfig, GraphError, GraphEstimate, along_gain,
-    direct_cov, odometry_cov, usable_cov,
+    CONFIRMED, GRAPH_DEGRADATIONS, GRAPH_MODEL, DirectEstimate, GraphConfig, GraphError, GraphEstimate, GraphModel,
+    along_gain, direct_cov, graph_model, odometry_cov, usable_cov,
 )
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ class _Node:
 class _Solver:
     """GTSAM's incremental fixed-lag smoother over the offset nodes (keys = node numbers)."""
 
-    def __init__(self, conf: GraphConfig) -> None:
+    def __init__(self, conf: GraphModel) -> None:
         import gtsam
 
         self.gtsam, self.conf = gtsam, conf
@@ -109,11 +109,7 @@ class _Solver:
     def _robust(self, cov: np.ndarray):
         g = self.gtsam
         base = g.noiseModel.Gaussian.Covariance(cov)
-        if self.conf.kernel == "cauchy":
-            return g.noiseModel.Robust.Create(g.noiseModel.mEstimator.Cauchy.Create(self.conf.kernel_k), base)
-        if self.conf.kernel == "huber":
-            return g.noiseModel.Robust.Create(g.noiseModel.mEstimator.Huber.Create(self.conf.kernel_k), base)
-        return base
+        return g.noiseModel.Robust.Create(g.noiseModel.mEstimator.Cauchy.Create(self.conf.kernel_k), base)
 
     def add(self, key: int, init: np.ndarray, prior: tuple[np.ndarray, np.ndarray] | None, robust_prior: bool,
             between: tuple[int, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -169,8 +165,8 @@ class PairGraph:
     robot's depth kind, and a team is taken to share one.
     """
 
-    def __init__(self, conf: GraphConfig | None = None, depth_rel_sigma: float | None = None) -> None:
-        self.conf = conf or GraphConfig()
+    def __init__(self, conf: GraphModel | None = None, depth_rel_sigma: float | None = None) -> None:
+        self.conf = conf or GRAPH_MODEL
         self.depth_rel_sigma = depth_rel_sigma  # the ego's depth source's: both odometries' noise model
         self._ref: tuple[np.ndarray, np.ndarray] | None = None  # X_i, X_j at the first node
         self._last_i: tuple[int, np.ndarray] | None = None
@@ -366,7 +362,7 @@ class PairGraph:
     def _drift(self, O: np.ndarray, P: np.ndarray, innov: tuple[np.ndarray, float] | None
                ) -> tuple[np.ndarray, np.ndarray]:
         """The window re-solved with its walks opened when the innovations of confirmed direct estimates
-        grow one way (a silent odometry drift, see :class:`GraphConfig`); else ``(O, P)``. ``innov``:
+        grow one way (a silent odometry drift, see :class:`GraphModel`); else ``(O, P)``. ``innov``:
         the newest estimate's translation innovation and chi-square (None: unconfirmed, leaves the run)."""
         c = self.conf
         if innov is None:

@@ -1,21 +1,22 @@
-"""The pose graph's configuration and noise models (``cerpe-graph``, issue 20): no solver here.
+"""The pose graph's configuration and noise models (``cerpe-graph``): no solver here.
 
-:class:`GraphConfig` (every key, calibrated on development data), the direct estimate and the
+:class:`GraphConfig` (the knobs of ``backend.graph``), :class:`GraphModel` (the calibrated noise
+model: constants, not knobs; development studies replay other values), the direct estimate and the
 estimate the graph returns, and the ``[6,6]`` covariances over ``[rotation, translation]`` of a
 right perturbation (:mod:`cerpe.geometry`) of an odometry increment (:func:`odometry_cov`) and of
 a direct estimate (:func:`direct_cov`). :mod:`cerpe.algorithm.graph` solves with them.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import CerpeError
 from ..geometry import rotation_angle
+from ..knobs import Group, knob
 from .anchors import SETS_ANCHOR
-
-KERNELS: tuple[str, ...] = ("cauchy", "huber", "none")
 # verdicts that confirm a direct estimate: those that set an anchor and "" (no verdict given); any other
 # (unverified, rejected, weak, or a verdict added later) does not
 CONFIRMED: frozenset[str] = SETS_ANCHOR | {""}
@@ -36,8 +37,18 @@ class GraphError(CerpeError, ValueError):
 
 
 @dataclass(frozen=True)
-class GraphConfig:
-    """Noise models, kernel and window of the pair graph (see :class:`~cerpe.algorithm.CerpeConfig`).
+class GraphConfig(Group):
+    """The pose graph's knobs (``backend.graph``); its noise model is :data:`GRAPH_MODEL`."""
+
+    window_nodes: int = knob(20, "direct estimates the incremental smoother keeps; older ones are marginalised",
+                             low=2)
+    kernel_k: float = knob(2.0, "width of the Cauchy kernel on direct estimates (standard deviations of the "
+                           "whitened error)", low=0.0, low_open=True)
+
+
+@dataclass(frozen=True)
+class GraphModel:
+    """The pair graph's calibrated noise model, Cauchy kernel and window (:data:`GRAPH_MODEL`).
 
     Odometry: one increment of ``n`` steps, ``d`` metres and ``a`` radians gets standard
     deviations ``sqrt(n s0^2 + (s_m d)^2 / n + (s_rad a)^2 / n)`` per axis (rotation:
@@ -154,7 +165,6 @@ class GraphConfig:
     sensor_max_rel: float = 0.05
     unverified_scale: float = 1.0
     rejected_scale: float = 1.0
-    kernel: str = "cauchy"
     kernel_k: float = 2.0
     window_nodes: int = 20
     consensus_min_support: int = 2
@@ -193,13 +203,20 @@ class GraphConfig:
                 raise GraphError(f"graph config: {name} must be finite and > 0, got {v}")
         if not (np.isfinite(self.drift_cos) and -1.0 <= self.drift_cos < 1.0):
             raise GraphError(f"graph config: drift_cos must be finite in [-1, 1), got {self.drift_cos}")
-        if self.kernel not in KERNELS:
-            raise GraphError(f"graph config: kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
         for name, low in (("window_nodes", 2), ("max_iterations", 1), ("consensus_min_support", 0),
                           ("drift_after", 0), ("max_unverified_steps", 0)):
             v = getattr(self, name)
             if int(v) != v or v < low:
                 raise GraphError(f"graph config: {name} must be an integer >= {low}, got {v}")
+
+
+GRAPH_MODEL = GraphModel()
+
+
+def graph_model(conf: GraphModel, max_unverified_steps: int) -> GraphModel:
+    """:data:`GRAPH_MODEL` with the knobs of ``backend.graph`` and the anchors' ``max_unverified_steps``."""
+    return dataclasses.replace(GRAPH_MODEL, window_nodes=int(conf.window_nodes), kernel_k=float(conf.kernel_k),
+                               max_unverified_steps=int(max_unverified_steps))
 
 
 @dataclass(frozen=True)
@@ -245,24 +262,24 @@ def _known(rel: float | None) -> bool:  # a depth source's reported scale sigma 
     return rel is not None and bool(np.isfinite(rel)) and rel >= 0
 
 
-def _rel(conf: GraphConfig, rel: float | None) -> float:
+def _rel(conf: GraphModel, rel: float | None) -> float:
     """A depth source's relative scale sigma, ``direct_depth_rel_unknown`` when it gave none."""
     return float(rel) if _known(rel) else conf.direct_depth_rel_unknown
 
 
-def along_gain(conf: GraphConfig, rel: float | None) -> float:
+def along_gain(conf: GraphModel, rel: float | None) -> float:
     """The along-line gain on the depth scale sigma of an estimate whose depth source reported ``rel``
     (None, NaN or negative: none): ``direct_depth_along``, else ``direct_depth_along_unknown``."""
     return conf.direct_depth_along if _known(rel) else conf.direct_depth_along_unknown
 
 
-def sensor_like(conf: GraphConfig, rel: float | None) -> bool:
+def sensor_like(conf: GraphModel, rel: float | None) -> bool:
     """Whether depth that reported ``rel`` is a sensor's or a dataset's (``r <= sensor_max_rel``); a source
     that reported none is not (whatever ``direct_depth_rel_unknown`` says)."""
     return _known(rel) and float(rel) <= conf.sensor_max_rel
 
 
-def odometry_noise_var(conf: GraphConfig, n_steps, dist_m, angle_rad, sensor: bool = False):
+def odometry_noise_var(conf: GraphModel, n_steps, dist_m, angle_rad, sensor: bool = False):
     """Per-axis ``(rotation, translation)`` variances of the noise part of an odometry increment of
     ``n_steps`` steps, ``dist_m`` metres and ``angle_rad`` radians (scalars or arrays; the failure
     terms are :func:`odometry_cov`'s); ``sensor``: on sensor-like depth, times ``odo_sensor_scale``^2."""
@@ -274,7 +291,7 @@ def odometry_noise_var(conf: GraphConfig, n_steps, dist_m, angle_rad, sensor: bo
     return var_r * f, var_t * f
 
 
-def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0,
+def odometry_cov(conf: GraphModel, T_prev_cur: np.ndarray, n_steps: int, lost_steps: int = 0,
                  speed_change_mps2: float = 0.0, depth_rel_sigma: float | None = None) -> np.ndarray:
     """``[6,6]`` covariance of one odometry increment ``T_prev_cur`` spanning ``n_steps`` steps;
     ``speed_change_mps2``: the acceleration it implies beyond odometry noise (0: none or unknown);
@@ -293,8 +310,8 @@ def odometry_cov(conf: GraphConfig, T_prev_cur: np.ndarray, n_steps: int, lost_s
     return np.diag([var_r] * 3 + [var_t] * 3)
 
 
-def direct_cov(conf: GraphConfig, est: DirectEstimate) -> np.ndarray:
-    """``[6,6]`` covariance of a direct estimate from the calibrated model (see :class:`GraphConfig`)."""
+def direct_cov(conf: GraphModel, est: DirectEstimate) -> np.ndarray:
+    """``[6,6]`` covariance of a direct estimate from the calibrated model (see :class:`GraphModel`)."""
     f = 1.0
     if conf.direct_inliers_ref > 0 and est.inliers > 0 and sensor_like(conf, est.depth_rel_sigma):
         c = conf.direct_inliers_clip

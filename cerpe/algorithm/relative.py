@@ -19,13 +19,13 @@ from ..records import PairRecord
 from .anchors import NOT_REPORTED, Anchor, PairAnchors
 from .bridge import PoseLog
 from .direct import REASON_SHARED, SHARED_VIA, direct_estimates, estimate_message, shared_estimate
-from .graph import DirectEstimate, PairGraph
+from .graph import DirectEstimate, PairGraph, graph_model
 from .poses import check_pose
 from .state import PairInfo, StepState
 
 if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent (and GateSide)
     from ..protocols import MetricDepthSource
-    from .config import CerpeConfig
+    from .config import AlgorithmConfig
 
 # reasons that describe the switch's anchors only (the graph keeps every direct estimate)
 _SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held"})
@@ -35,7 +35,7 @@ class PairSide:
     """Phases 7b (shared estimates) and 8 (relative poses) of :class:`~cerpe.algorithm.agent.RobotAgent`."""
 
     if TYPE_CHECKING:
-        config: CerpeConfig
+        config: AlgorithmConfig
         robot_id: str
         index: int
         X: np.ndarray
@@ -106,7 +106,7 @@ class PairSide:
             self.degrade("msg:stale-estimate")
             return
         got = shared_estimate(msg, self.index)
-        bar = int(self.config.anchor_min_inliers)
+        bar = int(self.config.anchors.min_inliers)
         if got is not None and not 0 <= got[3] < bar:  # below the bar that replaces an anchor: too weak
             st.shared[other] = got
             self.shared_steps[other] = st.step
@@ -131,7 +131,7 @@ class PairSide:
         st = self._state()
         source, T, reason, anchor_step = self.relative(other)
         cov = switch = None
-        if self.config.backend == "graph":
+        if self.config.backend.kind == "graph":
             switch = (source, T, reason, anchor_step)
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
@@ -160,7 +160,8 @@ class PairSide:
         info = st.pair_info.get(other, PairInfo())
         graph = self.graphs.get(other)
         if graph is None:
-            graph = self.graphs[other] = PairGraph(self.config.graph, getattr(self.depth, "rel_sigma", None))
+            model = graph_model(self.config.backend.graph, self.config.anchors.max_unverified_steps)
+            graph = self.graphs[other] = PairGraph(model, getattr(self.depth, "rel_sigma", None))
         pose = self.poses.get(other)
         direct = (None if info.direct_T is None else
                   DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
@@ -187,9 +188,9 @@ class PairSide:
     def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
         pose = self.poses.get(other)
         fresh = pose is not None and pose[0] == st.step
-        pair = self.pairs.setdefault(other, PairAnchors(self.config.anchor_config()))
+        pair = self.pairs.setdefault(other, PairAnchors(self.config.anchors))
         info = st.pair_info.setdefault(other, PairInfo())
-        if fresh and self.config.verify_anchors and pair.track(st.step, self.X, pose[1]):
+        if fresh and self.config.anchors.verify and pair.track(st.step, self.X, pose[1]):
             self.degrade("anchor:odometry-jump")
         # the peer's estimate (share_estimates) only while the pair's anchor (if any) is not this robot's own:
         # it stands in where this robot cannot place the peer, it does not replace what this robot measured
@@ -219,10 +220,10 @@ class PairSide:
                 if bridged:
                     plog.defer(st.step, est)
                 if via == SHARED_VIA:  # remembered while it may become the anchor (a candidate that verifies late)
-                    keep = int(self.config.anchor_candidate_steps) + 1
+                    keep = int(self.config.anchors.candidate_steps) + 1
                     self.shared_anchors[other] = [a for a in self.shared_anchors.get(other, ())
                                                   if a is pair.anchor or st.step - a.step <= keep] + [est]
-                if not self.config.verify_anchors:  # the paper: every direct estimate is the new anchor
+                if not self.config.anchors.verify:  # the paper: every direct estimate is the new anchor
                     pair.anchor, info.verdict = est, "unchecked"
                     return "direct", T, REASON_SHARED if via == SHARED_VIA else "", st.step
                 others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
@@ -235,11 +236,11 @@ class PairSide:
                     self.degrade("anchor:inconsistent")
                 # nothing agrees with it yet; a peer's estimate (share_estimates), which this robot could not
                 # check by a registration of its own, is held until another estimate verifies it
-                if check.verdict == "unverified" and (not self.config.report_unverified or via == SHARED_VIA):
+                if check.verdict == "unverified" and (not self.config.anchors.report_unverified or via == SHARED_VIA):
                     return "none", None, "unverified-held", -1
                 if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
                     self.degrade("anchor:weak")
-                    reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchor_min_inliers}; "
+                    reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchors.min_inliers}; "
                               f"the anchor of step {check.against} is kept")
                 elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
                     why = ("unverified" if check.verdict == "unverified" else "",
@@ -251,14 +252,14 @@ class PairSide:
                               f"of step {check.against}")
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
             reason = f"request-skipped: {st.skipped[other]}" if other in st.skipped else st.gate_reason.get(other, "")
-            if not self.config.propagate:
+            if not self.config.backend.propagate:
                 return "none", None, reason or "gate-closed", -1
-        if not self.config.propagate:
+        if not self.config.backend.propagate:
             return "none", None, reason, -1
         anchor, verified = pair.carried(st.step)
         if anchor is None:
             why = ("no-anchor" if not pair.candidates else
-                   "unverified-expired" if self.config.report_unverified else "unverified-held")
+                   "unverified-expired" if self.config.anchors.report_unverified else "unverified-held")
             return "none", None, "; ".join(r for r in (reason, why) if r), -1
         if pose is None:
             return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1

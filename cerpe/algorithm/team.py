@@ -11,7 +11,7 @@ from ..scene import Encounter
 from ..transport import Channel
 from .agent import RobotAgent
 from .channel_link import ChannelHub
-from .config import AlgorithmError, CerpeConfig
+from .config import AlgorithmConfig, AlgorithmError
 from .engine import StepEngine, drive
 
 
@@ -24,19 +24,19 @@ class Team:
             they keep no per-robot state (what a backbone remembers about a view
             travels with the robot's kept frames as a memo).
         config: parameters; thresholds are resolved against the descriptor's
-            calibration (see :class:`CerpeConfig`).
+            calibration (see :class:`AlgorithmConfig`).
         channel: the medium; a lossless one by default.
     """
 
     def __init__(self, robot_ids: Sequence[str], descriptor: DescriptorEncoder, backbone: PoseBackbone,
-                 depth: MetricDepthSource, config: CerpeConfig | None = None,
+                 depth: MetricDepthSource, config: AlgorithmConfig | None = None,
                  channel: Channel | None = None) -> None:
         ids = [str(r) for r in robot_ids]
         if not ids or len(set(ids)) != len(ids) or len(ids) >= 2**16:
             raise AlgorithmError(f"team: robot ids must be unique and non-empty, got {ids}")
         self.robot_ids = ids
         self.descriptor, self.backbone, self.depth = descriptor, backbone, depth
-        self.config = (config or CerpeConfig()).resolved(getattr(descriptor, "thresholds", None))
+        self.config = (config or AlgorithmConfig()).resolved(getattr(descriptor, "thresholds", None))
         self.channel = channel if channel is not None else Channel()
         self.reset()
 
@@ -87,7 +87,7 @@ class Team:
 
 
 def run_encounter(encounter: Encounter, descriptor: DescriptorEncoder, backbone: PoseBackbone,
-                  depth: MetricDepthSource, config: CerpeConfig | None = None, channel: Channel | None = None,
+                  depth: MetricDepthSource, config: AlgorithmConfig | None = None, channel: Channel | None = None,
                   progress: bool = False, seed: int = 0) -> Iterator[StepResult]:
     """Build a :class:`Team` for ``encounter``'s robots and walk it."""
     team = Team(encounter.robot_ids, descriptor, backbone, depth, config, channel)

@@ -65,9 +65,11 @@ class DatasetDepth:
 
 
 class NoDepth:
-    """No metric depth at all: every frame returns None."""
+    """No metric depth at all: every frame returns None (``metric`` False: the algorithm then uses s = 1 and
+    such runs are evaluated at ground-truth scale only)."""
 
     name = "none"
+    metric = False
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = _known_options(conf, (), self.name)
