@@ -23,7 +23,7 @@ PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 # Code that never changes what a method computes: editing it keeps cached runs valid.
 NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py", "pipeline/bench.py",
                "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py", "pipeline/calibrate.py",
-               "pipeline/graphdev.py", "pipeline/message_loss.py", "pipeline/pareto.py",
+               "pipeline/graphdev.py", "pipeline/message_loss.py", "pipeline/pareto.py", "pipeline/runcheck.py",
                "plotting.py", "cli.py",
                "atomicio.py"}
 # What the per-frame baselines run, besides their own package.
