@@ -40,11 +40,11 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, read_json
+from ..atomicio import atomic_write_json, atomic_write_text
 from ..errors import CerpeError
 from .evaluate import (GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_runs, gate_quality, roc_curve,
                        sigma_calibration)
-from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
+from .methods import BASELINE_METHODS, METHOD_LABELS, UNAVAILABLE
 from .run import run_method
 from .runcheck import run_is_current
 from .table1 import EXPECTED_TABLES
