@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cerpe import geometry as G
-from cerpe.pipeline.bench import _ego_steps, ego_summary
+from cerpe.pipeline.bench_walk import _ego_steps, ego_summary
 
 
 def _traj(n: int = 11, step_m: float = 0.1, yaw_deg: float = 1.0) -> np.ndarray:
@@ -57,7 +57,8 @@ def test_no_motion_or_missing_ground_truth_gives_nan_not_an_error():
 def test_suite_printout_carries_the_gate_figures():
     import pandas as pd
 
-    from cerpe.pipeline.bench import _fmt_acc, _stats
+    from cerpe.pipeline.bench_report import format_accuracy
+    from cerpe.pipeline.bench_walk import median_p90
     from cerpe.pipeline.evaluate import gate_quality
 
     rows = []
@@ -65,14 +66,14 @@ def test_suite_printout_carries_the_gate_figures():
         rows += [{"encounter": "e", "step": step, "ego": "r0", "other": "r1", "gate_score": score, "overlap_gt": o01},
                  {"encounter": "e", "step": step, "ego": "r1", "other": "r0", "gate_score": score, "overlap_gt": o10}]
     gate = gate_quality(pd.DataFrame(rows), tau=0.65)
-    text = "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([0.01]), "ego_per_robot": {}, "gate": gate}))
+    text = "\n".join(format_accuracy({"direct_rot_err_rad": median_p90([0.01]), "ego_per_robot": {}, "gate": gate}))
     assert f"ROC AUC {gate['roc_auc']:.3f}" in text and "at tau 0.6500" in text
     assert f"precision {gate['precision']:.3f}, recall {gate['recall']:.3f}" in text
     assert "symmetric score can reach 0.967" in text and "25 % of ordered pairs" in text
     # the co-visibility label: step 0 positive (0.9), steps 2-3 negative (0.3, 0.7), step 1 left out
     assert "over 3 pairs (1 positive, 1 left out): ROC AUC 1.000" in text
     assert "precision 0.500, recall 1.000 (targets >= 0.8)" in text  # open at 0.65: 0.9 and 0.7
-    assert "gate" not in "\n".join(_fmt_acc({"direct_rot_err_rad": _stats([]), "ego_per_robot": {}}))
+    assert "gate" not in "\n".join(format_accuracy({"direct_rot_err_rad": median_p90([]), "ego_per_robot": {}}))
 
 
 def test_bench_renders_the_default_suite_once_then_reuses_it(tmp_path, monkeypatch, capsys):
@@ -98,11 +99,12 @@ def test_bench_renders_the_default_suite_once_then_reuses_it(tmp_path, monkeypat
 
 
 def test_printout_carries_the_cross_robot_registration_counters():
-    from cerpe.pipeline.bench import _stats, format_table
+    from cerpe.pipeline.bench_report import format_table
+    from cerpe.pipeline.bench_walk import median_p90
 
-    r = {"n_robots": 2, "team_step_ms": _stats([300.0]), "target_ms": 438.0, "xfeat_passes_per_robot_step": 1.0,
-         "peak_rss_mib": 1.0, "gate_open_ratio": 0.5, "stage_ms": {}, "robot_step_ms": _stats([150.0]),
-         "bytes_per_robot_step": {}, "accuracy": {"direct_rot_err_rad": _stats([]), "ego_per_robot": {}},
+    r = {"n_robots": 2, "team_step_ms": median_p90([300.0]), "target_ms": 438.0, "xfeat_passes_per_robot_step": 1.0,
+         "peak_rss_mib": 1.0, "gate_open_ratio": 0.5, "stage_ms": {}, "robot_step_ms": median_p90([150.0]),
+         "bytes_per_robot_step": {}, "accuracy": {"direct_rot_err_rad": median_p90([]), "ego_per_robot": {}},
          "cross": {"gated_pairs": 10, "cross-registered": 6, "cross-none": 4, "cross-learned": 3,
                    "cross-learned-pairs": 7}}
     text = format_table([r], {"dim": 8, "wire_bytes": {}})

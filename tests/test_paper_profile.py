@@ -7,15 +7,8 @@ import pytest
 import torch
 
 from cerpe.backbones import paper_profile as pp
-from cerpe.backbones.paper_profile import (
-    PaperModelError,
-    build_paper,
-    check_paper_requirements,
-    load_checkpoint,
-    require_paper,
-    select_device,
-    weight_file_problem,
-)
+from cerpe.backbones.paper_profile import build_paper, check_paper_requirements, require_paper
+from cerpe.backbones.weights import PaperModelError, load_checkpoint, select_device, weight_file_problem
 
 
 @pytest.fixture

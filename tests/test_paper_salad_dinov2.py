@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from cerpe.backbones.dinov2 import DinoV2Error, DinoVisionTransformer
-from cerpe.backbones.paper_profile import PaperModelError
+from cerpe.backbones.weights import PaperModelError
 from cerpe.backbones.salad_dinov2 import (
     SaladDinoV2Descriptor,
     SaladDinoV2Error,

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from cerpe import plotting
-from cerpe.pipeline import paper, table1
+from cerpe.pipeline import paper, runcheck, table1
 from cerpe.pipeline import run as rp
 
 from test_pipeline_run_eval import _setting, fake_prepare
@@ -94,9 +94,9 @@ def test_notebook_fingerprint_changes_with_runs(ctx):
 def test_run_is_current(ctx):
     out = ctx.run_dirs[("toy", "sift-ransac")]
     man = ctx.settings[0].run_manifest
-    assert paper.run_is_current(out, man, "sift-ransac", "offline")
+    assert runcheck.run_is_current(out, man, "sift-ransac", "offline")
     man.write_text("name: toy\n# edited\n")
-    assert not paper.run_is_current(out, man, "sift-ransac", "offline")
+    assert not runcheck.run_is_current(out, man, "sift-ransac", "offline")
 
 
 def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):

@@ -8,8 +8,8 @@ from cerpe.geometry import random_se3
 from cerpe.scene import CameraIntrinsics
 from cerpe.synth import SynthError
 from cerpe.synth import textures as tx
+from cerpe.synth.plan import camera_pose
 from cerpe.synth.renderer import FaceSet, Material, box, quad, render
-from cerpe.synth.worlds import camera_pose
 
 K = CameraIntrinsics(100.0, 100.0, 39.5, 29.5, 80, 60)
 GREY = Material(tx.PLAIN, (0.5, 0.5, 0.5), seed=1)

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 
 from ..config import merge_conf
 from ..protocols import FrameContext, View
-from .paper_profile import (
+from .weights import (
     PaperModelError,
     describe_key_mismatch,
     load_checkpoint,

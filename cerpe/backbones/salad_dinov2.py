@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from ..config import merge_conf
 from ..protocols import View
 from .dinov2 import DinoVisionTransformer
-from .paper_profile import (
+from .weights import (
     PaperModelError,
     describe_key_mismatch,
     load_checkpoint,

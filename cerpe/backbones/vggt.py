@@ -46,7 +46,7 @@ from ..geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, se3_inverse
 from ..config import merge_conf
 from ..protocols import BackboneOutput, View
 from ..scene import CameraIntrinsics, SceneError
-from .paper_profile import (
+from .weights import (
     PaperModelError,
     autocast_dtype,
     load_checkpoint,

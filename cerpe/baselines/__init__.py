@@ -13,6 +13,35 @@ ground-truth scale) or no estimate with a reason.
 """
 from __future__ import annotations
 
-from .base import BASELINES, BaselineError, PairEstimate, build_baseline
+from typing import Any, Callable
+
+from .base import BaselineError, PairBaseline, PairEstimate
+
+
+# name -> factory(conf overrides); implementations imported on first use so importing the package stays cheap
+def _sift(**conf: Any) -> PairBaseline:
+    from .sift import SiftRansac
+
+    return SiftRansac(conf)
+
+
+def _aliked(**conf: Any) -> PairBaseline:
+    from .aliked_lightglue import AlikedLightGlue
+
+    return AlikedLightGlue(conf)
+
+
+BASELINES: dict[str, Callable[..., PairBaseline]] = {
+    "sift-ransac": _sift,
+    "aliked-lightglue": _aliked,
+}
+
+
+def build_baseline(name: str, **conf: Any) -> PairBaseline:
+    """Construct a baseline by its method name (``sift-ransac``, ``aliked-lightglue``)."""
+    if name not in BASELINES:
+        raise BaselineError(f"unknown baseline {name!r}; choose one of {sorted(BASELINES)}")
+    return BASELINES[name](**conf)
+
 
 __all__ = ["BASELINES", "BaselineError", "PairEstimate", "build_baseline"]

@@ -1,8 +1,8 @@
-"""Shared pieces of the per-pair baselines: result type, two-view geometry, registry."""
+"""Shared pieces of the per-pair baselines: error, result type, protocol, two-view geometry."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -101,28 +101,3 @@ def relative_pose_from_matches(
         return PairEstimate(None, "degenerate-pose", n_matches=m, n_inliers=n_inl)
     return PairEstimate(make_se3(R, t / nt), "", n_matches=m, n_inliers=n_inl)
 
-
-# name -> factory(conf overrides) ; filled lazily so importing the package stays cheap
-def _sift(**conf: Any) -> PairBaseline:
-    from .sift import SiftRansac
-
-    return SiftRansac(conf)
-
-
-def _aliked(**conf: Any) -> PairBaseline:
-    from .aliked_lightglue import AlikedLightGlue
-
-    return AlikedLightGlue(conf)
-
-
-BASELINES: dict[str, Callable[..., PairBaseline]] = {
-    "sift-ransac": _sift,
-    "aliked-lightglue": _aliked,
-}
-
-
-def build_baseline(name: str, **conf: Any) -> PairBaseline:
-    """Construct a baseline by its method name (``sift-ransac``, ``aliked-lightglue``)."""
-    if name not in BASELINES:
-        raise BaselineError(f"unknown baseline {name!r}; choose one of {sorted(BASELINES)}")
-    return BASELINES[name](**conf)

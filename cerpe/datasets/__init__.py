@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 
 from ..scene import Setting
-from .manifest import Manifest, ManifestError, Problem, build_manifest, read_yaml, validate
+from .manifest import Manifest, ManifestError, Problem, checked_manifest, read_yaml
 from .registry import Adapter, get_adapter, known_adapters, register_adapter
 from .report import LoadReport
 
@@ -47,15 +47,7 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             adapter = get_adapter(raw["adapter"], str(path))
         except ManifestError as exc:
             problems.extend(exc.problems)
-    problems.extend(validate(raw, path, adapter.top_level_fields if adapter else None))
-    if not isinstance(raw, dict):
-        raise ManifestError(problems)
-    manifest = build_manifest(raw, path)
-    if adapter is not None:
-        problems.extend(adapter.validate(manifest))
-    if problems:
-        raise ManifestError(problems)
-    return manifest
+    return checked_manifest(raw, path, adapter, problems)
 
 
 def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None = None) -> Setting:

@@ -284,3 +284,25 @@ def build_manifest(raw: dict, path: Path) -> Manifest:
         raw=raw,
         metric_depth_options=dict(raw["metric_depth_options"]) if isinstance(raw.get("metric_depth_options"), dict) else {},
     )
+
+
+def checked_manifest(raw: Any, path: Path, adapter: Any = None, problems: Iterable[Problem] = ()) -> Manifest:
+    """The :class:`Manifest` of ``raw`` (parsed from ``path``), checked against its adapter.
+
+    Args:
+        adapter: the manifest's adapter (a :class:`cerpe.datasets.registry.Adapter`: its
+            ``top_level_fields`` and ``validate``), or None when it is unknown.
+        problems: found before (an unknown adapter); reported with the others.
+
+    Raises:
+        ManifestError: listing ``problems`` and every one found here.
+    """
+    problems = [*problems, *validate(raw, path, adapter.top_level_fields if adapter is not None else None)]
+    if not isinstance(raw, dict):
+        raise ManifestError(problems)
+    manifest = build_manifest(raw, path)
+    if adapter is not None:
+        problems.extend(adapter.validate(manifest))
+    if problems:
+        raise ManifestError(problems)
+    return manifest

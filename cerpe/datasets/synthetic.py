@@ -26,7 +26,7 @@ from typing import Callable
 
 from ..errors import CerpeError
 from ..scene import Setting
-from .manifest import Manifest, ManifestError, Problem, cache_base, type_name
+from .manifest import Manifest, ManifestError, Problem, cache_base, checked_manifest, read_yaml, type_name
 from .report import LoadReport
 
 log = logging.getLogger("cerpe.datasets.synthetic")
@@ -100,7 +100,6 @@ class SyntheticAdapter:
         return probs
 
     def load(self, manifest: Manifest, report: LoadReport) -> Setting:
-        from . import load_manifest  # late: the package imports this module lazily through the registry
         from .mocap import MocapAdapter
 
         raw = manifest.raw
@@ -111,8 +110,9 @@ class SyntheticAdapter:
             report.extend([Problem(str(manifest.path), p.field or "world", p.message) for p in exc.problems])
             report.raise_if_problems()
             raise
-        inner = load_manifest(generated)
-        setting = MocapAdapter().load(inner, report)
+        mocap, path = MocapAdapter(), generated.resolve()  # the generated manifest is always mocap's
+        inner = checked_manifest(read_yaml(path), path, mocap)
+        setting = mocap.load(inner, report)
         setting.name = manifest.name
         setting.metric_depth = manifest.metric_depth  # this manifest's source and options, not the generated one's
         setting.metric_depth_options = dict(manifest.metric_depth_options)

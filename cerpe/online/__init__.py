@@ -5,7 +5,9 @@
   options (mode, endpoints, scouting) with one clear error.
 * :mod:`cerpe.online.zenoh_link` -- :class:`ZenohLink`, the algorithm's link over
   Zenoh pub/sub, queryables and liveliness, loosely synchronised by step index
-  with a deadline per wait.
+  with a deadline per wait; its mixins :mod:`~cerpe.online.zenoh_receive` (filing the
+  team's frames, counting), :mod:`~cerpe.online.zenoh_presence` (liveliness, byes,
+  waiting for peers) and :mod:`~cerpe.online.zenoh_serve` (answering image queries).
 * :mod:`cerpe.online.ros` -- relative-pose estimates as ROS 2
   ``geometry_msgs/msg/PoseWithCovarianceStamped`` on rmw_zenoh / bridge keys.
 * :mod:`cerpe.online.node` -- :class:`RobotNode`, one robot's step engine

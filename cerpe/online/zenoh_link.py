@@ -49,21 +49,19 @@ import logging
 import threading
 import time
 from collections import Counter, defaultdict
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 from ..algorithm.link import Inbox, Mailbox, Received, RequestHandler
 from ..config import merge_conf
 from ..errors import CerpeError
-from ..messages import ImageReply, ImageRequest, Message, MessageError, decode
+from ..messages import ImageReply, ImageRequest, MessageError, decode
 from . import zenoh_session as zs
 from . import zenoh_wire as w
+from .zenoh_presence import PresenceSide
+from .zenoh_receive import ReceiveSide
+from .zenoh_serve import ServeSide
 
 log = logging.getLogger(__name__)
-
-#: seconds a peer whose liveliness token went has to say bye before it counts as lost: its bye and
-#: the token's end travel apart, and under load the end came first (a peer that closed at once was
-#: counted lost about once in 8 runs of the bye test)
-BYE_GRACE_S = 0.5
 
 default_conf: dict[str, Any] = {
     "team": "cerpe",              # key chunk shared by the robots of one team
@@ -78,11 +76,7 @@ class ZenohLinkError(CerpeError, ValueError):
     """Bad link configuration, or a Zenoh session that cannot open."""
 
 
-def _bytes(z: Any) -> bytes | None:
-    return None if z is None else z.to_bytes()
-
-
-class ZenohLink:
+class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
     """This robot's end of the team, over one Zenoh session.
 
     Args:
@@ -153,231 +147,6 @@ class ZenohLink:
         except zenoh.ZError as exc:
             raise ZenohLinkError(f"robot {self.robot_id}: cannot declare its liveliness token: "
                                  f"{zs.first_line(exc)}") from None
-
-    # ------------------------------------------------------------------ counting
-    def _degrade(self, what: str) -> None:
-        """Queue one degradation for the next inbox (caller holds the lock)."""
-        self.box.degrade(what)
-
-    def _once(self, what: str, robot: str, detail: str, message: str) -> None:
-        """Count ``what`` and log ``message`` the first time for ``(robot, detail)`` (lock held)."""
-        if (what, robot, detail) in self._reported:
-            return
-        self._reported.add((what, robot, detail))
-        self._degrade(what)
-        log.warning("robot %s: %s", self.robot_id, message)
-
-    def take_degradations(self) -> list[str]:
-        """Degradations counted since the last gather (and not handed out by it)."""
-        with self._cond:
-            return self.box.inbox(self.box.step, "", []).degradations
-
-    # ------------------------------------------------------------------ receiving (Zenoh threads)
-    def _on_sample(self, sample: Any) -> None:
-        key = w.parse_data_key(str(sample.key_expr))
-        payload, attachment = _bytes(sample.payload) or b"", _bytes(sample.attachment)
-        with self._cond:
-            self.stats["frames_received"] += 1
-            self._file(key, payload, attachment)
-            self._cond.notify_all()
-
-    def _protocol_mismatch(self, robot: str, tag: str) -> None:
-        """Count and name a robot of another link protocol version, once (lock held)."""
-        self._once("link:protocol-mismatch", robot, tag,
-                   f"robot {robot} speaks cerpe link protocol {tag}, this robot {w.PROTOCOL_TAG}: its frames "
-                   f"and requests are ignored (run the same cerpe version on every robot)")
-
-    def _decode(self, robot: str, payload: bytes, attachment: bytes | None) -> Message | None:
-        """The message of a payload that carries our header; None, counted, for anything else (lock held)."""
-        status = w.header_status(attachment)
-        if status == "protocol":
-            self._protocol_mismatch(robot, w.header_tag(attachment))
-            self.stats["frames_foreign_protocol"] += 1
-            return None
-        try:
-            if status == "ok":
-                return decode(payload)
-        except MessageError as exc:
-            log.debug("robot %s: garbled frame from %s: %s", self.robot_id, robot, exc)
-        self._degrade("msg:garbled")
-        return None
-
-    def _file(self, key: tuple[str, str, str] | None, payload: bytes, attachment: bytes | None) -> None:
-        if key is None:
-            self._degrade("msg:garbled")
-            return
-        _, robot, kind = key
-        if robot == self.robot_id:
-            self._once("link:duplicate-robot", robot, "", f"another Zenoh session publishes as robot {robot} "
-                       f"in team {self.team}: two robots were started with the same id")
-            return
-        if robot not in self.index_of:
-            self._degrade("msg:unknown-sender")
-            log.debug("robot %s: frame from robot %r, not in the roster %s", self.robot_id, robot, self.robot_ids)
-            return
-        if kind == w.BYE:
-            if w.header_status(attachment) == "ok":
-                self._said_bye.add(robot)
-                self._gone.add(robot)
-                self._leaving.pop(robot, None)  # its token went first: not lost after all
-            return
-        msg = self._decode(robot, payload, attachment)
-        if msg is None:
-            return
-        if w.KIND_OF_TYPE.get(msg.TYPE) != kind:
-            self._degrade("msg:garbled")
-            log.debug("robot %s: a %s frame on %s's %s key", self.robot_id, type(msg).__name__, robot, kind)
-            return
-        if msg.sender != self.index_of[robot]:
-            self._degrade("msg:unknown-sender")
-            log.debug("robot %s: frame on %s's key says sender index %d", self.robot_id, robot, msg.sender)
-            return
-        last = self._last[robot]
-        last[kind] = max(last.get(kind, -1), int(msg.step))
-        self.box.file(robot, msg, len(payload))  # late, too far ahead, duplicate: counted in stats
-
-    def _on_alive(self, sample: Any) -> None:
-        import zenoh
-
-        parsed = w.parse_alive_key(str(sample.key_expr))
-        if parsed is None:
-            return
-        team, robot, tag, zid = parsed
-        up = sample.kind == zenoh.SampleKind.PUT
-        with self._cond:
-            if zid != self.zid:
-                self._presence(team, robot, tag, up)
-            self._cond.notify_all()
-
-    def _presence(self, team: str, robot: str, tag: str, up: bool) -> None:
-        if team != self.team:
-            if up and robot in self.index_of and robot not in self._present:
-                self._once("link:team-mismatch", robot, team,
-                           f"robot {robot} is up in team {team!r}, this robot is in team {self.team!r}: "
-                           f"they do not hear each other (give both the same --team)")
-            return
-        if tag != w.PROTOCOL_TAG:
-            if up:
-                self._protocol_mismatch(robot, tag)
-            return
-        if robot == self.robot_id:
-            if up:
-                self._once("link:duplicate-robot", robot, "", f"another Zenoh session announces robot {robot} "
-                           f"in team {self.team}: two robots were started with the same id")
-            return
-        if robot not in self.index_of:
-            if up and ("unknown", robot) not in self._reported:
-                self._reported.add(("unknown", robot))
-                log.info("robot %s: robot %s of team %s is not in the roster %s; ignored",
-                         self.robot_id, robot, self.team, self.robot_ids)
-            return
-        if up:
-            if robot in self._leaving:  # back before its bye could come: the old session ended without one
-                self._peer_lost(robot)
-            if robot in self._gone:  # back after leaving: a new run of that robot
-                self._last.pop(robot, None)
-                self.box.seen.pop(robot, None)
-            self._present.add(robot)
-            self._gone.discard(robot)
-            self._said_bye.discard(robot)
-            log.info("robot %s: robot %s is up", self.robot_id, robot)
-        elif robot in self._present:
-            self._present.discard(robot)
-            self._gone.add(robot)
-            if robot not in self._said_bye and not self._closed:
-                # the bye and the token's end travel apart: the bye may still come (BYE_GRACE_S)
-                self._leaving[robot] = time.monotonic()
-
-    def _peer_lost(self, robot: str) -> None:
-        """Count ``robot`` lost: its token went and no bye came within :data:`BYE_GRACE_S` (lock held)."""
-        self._leaving.pop(robot, None)
-        self._degrade("net:peer-lost")
-        log.warning("robot %s: lost robot %s (its Zenoh session ended without bye)", self.robot_id, robot)
-
-    def _settle_leaving(self, peers: Iterable[str] | None = None) -> bool:
-        """Count the peers whose grace for a bye is over; True when none of ``peers`` (None: any)
-        is still within it (lock held)."""
-        now = time.monotonic()
-        for robot, t in list(self._leaving.items()):
-            if now - t >= BYE_GRACE_S:
-                self._peer_lost(robot)
-        return not any(p in self._leaving for p in (self._leaving if peers is None else peers))
-
-    def _on_query(self, query: Any) -> None:
-        """Check an image query in the Zenoh thread: refuse a bad one at once, queue a good one."""
-        payload, attachment = _bytes(query.payload) or b"", _bytes(query.attachment)
-        with self._cond:
-            reason, peer, req = self._check_query(payload, attachment)
-            if reason is None and len(self._queries) >= int(self.conf["max_queued_queries"]):
-                reason = "busy"
-            if reason is None:
-                self._queries.append((query, peer, req))
-                self._cond.notify_all()
-                return
-            self.stats[f"queries_refused_{reason}"] += 1
-        with query:
-            query.reply_err(w.error_payload(reason))
-
-    def _check_query(self, payload: bytes, attachment: bytes | None) -> tuple[str | None, str, Any]:
-        """``(refusal reason or None, peer, request)`` (lock held)."""
-        if w.header_status(attachment) == "protocol":
-            self._protocol_mismatch("?", w.header_tag(attachment))
-            return "protocol", "", None
-        req = self._decode("?", payload, attachment)
-        if req is None:
-            return "garbled", "", None
-        if not isinstance(req, ImageRequest) or req.target != self.index:
-            self._degrade("msg:garbled")
-            return ("garbled" if not isinstance(req, ImageRequest) else "wrong-target"), "", None
-        if not (0 <= req.sender < len(self.robot_ids)) or req.sender == self.index:
-            self._degrade("msg:unknown-sender")
-            return "garbled", "", None
-        return None, self.robot_ids[req.sender], req
-
-    # ------------------------------------------------------------------ serving (caller's thread)
-    def serve(self, handler: RequestHandler) -> None:
-        """Answer image requests with ``handler(peer, request) -> reply frame | None``.
-
-        Called on the thread that calls the link, inside its waits, for requests
-        of a step this robot has begun (earlier ones too: the handler decides
-        what is stale). None means "image not held": the requester counts
-        ``msg:image-not-held``. A :class:`CerpeError` from the handler is logged
-        and answered as an error; other exceptions propagate to the caller.
-        """
-        self._handler = handler
-
-    def poll(self, timeout_s: float = 0.0) -> None:
-        """Answer image queries for ``timeout_s`` (0: those waiting now); use it instead of sleeping."""
-        self._wait(lambda: False, time.monotonic() + max(0.0, float(timeout_s)))
-
-    def _serve_queries(self) -> None:
-        if self._handler is None:
-            return
-        with self._cond:
-            ready = [q for q in self._queries if q[2].step <= self.box.step]
-            self._queries = [q for q in self._queries if q[2].step > self.box.step]
-        for query, peer, req in ready:
-            with query:
-                self._answer(query, peer, req)
-
-    def _answer(self, query: Any, peer: str, req: ImageRequest) -> None:
-        try:
-            reply = self._handler(peer, req)
-        except CerpeError as exc:
-            log.warning("robot %s: image request of %s for step %d failed: %s", self.robot_id, peer, req.step, exc)
-            reply, reason = None, "error"
-        else:
-            reason = w.NOT_HELD
-        with self._cond:
-            if reply is None:
-                self.stats[f"queries_refused_{reason}"] += 1
-            else:
-                self.stats["replies_sent"] += 1
-                self.stats["wire_bytes_reply"] += len(reply) + len(w.HEADER)
-        if reply is None:
-            query.reply_err(w.error_payload(reason))
-        else:
-            query.reply(w.image_key(self.team, self.robot_id), bytes(reply), attachment=w.HEADER)
 
     # ------------------------------------------------------------------ the Link
     def begin(self, step: int) -> None:
@@ -467,9 +236,9 @@ class ZenohLink:
         def on_reply(p: str, reply: Any) -> None:
             with self._cond:
                 if reply.ok is not None:
-                    state[p]["ok"].append((_bytes(reply.ok.payload) or b"", _bytes(reply.ok.attachment)))
+                    state[p]["ok"].append((w.as_bytes(reply.ok.payload) or b"", w.as_bytes(reply.ok.attachment)))
                 else:
-                    state[p]["err"].append(_bytes(reply.err.payload) or b"")
+                    state[p]["err"].append(w.as_bytes(reply.err.payload) or b"")
                 self._cond.notify_all()
 
         def on_done(p: str) -> None:
@@ -535,20 +304,6 @@ class ZenohLink:
         self._degrade("msg:lost")
         return None
 
-    # ------------------------------------------------------------------ waiting
-    def _wait(self, done: Callable[[], bool], deadline: float) -> None:
-        """Serve queries and sleep on new arrivals until ``done()`` (checked under the lock) or ``deadline``."""
-        while True:
-            self._serve_queries()
-            with self._cond:
-                if done():
-                    return
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return
-                if not any(q[2].step <= self.box.step for q in self._queries) or self._handler is None:
-                    self._cond.wait(min(left, 0.5))
-
     def _may_come(self, peer: str, kind: str, step: int) -> bool:
         """Can ``peer``'s ``kind`` frame of ``step`` still arrive? (lock held)"""
         if peer in self._gone:
@@ -556,27 +311,6 @@ class ZenohLink:
         if self._last.get(peer, {}).get(kind, -1) > step:
             return False  # it sent a later one: Zenoh keeps a publisher's order per key
         return self.box.seen.get(peer, -1) >= step - int(self.conf["max_lag_steps"])
-
-    def wait_peers(self, peers: Iterable[str], timeout_s: float) -> list[str]:
-        """Wait until every peer's link is up or ``timeout_s`` passes; returns the missing ones."""
-        peers = list(peers)
-        self.announce()
-        self._wait(lambda: all(p in self._present for p in peers), time.monotonic() + max(0.0, float(timeout_s)))
-        with self._cond:
-            missing = [p for p in peers if p not in self._present]
-        if missing:
-            hint = ("; found by multicast scouting only: if multicast does not pass on this network, or the "
-                    "network came up after this robot started, give endpoints (--connect)"
-                    if self.conf["multicast_scouting"] and not self.conf["connect"] else "")
-            log.warning("robot %s: robots %s of team %s not up after %.0f s%s", self.robot_id, missing,
-                        self.team, timeout_s, hint)
-        return missing
-
-    @property
-    def present(self) -> set[str]:
-        """Peers whose link is up now."""
-        with self._cond:
-            return set(self._present)
 
     # ------------------------------------------------------------------ leaving
     def close(self, linger_s: float = 2.0) -> None:

@@ -9,6 +9,7 @@ and parses them.
 from __future__ import annotations
 
 import re
+from typing import Any
 
 from ..errors import CerpeError
 from ..messages import VERSION as MESSAGES_VERSION
@@ -110,3 +111,8 @@ def parse_error_payload(payload: bytes) -> str:
         return status
     reason = payload[len(HEADER):].decode("ascii", "replace")
     return reason if reason in REPLY_ERRORS else "garbled"
+
+
+def as_bytes(z: Any) -> bytes | None:
+    """A Zenoh payload or attachment (``ZBytes``) as bytes; None when there is none."""
+    return None if z is None else z.to_bytes()

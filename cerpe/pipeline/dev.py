@@ -41,6 +41,7 @@ from ..atomicio import atomic_write_text
 from ..errors import CerpeError
 from .methods import CERPE_METHODS
 from .provenance import code_hash, git_revision
+from .runcheck import run_is_current
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +146,6 @@ def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, profile: str,
             progress: bool = True, overrides: dict | None = None) -> tuple[list[tuple[str, Path]], list[str]]:
     """Run (or reuse) every method on one set; ``(finished (set, run folder) pairs, errors)``.
     ``overrides``: CerpeConfig fields of the cerpe methods (``cerpe dev --set``)."""
-    from .paper import run_is_current
     from .run import load_manifest_setting, run_method
 
     done, errors, setting = [], [], None

@@ -30,6 +30,7 @@ from ..config import merge_conf
 from ..errors import CerpeError
 from ..transport import LossSpec
 from .evaluate import evaluate_runs, summarise
+from .runcheck import run_is_current
 from .textfmt import md_table
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,6 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
             reused for loss 0 when current).
         setting: the loaded setting of ``manifest`` (loaded when a run must be made).
     """
-    from .paper import run_is_current
     from .run import load_manifest_setting, run_method
 
     c = merge_conf(default_conf, conf or {}, "message_loss")

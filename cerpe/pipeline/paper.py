@@ -40,13 +40,13 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, read_json
+from ..atomicio import atomic_write_json, atomic_write_text
 from ..errors import CerpeError
 from .evaluate import (GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_runs, gate_quality, roc_curve,
                        sigma_calibration)
-from .methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, UNAVAILABLE
-from .provenance import code_hash, file_digest
+from .methods import BASELINE_METHODS, METHOD_LABELS, UNAVAILABLE
 from .run import run_method
+from .runcheck import run_is_current
 from .table1 import EXPECTED_TABLES
 
 log = logging.getLogger(__name__)
@@ -164,28 +164,6 @@ def discover_settings(profile: str, suite: str, manifests_dir: Path, derived_dir
         entries.append(e)
     key = lambda e: (0, SYNTHETIC_ORDER.index(e.world)) if e.world in SYNTHETIC_ORDER else (1, 0)
     return sorted(entries, key=key)
-
-
-def run_is_current(out: Path, manifest: Path, method: str, preset: str, overrides: dict | None = None) -> bool:
-    """Cheap check that a cached run folder is finished and matches the current code and manifest.
-
-    Compares ``run.json``'s code hash, manifest digest, preset and configuration overrides
-    (``cerpe run --set``; none is none) and requires a ``DONE.json`` with the run's
-    fingerprint for every encounter; builds no model.
-    """
-    try:
-        meta = read_json(out / "run.json", "run.json")
-        cfg = meta["config"]
-        if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != file_digest(manifest):
-            return False
-        if (cfg.get("overrides") or None) != (json.loads(json.dumps(overrides)) if overrides else None):
-            return False
-        if method in CERPE_METHODS and cfg.get("profile") != preset:
-            return False
-        return all(read_json(out / enc / "DONE.json", "DONE.json").get("fingerprint") == meta["fingerprint"]
-                   for enc in cfg.get("encounters", []))
-    except (AtomicIOError, KeyError, OSError):
-        return False
 
 
 def _ensure_loaded(e: SettingEntry) -> bool:

@@ -31,6 +31,7 @@ from ..atomicio import AtomicIOError, read_json
 from ..errors import CerpeError
 from ..algorithm.config import COMPRESSED_MESSAGES, LEAN
 from .evaluate import frame_errors, load_run, summarise
+from .runcheck import run_is_current
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +77,6 @@ def run_dir(runs_root: Path, setting: str, scheme: str) -> Path:
 
 def is_current(path: Path, manifest: Path, profile: str, overrides: Mapping, encounters: Sequence[str]) -> bool:
     """A finished run of the current code and manifest with these overrides and encounters."""
-    from .paper import run_is_current
-
     try:
         cfg = read_json(path / "run.json", "run.json")["config"]
     except (AtomicIOError, KeyError, OSError):

@@ -22,8 +22,9 @@ PACKAGES: tuple[str, ...] = ("numpy", "torch", "kornia", "opencv-python-headless
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 # Code that never changes what a method computes: editing it keeps cached runs valid.
 NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py", "pipeline/bench.py",
+               "pipeline/bench_walk.py", "pipeline/bench_graph.py", "pipeline/bench_report.py",
                "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py", "pipeline/calibrate.py",
-               "pipeline/graphdev.py", "pipeline/message_loss.py", "pipeline/pareto.py",
+               "pipeline/graphdev.py", "pipeline/message_loss.py", "pipeline/pareto.py", "pipeline/runcheck.py",
                "plotting.py", "cli.py",
                "atomicio.py"}
 # What the per-frame baselines run, besides their own package.

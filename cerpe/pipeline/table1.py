@@ -6,7 +6,7 @@ Reads finished run folders only (:func:`cerpe.pipeline.evaluate.evaluate_runs`);
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Any, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
@@ -15,15 +15,24 @@ from ..atomicio import AtomicIOError, atomic_write_text, read_json
 from .evaluate import e_pos_on_reference_frames, evaluate_runs, summarise
 from .methods import CERPE_METHODS, EXTENSION_METHODS, METHOD_LABELS, UNAVAILABLE
 
-if TYPE_CHECKING:
-    from .paper import PaperContext
-
 TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe",
                                   "cerpe-graph")  # the last: our extension, not the paper's
 EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
 
 
-def main_results(ctx: "PaperContext") -> pd.DataFrame:
+class TableRuns(Protocol):
+    """What Table I reads of a :class:`cerpe.pipeline.paper.PaperContext` (which builds on this module).
+
+    ``settings``: one entry per column group, with ``name``, ``status`` (``ok`` or why not) and
+    ``detail``; ``run_dirs``: ``(setting, method) -> run folder``; ``preset``: the backbone preset.
+    """
+
+    preset: str
+    settings: Sequence[Any]
+    run_dirs: dict[tuple[str, str], Path]
+
+
+def main_results(ctx: TableRuns) -> pd.DataFrame:
     """Table I, long form: one row per (setting, method) with the paper's metrics.
 
     Columns: ``setting, method, e_pos_m, e_pos_gt_scale_m, e_rot_rad, success_pct,
@@ -150,7 +159,7 @@ def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
     return " ".join(note)
 
 
-def table_caption(ctx: "PaperContext") -> str:
+def table_caption(ctx: TableRuns) -> str:
     """Table I's caption for the runs of ``ctx``: :data:`CAPTION` and :func:`cerpe_row_note`."""
     configs = []
     for (_, m), p in sorted(ctx.run_dirs.items()):

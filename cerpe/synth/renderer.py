@@ -15,7 +15,7 @@ depth 0, which everywhere in ``cerpe`` means "no surface / unknown".
 
 There is no supersampling (it quadruples the cost and would break the 5-minute
 budget of the paper-default suite); textures are instead footprint-filtered in
-:mod:`cerpe.synth.textures` and texture edges are anti-aliased analytically.
+:mod:`cerpe.synth.noise` and texture edges are anti-aliased analytically.
 Object silhouettes remain aliased at one pixel.
 """
 from __future__ import annotations
@@ -28,6 +28,8 @@ import numpy as np
 from ..scene import CameraIntrinsics
 from . import textures as tx
 from .errors import SynthError
+from .noise import PerFace, fbm, mix
+from .shaders import SHADERS
 
 
 @dataclass(frozen=True)
@@ -245,8 +247,8 @@ def render(faces: FaceSet, T_world_cam: np.ndarray, K: CameraIntrinsics, ctx: tx
             sky = horizon + (np.array([0.32, 0.52, 0.86]) - horizon) * np.sqrt(np.clip(el, 0, 1))[:, None]
             # clouds at infinity: a function of direction only (no parallax, no depth)
             k = np.maximum(dz[:, 2], 0.05)
-            cl = tx.fbm(dz[:, 0] / k * 3.0, dz[:, 1] / k * 3.0, np.full(len(k), 0.002), 0.4, 4, 999)
-            sky = tx.mix(sky, np.array([0.95, 0.95, 0.97]), np.clip(cl * 0.7, 0, 0.8) * np.clip(el * 4, 0, 1))
+            cl = fbm(dz[:, 0] / k * 3.0, dz[:, 1] / k * 3.0, np.full(len(k), 0.002), 0.4, 4, 999)
+            sky = mix(sky, np.array([0.95, 0.95, 0.97]), np.clip(cl * 0.7, 0, 0.8) * np.clip(el * 4, 0, 1))
             img[sky_idx] = sky
     idx = np.flatnonzero(hit.ravel())
     if idx.size:
@@ -269,13 +271,13 @@ def render(faces: FaceSet, T_world_cam: np.ndarray, K: CameraIntrinsics, ctx: tx
         xw = xw.astype(np.float32)  # world coordinates within a few hundred metres: float32 is ample
         foot = foot.astype(np.float32)
         size32, color32, prm32 = (a.astype(np.float32) for a in (faces.size, faces.color, faces.prm))
-        for kd in np.flatnonzero(np.bincount(kinds, minlength=len(tx.SHADERS))):
+        for kd in np.flatnonzero(np.bincount(kinds, minlength=len(SHADERS))):
             sel = np.flatnonzero(kinds == kd)
             fs = f_px[sel]
             si = tx.ShadeInput(u=u_px[sel], v=v_px[sel], lu=size32[fs, 0], lv=size32[fs, 1],
-                               xw=xw[sel], foot=foot[sel], seed=tx.PerFace(fs, faces.seed),
+                               xw=xw[sel], foot=foot[sel], seed=PerFace(fs, faces.seed),
                                color=color32[fs], prm=prm32[fs], ctx=ctx)
-            col[sel] = tx.SHADERS[int(kd)](si)
+            col[sel] = SHADERS[int(kd)](si)
         col *= face_light[f_px][:, None].astype(np.float32)
         if ctx.outdoor:
             haze = (1.0 - np.exp(-z / 350.0))[:, None]

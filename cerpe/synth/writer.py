@@ -38,8 +38,9 @@ from ..depthsim import OUTDOOR_SENSOR
 from ..scene import Encounter, RobotStream
 from .errors import SynthError
 from .groundtruth import has_transition, overlap_matrix, viewing_angle_matrix
+from .plan import EncounterPlan
 from .renderer import render
-from .worlds import WORLDS, EncounterPlan, check_conf, plan_encounter
+from .worlds import WORLDS, check_conf, plan_encounter
 
 log = logging.getLogger(__name__)
 
@@ -275,7 +276,8 @@ def code_fingerprint() -> str:
     import hashlib
 
     h = hashlib.sha256()
-    for name in ("renderer", "textures", "worlds", "groundtruth", "writer"):
+    for name in ("renderer", "textures", "noise", "materials_outdoor", "materials_indoor", "shaders", "worlds",
+                 "plan", "cad_intersection", "indoor_team", "groundtruth", "writer"):
         h.update((Path(__file__).parent / f"{name}.py").read_bytes())
     return h.hexdigest()[:16]
 

@@ -1,0 +1,76 @@
+"""`cerpe bench`'s printed report: the latency, bytes and accuracy table of each team size, and the
+graph update's line.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from .bench_walk import OVERLAP_MIN
+from .evaluate import COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP
+
+def format_accuracy(a: dict[str, Any]) -> list[str]:
+    """The accuracy lines under a team size's table (or of the whole suite)."""
+    d = a["direct_rot_err_rad"]
+    lines = [f"   direct relative rotation error, overlapping pairs (overlap >= {OVERLAP_MIN}): median "
+             f"{d['median']:.4f} rad, p90 {d['p90']:.4f} rad, n={d['n']} (target < 0.05 rad)"]
+    lines.append(f"   {'ego-motion per robot':<22}{'RPE trans %':>12}{'RPE rot deg':>12}{'end drift %':>12}"
+                 f"{'path m':>9}{'steps':>7}   (targets: < 2 %, < 0.5 deg median)")
+    for r, e in a["ego_per_robot"].items():
+        lines.append(f"   {r:<22}{e['rpe_trans_pct']:>12.2f}{e['rpe_rot_deg_median']:>12.3f}"
+                     f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}")
+    g = a.get("gate")
+    if g:
+        lines.append(f"   descriptor gate vs GT co-visibility (unordered pairs: overlap >= {COVIS_POSITIVE} both ways "
+                     f"positive, < {COVIS_NEGATIVE} both ways negative) over {g['covis_n_pairs']} pairs "
+                     f"({g['covis_n_positive']} positive, {g['covis_n_left_out']} left out): ROC AUC "
+                     f"{g['covis_roc_auc']:.3f} (target >= 0.90); at tau {g['tau']:.4f} precision "
+                     f"{g['covis_precision']:.3f}, recall {g['covis_recall']:.3f} (targets >= 0.8)")
+        lines.append(f"   old ordered label: descriptor gate vs GT overlap >= {GATE_OVERLAP} over {g['n_pairs']} ordered pairs "
+                     f"({g['n_overlapping']} overlapping): ROC AUC {g['roc_auc']:.3f} (target >= 0.90); at tau "
+                     f"{g['tau']:.4f} precision {g['precision']:.3f}, recall {g['recall']:.3f}, open "
+                     f"{100 * g['open_rate']:.0f} %")
+        lines.append(f"   the overlap ratio is directional, the cosine symmetric: {100 * g['mixed_share']:.0f} % "
+                     f"of ordered pairs overlap one way only; best AUC any symmetric score can reach "
+                     f"{g['roc_auc_ceiling']:.3f}; descriptor AUC on pairs whose directions agree "
+                     f"{g['roc_auc_consistent']:.3f}")
+    return lines
+
+
+def format_graph(g: dict[str, Any]) -> str:
+    u = g["update_ms"]
+    verdict = "met" if u["median"] < g["target_ms"] else "NOT met"
+    return (f"== graph update (cerpe-graph, our extension), {g['n_robots']} robots, simulated {g['seconds']:.0f} s "
+            f"encounter ({g['steps']} steps at 10 Hz, direct estimates on {100 * g['direct_share']:.0f} % of "
+            f"steps, {g['nodes']} nodes in {g['n_robots'] * (g['n_robots'] - 1)} graphs): per robot-step median "
+            f"{u['median']:.2f} ms, p90 {u['p90']:.2f} ms, mean {u['mean']:.2f} ms "
+            f"(target < {g['target_ms']:.0f} ms median: {verdict})")
+
+
+def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any]) -> str:
+    lines = []
+    for r in results:
+        ts = r["team_step_ms"]
+        tgt = r["target_ms"]
+        verdict = "" if tgt is None else (" (target %.0f ms: %s)" % (tgt, "met" if ts["median"] <= tgt else "NOT met"))
+        lines.append(f"== {r['n_robots']} robots (cold start; {r['xfeat_passes_per_robot_step']:.2f} XFeat passes "
+                     f"per robot-step): team step median {ts['median']:.0f} ms, p90 {ts['p90']:.0f} ms"
+                     f" over {ts['n']} steps{verdict}; peak RSS {r['peak_rss_mib']:.0f} MiB;"
+                     f" gate open {100 * r['gate_open_ratio']:.0f} % of pairs")
+        lines.append(f"   {'stage (per robot-step)':<24}{'median ms':>10}{'p90 ms':>10}{'mean ms':>10}")
+        for s, v in r["stage_ms"].items():
+            lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
+        v = r["robot_step_ms"]
+        lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
+        lines.append(f"   {'bytes per robot-step':<24}{'median':>10}{'p90':>10}{'mean':>10}")
+        for k, v in r["bytes_per_robot_step"].items():
+            lines.append(f"   {k:<24}{v['median']:>10.0f}{v['p90']:>10.0f}{v['mean']:>10.0f}")
+        c = r.get("cross") or {}
+        if any(k != "gated_pairs" for k in c):
+            lines.append(f"   cross-robot registration (all steps): {c['gated_pairs']} gated pairs, "
+                         f"{c.get('cross-registered', 0)} collaborator views registered, "
+                         f"{c.get('cross-none', 0)} not; learned matcher for {c.get('cross-learned', 0)} views "
+                         f"({c.get('cross-learned-pairs', 0)} image pairs)")
+        lines += format_accuracy(r["accuracy"])
+    lines.append(f"descriptor: {descriptor_info['dim']} values; frame bytes " +
+                 ", ".join(f"{k} {v}" for k, v in descriptor_info["wire_bytes"].items()))
+    return "\n".join(lines)
