@@ -1,25 +1,26 @@
-"""The Pareto step (issue 21 item 5a) on a tiny fake setting: runs per setting on a subset of
-encounters, cached; the table's ratios; the figure; configuration overrides of a real cerpe run."""
+"""The Pareto step on a tiny fake setting: runs per preset on a subset of encounters, cached; the
+table's ratios; the figure; the presets and --set knobs of a real cerpe run."""
 from __future__ import annotations
 
 import pytest
 
 from cerpe import plotting
+from cerpe.method_config import PRESETS
 from cerpe.pipeline import pareto
 from cerpe.pipeline import run as rp
 
 from test_pipeline_run_eval import _fake_steps, _setting
 
 REPLY = {"always": 1000, "gate": 500, "pays": 100}
-SCHEMES = {"always": {"request_policy": {"mode": "always"}}, "pays": {"request_policy": {"mode": "pays"}}}
+SCHEMES = ("always", "pays")
 
 
 @pytest.fixture()
 def fake(monkeypatch):
     calls = []
 
-    def prepare(method, profile, seed, depth=None, every=1, depth_options=None, overrides=None):
-        mode = ((overrides or {}).get("request_policy") or {}).get("mode", "gate")
+    def prepare(method, seed, depth=None, every=1, depth_options=None, channel=None, preset="paper", sets=None):
+        mode = PRESETS[preset].get("policy.mode", "gate")
         calls.append(mode)
 
         def steps(enc):
@@ -39,10 +40,10 @@ def test_pareto_runs_only_the_named_encounters(tmp_path, fake):
     m = tmp_path / "toy.yaml"
     m.write_text("name: toy\n")
     s = _setting(n_steps=4, n_enc=3)
-    runs, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes={"pays": SCHEMES["pays"]},
+    runs, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes=("pays",),
                                       n_encounters=None, progress=False, only=["enc[02]"])
     assert not errors and sorted(p.name for p in runs[0].path.iterdir() if p.is_dir()) == ["enc0", "enc2"]
-    none, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes={"pays": SCHEMES["pays"]},
+    none, errors = pareto.scheme_runs([("toy", m, s)], tmp_path / "runs", schemes=("pays",),
                                       progress=False, only=["other-*"])
     assert none == [] and errors == []
 
@@ -60,8 +61,8 @@ def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, 
     assert again == runs and len(fake) == 2
     found, errs = pareto.scheme_runs([("toy", m, None)], tmp_path / "runs", schemes=SCHEMES, build=False)
     assert found == runs and not errs
-    missing, errs = pareto.scheme_runs([("toy", m, None)], tmp_path / "runs", build=False,
-                                       schemes={"pays": {"request_policy": {"mode": "pays", "max_steps": 3}}})
+    missing, errs = pareto.scheme_runs([("toy", m, None)], tmp_path / "runs", build=False, schemes=("pays",),
+                                       knob_sets={"policy.max_steps": 3})
     assert not missing and "no current run" in errs[0]
     # the paper protocol: a full run of all encounters, read on the subset's encounters only
     paper = rp.run_method(m, "cerpe", tmp_path / "runs" / "toy" / "cerpe", setting=s, progress=False)
@@ -93,38 +94,48 @@ def test_pareto_runs_a_subset_once_and_tabulates_bytes_against_errors(tmp_path, 
         pareto.check(t, "pays-int8")
 
 
-def test_overrides_reach_the_cerpe_config_strictly():
-    conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim",
-                                overrides={"request_policy": {"mode": "pays", "max_steps": 7}, "jpeg_quality": 60})
-    assert conf["cerpe"]["request_policy"]["mode"] == "pays" and conf["cerpe"]["request_policy"]["max_steps"] == 7
-    assert conf["cerpe"]["jpeg_quality"] == 60 and conf["cerpe"]["request_policy"]["max_sigma_pos_m"] == 0.3
-    with pytest.raises(rp.RunError, match="request_policy: unknown option.*modus"):
-        rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides={"request_policy": {"modus": "pays"}})
+def test_presets_and_sets_reach_the_cerpe_config_strictly():
+    conf, _ = rp.prepare_method("cerpe", 0, "mono-sim", preset="pays",
+                                sets={"policy.max_steps": 7, "messages.reply_quality": 60})
+    tree = conf["tree"]
+    assert tree["policy"]["mode"] == "pays" and tree["policy"]["max_steps"] == 7
+    assert tree["messages"]["reply_quality"] == 60 and tree["policy"]["max_sigma_pos_m"] == 0.3
+    assert conf["preset"] == "pays" and conf["sets"] == {"policy.max_steps": 7, "messages.reply_quality": 60}
+    with pytest.raises(rp.RunError, match="unknown key 'policy.modus'; known under policy: mode"):
+        rp.prepare_method("cerpe", 0, "mono-sim", sets={"policy.modus": "pays"})
+    with pytest.raises(rp.RunError, match="unknown preset 'nope'; known: paper, graph"):
+        rp.prepare_method("cerpe", 0, "mono-sim", preset="nope")
+    with pytest.raises(rp.RunError, match="messages.reply_quality: expected int"):
+        rp.prepare_method("cerpe", 0, "mono-sim", sets={"messages.reply_quality": "abc"})
     with pytest.raises(rp.RunError, match="cerpe methods only"):
-        rp.prepare_method("sift-ransac", "offline", 0, overrides={"jpeg_quality": 60})
+        rp.prepare_method("sift-ransac", 0, sets={"messages.reply_quality": 60})
+    # the method's own override comes after the preset
+    conf, _ = rp.prepare_method("cerpe-wo-em", 0, "mono-sim", preset="graph")
+    assert conf["tree"]["backend"] == {"kind": "graph", "propagate": False,
+                                       "graph": {"window_nodes": 20, "kernel_k": 2.0}}
 
 
-@pytest.mark.parametrize("name", list(pareto.PARETO_SETTINGS))
-def test_every_pareto_setting_is_a_valid_strict_override_and_round_trips(name):
-    from cerpe.algorithm import AlgorithmConfig
+@pytest.mark.parametrize("name", pareto.PARETO_PRESETS)
+def test_every_pareto_preset_builds_and_round_trips(name):
+    from cerpe import knobs
+    from cerpe.method_config import CerpeConfig, build
 
-    overrides = pareto.PARETO_SETTINGS[name]
-    conf, _ = rp.prepare_method("cerpe", "offline", 0, "mono-sim", overrides=overrides)
-    cfg = AlgorithmConfig().override({**overrides})
-    assert AlgorithmConfig().override({**cfg.as_dict()}) == cfg  # the run records as_dict(): it rebuilds the same config
-    for key, value in overrides.items():
-        got = conf["cerpe"][key]
-        assert (all(got[k] == v for k, v in value.items()) if isinstance(value, dict) else got == value), key
+    conf, _ = rp.prepare_method("cerpe", 0, "mono-sim", preset=name)
+    tree = build(name)
+    assert knobs.from_dict(CerpeConfig, knobs.as_dict(tree)) == tree  # run.json's record rebuilds the same tree
+    for key, value in PRESETS[name].items():
+        group, leaf = key.split(".")
+        assert conf["tree"][group][leaf] == value, key
 
 
 def test_lean_preset_backs_off_and_rechecks_over_the_compressed_messages():
-    from cerpe.algorithm.config import COMPRESSED_MESSAGES, LEAN
-    from cerpe.algorithm import AlgorithmConfig
+    from cerpe.method_config import build
 
-    cfg = AlgorithmConfig().override({**LEAN})
-    pol = cfg.request_policy
+    cfg = build("lean")
+    pol = cfg.policy
     assert pol.mode == "pays" and pol.miss_limit == 3 and pol.miss_backoff_steps == 3
-    assert pol.unanchored_backoff_steps == 2 and pol.backoff_pending_exempt and not pol.backoff_anchored_only
-    assert pol.recheck_rot_rad == 0.03 and pol.recheck_limit == 1 and pol.min_inliers == 0 and pol.rot_sigma_per_m == 0
-    assert all(getattr(cfg, k) == v for k, v in COMPRESSED_MESSAGES.items() if k != "reply_codec")
-    assert cfg.reply_codec == "webp-grey" and cfg.descriptor_codec == COMPRESSED_MESSAGES["descriptor_codec"]
+    assert pol.unanchored_backoff_steps == 2 and pol.backoff_pending_exempt
+    assert pol.recheck_rot_rad == 0.03 and pol.recheck_limit == 1
+    msgs = cfg.messages
+    assert (msgs.descriptor_codec, msgs.reply_codec, msgs.reply_quality, msgs.reply_scale) == \
+        ("pca-int8", "webp-grey", 75, 1.0)

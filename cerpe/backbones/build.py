@@ -47,8 +47,8 @@ class Plugins:
     preset: str = "offline"
 
 
-def build_plugins(preset: str = "offline", conf: dict[str, Any] | None = None,
-                  depth: str | None = None) -> Plugins:
+def build_plugins(preset: Any = "offline", conf: dict[str, Any] | None = None,
+                  depth: str | None = None, depth_options: dict | None = None) -> Plugins:
     """Build the plug-ins of ``preset`` with ``conf`` overrides (nested dicts merge deeply).
 
     Args:
@@ -62,6 +62,9 @@ def build_plugins(preset: str = "offline", conf: dict[str, Any] | None = None,
     Raises:
         BuildError: unknown preset (listing the valid ones).
     """
+    if not isinstance(preset, str):  # TEMPORARY shim until the backbone tree lands: a BackboneConfig
+        preset = preset.models
+        conf = {"depth_conf": dict(depth_options or {})}
     if preset not in PRESETS:
         raise BuildError(f"unknown backbone preset {preset!r}; valid: {', '.join(PRESETS)}")
     defaults = PRESETS[preset]

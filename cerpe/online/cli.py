@@ -63,6 +63,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
+from .. import knobs
 from ..config import merge_conf
 from ..pipeline import run as rp
 from . import zenoh_session, zenoh_wire
@@ -110,21 +111,21 @@ def _machine_lock(manifest: Path) -> Iterator[None]:
 
 def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Path | str, *,
                link_conf: Mapping[str, Any] | None = None, node_conf: Mapping[str, Any] | None = None,
-               method: str = "cerpe", profile: str = "offline", seed: int = 0, overwrite: bool = False,
+               method: str = "cerpe", preset: str = "paper", seed: int = 0, overwrite: bool = False,
                progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None,
-               overrides: Mapping[str, Any] | None = None) -> Path:
+               sets: Mapping[str, Any] | None = None) -> Path:
     """Run robot ``robot`` of ``encounter`` online and write its run folder ``out``.
 
     ``link_conf``: options of :class:`~cerpe.online.zenoh_link.ZenohLink` (team,
     endpoints, mode, scouting); ``node_conf``: of :class:`~cerpe.online.node.RobotNode`
     (timeouts, rate, ROS keys). ``setting``, ``plugins`` (an object with
     ``descriptor``, ``backbone``, ``depth``) and ``config`` (a
-    :class:`~cerpe.algorithm.CerpeConfig`) may be given instead of being loaded
-    (tests, embedding in a robot's own process); ``overrides``: CerpeConfig fields of the loaded
-    one (``--set``; every robot of a team should pass the same). Raises a
+    :class:`~cerpe.algorithm.AlgorithmConfig`) may be given instead of being loaded
+    (tests, embedding in a robot's own process); ``preset``, ``sets``: the loaded configuration
+    (``--preset``, ``--set``; every robot of a team should pass the same). Raises a
     :class:`~cerpe.errors.CerpeError` naming the argument, file or endpoint at fault.
     """
-    from ..algorithm import CerpeConfig, RobotAgent
+    from ..algorithm import AlgorithmConfig, RobotAgent
     from ..protocols import FrameContext
 
     if method not in rp.CERPE_METHODS:
@@ -148,11 +149,11 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     try:
         if plugins is None:
             plugins, config, mconf = rp.cerpe_plugins_and_config(
-                method, profile, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None),
-                dict(overrides) if overrides else None)
+                method, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None),
+                preset, dict(sets) if sets else None)
         else:
-            config = config if config is not None else CerpeConfig()
-            mconf = {"cerpe": rp.config_dict(config), "preset": "given", "plugins": "given"}
+            config = config if config is not None else AlgorithmConfig()
+            mconf = {"tree": rp.config_dict(knobs.as_dict(config)), "preset": "given", "plugins": "given"}
         k = enc.robot_ids.index(robot)
         agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth)
         node = RobotNode(agent, link, enc.robot_ids, conf=nconf)
@@ -160,7 +161,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
         link.close(0.0)
         raise
     with node:
-        run_conf = {"format": rp.RUN_FORMAT, "method": method, "profile": profile, "seed": int(seed),
+        run_conf = {"format": rp.RUN_FORMAT, "method": method, "preset": preset, "seed": int(seed),
                     "setting": setting.name, "encounters": [enc.name], "method_config": mconf,
                     "code": rp.code_hash(method),
                     "online": {"robot": robot, "team": link.team, "robots": list(enc.robot_ids),
@@ -171,7 +172,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
             "method": method, "label": rp.METHOD_LABELS[method] + " (online)", "fingerprint": fp,
             "config": run_conf, "metric_scale": getattr(setting, "metric_depth", None) != "none",
             "manifest": str(manifest), "package_versions": rp.package_versions(),
-            "git_revision": rp.git_revision(), "seed": int(seed), "profile": profile, "setting": setting.name,
+            "git_revision": rp.git_revision(), "seed": int(seed), "preset": preset, "setting": setting.name,
             "command": " ".join(sys.argv), "zenoh_id": link.zid})
         stream = enc.robots[k]
 
@@ -196,8 +197,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--manifest", required=True, type=Path, help="dataset manifest (the same on every robot)")
     g.add_argument("--encounter", default=None,
                    help="encounter name in the manifest (may be left out when it has only one)")
-    g.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS, help="cerpe | cerpe-wo-em")
-    g.add_argument("--profile", default="offline", help="backbone preset (default: offline)")
+    g.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS,
+                   help="cerpe | cerpe-wo-em (no propagation) | cerpe-graph (ours: pose graph)")
+    g.add_argument("--preset", default="paper", metavar="P",
+                   help="a named configuration (default: paper); `cerpe config show --presets` lists them")
     g.add_argument("--seed", type=int, default=0, help="random seed (the same on every robot)")
     g.add_argument("--rate", type=float, default=node_defaults["rate_hz"],
                    help="replay rate in frames/s (default 0: as fast as the team allows)")
@@ -205,8 +208,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run folder (default build/online/<manifest name>/<method>/<robot>)")
     g.add_argument("--overwrite", action="store_true", help="run again although this robot's folder is finished")
     g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
-                   help="a CerpeConfig field, as `cerpe run --set` (repeatable; the same on every robot), e.g. "
-                        "share_estimates=true")
+                   help="a knob of the configuration tree, as `cerpe run --set` (repeatable; the same on every "
+                        "robot), e.g. messages.share_estimates=true")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     z = p.add_argument_group("network (Zenoh)")
     z.add_argument("--team", default=link_defaults["team"],
@@ -269,7 +272,7 @@ def main(args: argparse.Namespace) -> int:
     if out is None:
         out = Path("build") / "online" / Path(args.manifest).stem / args.method / args.robot
     run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node, method=args.method,
-               profile=args.profile, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress,
-               overrides=rp.parse_sets(args.sets) or None)
+               preset=args.preset, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress,
+               sets=rp.parse_sets(args.sets) or None)
     print(f"run folder: {out}")
     return 0

@@ -1,6 +1,6 @@
 """`cerpe bench`: per-step latency, peak memory and message bytes of a CERPE team.
 
-Runs :class:`cerpe.algorithm.Team` with a backbone preset (``offline`` by
+Runs :class:`cerpe.algorithm.Team` with a named configuration (``--preset``, ``--set``; the offline models by
 default) on the encounters of a dataset manifest with 2 and 3 robots. The
 default manifest is the paper's ``datasets_manifest/synthetic-indoor.yaml``
 (three robots in every encounter): its suite is rendered on first use into the
@@ -83,7 +83,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the accuracy checks over the whole suite")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--preset", default="offline", help="backbone preset (offline | paper)")
+    parser.add_argument("--preset", default="paper", metavar="P",
+                        help="a named configuration (default: paper, the paper's protocol); `cerpe config show "
+                             "--presets` lists them")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                        help="a knob of the configuration tree, as `cerpe run --set`, e.g. backbone.models=paper")
     parser.add_argument("--depth", default=None, help="depth source (default: the manifest's metric_depth)")
     parser.add_argument("--depth-conf", default=None,
                         help='JSON options of the depth source, e.g. \'{"min_m": 0.5, "max_m": 40}\' for '
@@ -158,9 +162,15 @@ def _load_encounters(args: argparse.Namespace) -> tuple[str, list, str | None, d
 
 
 def main(args: argparse.Namespace) -> int:
+    from .. import method_config
     from ..backbones.build import build_plugins
+    from .run import parse_sets
 
     _check_args(args)
+    try:
+        tree = method_config.build(args.preset, "cerpe", parse_sets(args.sets))
+    except method_config.ConfigError as exc:
+        raise BenchError(str(exc)) from None
     what, encounters, metric_depth, depth_options = _load_encounters(args)
     try:
         depth_conf = depth_options if args.depth_conf is None else json.loads(args.depth_conf)
@@ -170,7 +180,7 @@ def main(args: argparse.Namespace) -> int:
         raise BenchError(f"--depth-conf must be a JSON object, got {args.depth_conf!r}")
 
     def fresh() -> Any:  # new plug-in objects per run: no descriptor or match cached by an earlier run
-        return build_plugins(args.preset, {"depth_conf": depth_conf}, depth=args.depth or metric_depth)
+        return build_plugins(tree.backbone, depth=args.depth or metric_depth, depth_options=depth_conf)
 
     sizes = sorted({len(e.robots) for e in encounters})
     for n in args.robots:
@@ -178,18 +188,20 @@ def main(args: argparse.Namespace) -> int:
             raise BenchError(f"{what} has no encounter with {n} robots (encounters have {sizes} robots)")
     from ..threads import torch_threads
 
-    print(f"bench: {what}; preset {args.preset}; {args.width}x{args.height}; torch threads {torch_threads()} "
+    print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}; {args.width}x{args.height}; "
+          f"torch threads {torch_threads()} "
           f"(CERPE_THREADS), OMP_NUM_THREADS="
           f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
           f"{os.cpu_count()} CPUs", flush=True)
     results = []
     for n in args.robots:
         encs = [e for e in encounters if len(e.robots) >= n][: args.encounters]
-        results.append(bench_team(encs, n, fresh(), args.steps, args.warmup, args.width, args.height))
+        results.append(bench_team(encs, n, fresh(), args.steps, args.warmup, args.width, args.height, tree))
     plugins = fresh()
     d = plugins.descriptor
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
-    report = {"manifest": what, "preset": args.preset, "width": args.width, "height": args.height,
+    report = {"manifest": what, "preset": args.preset, "sets": parse_sets(args.sets), "width": args.width,
+              "height": args.height,
               "torch_threads": torch_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
@@ -200,7 +212,7 @@ def main(args: argparse.Namespace) -> int:
         report["graph"].append(g)
         print(format_graph(g), flush=True)
     if args.all_encounters:
-        suite = suite_accuracy(encounters, plugins, args.width, args.height)
+        suite = suite_accuracy(encounters, plugins, args.width, args.height, tree)
         report["suite_accuracy"] = suite
         print(f"== accuracy over the whole suite ({suite['n_encounters']} encounters, all steps, all robots)")
         print("\n".join(format_accuracy(suite["accuracy"])))

@@ -22,11 +22,10 @@ def graph_latency(n_robots: int, seconds: float = 60.0, rate_hz: float = 10.0, d
     a robot-step's time is the sum over its graphs. Direct estimates come on a random
     ``direct_share`` of the steps with the graph's own noise levels, 5 % of them 0.5 rad wrong.
     """
-    from ..algorithm import CerpeConfig
-    from ..algorithm.graph import DirectEstimate, PairGraph
+    from ..algorithm.graph import GRAPH_MODEL, DirectEstimate, PairGraph
     from ..algorithm.graph_sim import perturb, simulate_pair
 
-    conf = CerpeConfig().graph
+    conf = GRAPH_MODEL
     n_steps = max(int(round(seconds * rate_hz)), 2)
     rng = np.random.default_rng(seed)
     share = float(np.clip(direct_share if np.isfinite(direct_share) else 0.5, 0.02, 1.0))

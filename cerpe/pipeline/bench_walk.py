@@ -113,8 +113,9 @@ def _n_encoded(plugins: Any) -> int:
 
 
 def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
-         width: int, height: int) -> dict[str, Any]:
-    """Walk ``encounters`` with an ``n_robots`` team (first ``steps`` steps, all when None).
+         width: int, height: int, config: Any = None) -> dict[str, Any]:
+    """Walk ``encounters`` with an ``n_robots`` team (first ``steps`` steps, all when None) of
+    configuration ``config`` (None: the paper's protocol, :class:`~cerpe.algorithm.AlgorithmConfig`).
 
     Returns latency (ms), bytes, ego-motion per robot id and direct rotation errors; the
     plug-ins' caches are cleared first, so the figures are those of a cold start.
@@ -138,7 +139,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
     for enc in encounters:
         robots = enc.robots[:n_robots]
         ids = [r.robot_id for r in robots]
-        team = Team(ids, plugins.descriptor, plugins.backbone, plugins.depth)
+        team = Team(ids, plugins.descriptor, plugins.backbone, plugins.depth, config)
         T = enc.n_steps if steps is None else min(enc.n_steps, steps)
         X: dict[str, list[np.ndarray]] = {r: [] for r in ids}
         for t in tqdm(range(T), desc=f"bench {n_robots} robots {enc.name}", unit="step", leave=False):
@@ -216,12 +217,12 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
 
 
 def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
-               width: int, height: int) -> dict[str, Any]:
+               width: int, height: int, config: Any = None) -> dict[str, Any]:
     """Walk ``encounters`` cold with an ``n_robots`` team; latency/bytes/accuracy statistics."""
-    return summarise(walk(encounters, n_robots, plugins, steps, warmup, width, height), n_robots)
+    return summarise(walk(encounters, n_robots, plugins, steps, warmup, width, height, config), n_robots)
 
 
-def suite_accuracy(encounters: list, plugins: Any, width: int, height: int) -> dict[str, Any]:
+def suite_accuracy(encounters: list, plugins: Any, width: int, height: int, config: Any = None) -> dict[str, Any]:
     """Accuracy checks over every encounter, every step, with all of each encounter's robots.
 
     ``gate`` is :func:`~cerpe.pipeline.evaluate.gate_quality` of the descriptor gate over
@@ -232,7 +233,7 @@ def suite_accuracy(encounters: list, plugins: Any, width: int, height: int) -> d
 
     merged: dict[str, Any] = {"rot_direct": [], "ego": {}, "gate_rows": []}
     for enc in encounters:
-        w = walk([enc], len(enc.robots), plugins, None, 0, width, height)
+        w = walk([enc], len(enc.robots), plugins, None, 0, width, height, config)
         merged["rot_direct"] += w["rot_direct"]
         merged["gate_rows"] += w["gate_rows"]
         for r, v in w["ego"].items():

@@ -20,7 +20,7 @@ bytes per robot per step), the descriptor gate's quality per set, and the open i
 development checks (:func:`cerpe.pipeline.devreport.checks`: a verdict per check and set).
 
 Everything is cached and resumable under ``--out`` (default ``build/dev/``):
-``synth/<preset>/<world>-seed<N>/`` (rendered suites), ``manifests/`` (their manifests),
+``synth/<sizes>/<world>-seed<N>/`` (rendered suites), ``manifests/`` (their manifests),
 ``runs/<set>/<method>/`` (run folders as ``cerpe run`` writes them: a run of the current
 code and manifest is reused, one of older code is replaced). The report is written as
 ``report.{csv,md}``, ``report_gate.csv`` and ``report_checks.csv`` there; ``--label before`` also writes
@@ -92,12 +92,12 @@ def real_sets(manifests_dir: Path) -> list[DevSet]:
     return out
 
 
-def synth_conf(setting: str, preset: str, seed: int) -> tuple[str, dict]:
+def synth_conf(setting: str, sizes: str, seed: int) -> tuple[str, dict]:
     """``(world, generator arguments)`` of a development suite of a paper setting."""
     from ..synth import SUITES
 
     world = SUITES["paper-default"][setting][0]
-    base = SUITES["fixture"][setting][1] if preset == "fixture" else SYNTH_PRESETS[preset][setting]
+    base = SUITES["fixture"][setting][1] if sizes == "fixture" else SYNTH_PRESETS[sizes][setting]
     return world, {**base, "seed": int(seed)}
 
 
@@ -113,7 +113,7 @@ def _paper_manifest_fields(setting: str) -> dict:
             "evaluation": {"every": int(m.evaluation_every)}}
 
 
-def synthetic_set(setting: str, seed: int, preset: str, out: Path, progress: bool = True) -> DevSet:
+def synthetic_set(setting: str, seed: int, sizes: str, out: Path, progress: bool = True) -> DevSet:
     """Render (or find) one development suite and write its manifest; the set to run.
 
     The manifest is the generator's own (mocap layout) with the paper setting's
@@ -126,15 +126,15 @@ def synthetic_set(setting: str, seed: int, preset: str, out: Path, progress: boo
 
     if int(seed) == PAPER_SEED:
         raise DevError(f"seed {PAPER_SEED} is the paper-default suite (test data): use development seeds, e.g. 1")
-    world, conf = synth_conf(setting, preset, seed)
-    name = f"dev-{setting}-s{seed}" if preset == "dev" else f"dev-{preset}-{setting}-s{seed}"
-    folder = out / "synth" / preset / f"{world}-seed{seed}"
+    world, conf = synth_conf(setting, sizes, seed)
+    name = f"dev-{setting}-s{seed}" if sizes == "dev" else f"dev-{sizes}-{setting}-s{seed}"
+    folder = out / "synth" / sizes / f"{world}-seed{seed}"
     generated = Path(generate_suite(world, folder, conf, force=True, progress=progress, setting=name))
     doc = yaml.safe_load(generated.read_text())
     doc.update(_paper_manifest_fields(setting))
     doc["name"] = name
-    doc["data_root"] = f"../synth/{preset}/{world}-seed{seed}"
-    text = (f"# development set written by `cerpe dev`: {world} seed {seed} ({preset} sizes); "
+    doc["data_root"] = f"../synth/{sizes}/{world}-seed{seed}"
+    text = (f"# development set written by `cerpe dev`: {world} seed {seed} ({sizes} sizes); "
             f"not the paper-default suite\n" + yaml.safe_dump(doc, sort_keys=False))
     manifest = out / "manifests" / f"{name}.yaml"
     if not manifest.is_file() or manifest.read_text() != text:
@@ -142,22 +142,22 @@ def synthetic_set(setting: str, seed: int, preset: str, out: Path, progress: boo
     return DevSet(name, manifest, "ok")
 
 
-def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, profile: str,
-            progress: bool = True, overrides: dict | None = None) -> tuple[list[tuple[str, Path]], list[str]]:
+def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, preset: str = "paper",
+            progress: bool = True, knob_sets: dict | None = None) -> tuple[list[tuple[str, Path]], list[str]]:
     """Run (or reuse) every method on one set; ``(finished (set, run folder) pairs, errors)``.
-    ``overrides``: CerpeConfig fields of the cerpe methods (``cerpe dev --set``)."""
+    ``preset``, ``knob_sets``: the cerpe methods' configuration (``cerpe dev --preset``, ``--set``)."""
     from .run import load_manifest_setting, run_method
 
     done, errors, setting = [], [], None
     for m in methods:
         path = runs_root / s.name / m
         try:
-            ov = overrides if m in CERPE_METHODS else None
-            if not run_is_current(path, s.manifest, m, profile, ov):
+            ours = m in CERPE_METHODS
+            p, ov = (preset, knob_sets) if ours else ("paper", None)
+            if not run_is_current(path, s.manifest, m, p, ov):
                 setting = setting if setting is not None else load_manifest_setting(s.manifest)
                 t0 = time.perf_counter()
-                run_method(s.manifest, m, path, profile=profile, overwrite=True, progress=progress, setting=setting,
-                           overrides=ov)
+                run_method(s.manifest, m, path, preset=p, sets=ov, overwrite=True, progress=progress, setting=setting)
                 log.info("%s/%s: %.0f s", s.name, m, time.perf_counter() - t0)
             done.append((s.name, path))
         except CerpeError as exc:
@@ -171,11 +171,12 @@ def _selected(name: str, patterns: Sequence[str] | None) -> bool:
 
 
 def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequence[str] = METHODS,
-               sets: Sequence[str] | None = None, preset: str = "dev", real: bool = True,
-               manifests_dir: Path | None = None, profile: str = "offline", label: str | None = None,
-               progress: bool = True, echo=print, overrides: dict | None = None) -> dict:
-    """Build (or resume) every run of the report, evaluate, print and write it (``overrides``:
-    CerpeConfig fields of the cerpe methods' runs, recorded in each run.json and the report).
+               sets: Sequence[str] | None = None, synth: str = "dev", real: bool = True,
+               manifests_dir: Path | None = None, preset: str = "paper", label: str | None = None,
+               progress: bool = True, echo=print, knob_sets: dict | None = None) -> dict:
+    """Build (or resume) every run of the report, evaluate, print and write it (``preset``, ``knob_sets``:
+    the cerpe methods' configuration, recorded in each run.json and the report; ``synth``: the
+    synthetic suites' size).
 
     Returns ``{"table", "gate", "sets", "errors", "paths"}``; ``echo`` prints a line
     (each skipped set, the report).
@@ -189,22 +190,22 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
         raise DevError(f"--seeds: seed {PAPER_SEED} is the paper-default suite (test data); use development seeds")
     if any(int(s) < 0 for s in seeds):
         raise DevError(f"--seeds {' '.join(map(str, seeds))}: seeds are >= 1")
-    if preset not in SYNTH_PRESETS and preset != "none":
-        raise DevError(f"--synth {preset!r}: one of {', '.join([*SYNTH_PRESETS, 'none'])}")
+    if synth not in SYNTH_PRESETS and synth != "none":
+        raise DevError(f"--synth {synth!r}: one of {', '.join([*SYNTH_PRESETS, 'none'])}")
     out = Path(out)
     t0 = time.perf_counter()
     entries: list[DevSet] = []
     if real:
         entries += real_sets(Path(manifests_dir or ROOT / "datasets_manifest"))
     real_names = {e.name for e in entries}
-    if preset != "none":
+    if synth != "none":
         from ..synth import SUITES
 
         for seed in seeds:
             for setting in SUITES["paper-default"]:
-                name = f"dev-{setting}-s{seed}" if preset == "dev" else f"dev-{preset}-{setting}-s{seed}"
+                name = f"dev-{setting}-s{seed}" if synth == "dev" else f"dev-{synth}-{setting}-s{seed}"
                 if _selected(name, sets):
-                    entries.append(synthetic_set(setting, int(seed), preset, out, progress))
+                    entries.append(synthetic_set(setting, int(seed), synth, out, progress))
     entries = [e for e in entries if _selected(e.name, sets)]
     if sets and not entries:
         raise DevError(f"--sets {' '.join(sets)}: matches no development set")
@@ -213,14 +214,14 @@ def dev_report(out: Path, seeds: Sequence[int] = DEFAULT_SEEDS, methods: Sequenc
         if e.status != "ok":
             echo(f"{e.name}: skipped ({e.detail})")
             continue
-        done, errs = run_set(e, methods, out / "runs", profile, progress, overrides)
+        done, errs = run_set(e, methods, out / "runs", preset, progress, knob_sets)
         runs += done
         errors += errs
     table, gate = report(runs)
     check = checks(table, real=real_names)
     prov = {"git_revision": git_revision(), "code_cerpe": code_hash("cerpe"), "code_baselines": code_hash("sift-ransac"),
-            "profile": profile, "overrides": overrides or {},
-            "synthetic": {"preset": preset, "seeds": [int(s) for s in seeds]},
+            "preset": preset, "sets": knob_sets or {},
+            "synthetic": {"sizes": synth, "seeds": [int(s) for s in seeds]},
             "sets": {e.name: e.status + (f": {e.detail}" if e.detail else "") for e in entries},
             "methods": list(methods), "command": " ".join(sys.argv), "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
     text = format_text(table, gate, check)
@@ -253,12 +254,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-real", action="store_true", help="leave out the real development sets")
     p.add_argument("--manifests", type=Path, default=None,
                    help="folder of the real development manifests (default: the checkout's datasets_manifest/)")
-    p.add_argument("--profile", default="offline", help="backbone preset of the cerpe methods (default: offline)")
+    p.add_argument("--preset", default="paper", metavar="P",
+                   help="the cerpe methods' named configuration (default: paper); `cerpe config show --presets`")
     p.add_argument("--label", default=None,
                    help="also write report-LABEL.{csv,md} (e.g. before / after) beside report.{csv,md}")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets_config",
-                   help="a CerpeConfig field for the cerpe methods' runs, as `cerpe run --set` (repeatable; "
-                        "e.g. share_estimates=true); use its own --out, or the runs there are replaced")
+                   help="a knob of the cerpe methods' configuration, as `cerpe run --set` (repeatable; "
+                        "e.g. messages.share_estimates=true); use its own --out, or the runs there are replaced")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -268,8 +270,8 @@ def main(args: argparse.Namespace) -> int:
     from .run import parse_sets
 
     res = dev_report(args.out, args.seeds, args.methods, args.sets, args.synth, not args.no_real, args.manifests,
-                     args.profile, args.label, progress=not args.no_progress,
-                     overrides=parse_sets(args.sets_config) or None)
+                     args.preset, args.label, progress=not args.no_progress,
+                     knob_sets=parse_sets(args.sets_config) or None)
     for msg in res["errors"]:
         print(f"cerpe dev: error: {msg}", file=sys.stderr)
     return 1 if res["errors"] else 0

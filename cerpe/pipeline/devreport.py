@@ -40,6 +40,7 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
+from .runcheck import gate_tau
 from .evaluate import (REFERENCE_METHOD, RIGHT_ROT_RAD, Run, e_pos_on_reference_frames, frame_errors, gate_quality,
                        load_run, summarise)
 from .textfmt import md_table, text_table
@@ -138,8 +139,7 @@ def method_row(run: Run, set_name: str | None = None, frames: pd.DataFrame | Non
 
 def run_tau(run: Run) -> float | None:
     """The gate threshold ``tau`` a CERPE run recorded in ``run.json`` (None for the baselines)."""
-    tau = run.meta.get("config", {}).get("method_config", {}).get("cerpe", {}).get("tau")
-    return None if tau is None else float(tau)
+    return gate_tau(run.meta)
 
 
 def gate_row(run: Run, set_name: str | None = None) -> dict:

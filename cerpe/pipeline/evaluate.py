@@ -535,9 +535,10 @@ def check_consistent(runs: Iterable[Run]) -> None:
             raise EvalError(f"setting {r.setting!r}, method {r.method!r} given twice ({seen[key].path} and "
                             f"{r.path}); pass one run folder per setting and method")
         seen[key] = r
-    profiles = {r.meta.get("profile") for r in runs if r.metric_scale}
-    if len(profiles) > 1:
-        raise EvalError(f"refusing to aggregate CERPE runs of different profiles {sorted(map(str, profiles))}")
+    models = {r.meta.get("config", {}).get("method_config", {}).get("tree", {}).get("backbone", {}).get("models")
+              for r in runs if r.metric_scale}
+    if len(models) > 1:
+        raise EvalError(f"refusing to aggregate CERPE runs of different models {sorted(map(str, models))}")
     seeds = {int(r.meta.get("seed", 0)) for r in runs}
     if len(seeds) > 1:
         raise EvalError(f"refusing to aggregate runs with different seeds {sorted(seeds)}")

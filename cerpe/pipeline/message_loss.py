@@ -44,7 +44,7 @@ default_conf: dict[str, Any] = {
     "garble": 0.0,                   # probability that a frame that arrives is corrupted
     "loss_seeds": [1, 2],            # one run per seed and loss > 0; the frames of all seeds pooled
     "methods": ["cerpe", "cerpe-wo-em"],
-    "profile": "offline",            # backbone preset
+    "models": "offline",             # backbone.models of the runs (offline | paper)
     "seed": 0,                       # the runs' seed (as the lossless run's)
 }
 
@@ -88,7 +88,7 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
         raise MessageLossError(f"message_loss.max_steps {max_steps}: >= 1 (or None: every step)")
     manifest, runs = Path(paths["manifest"]), Path(paths["runs"])
     lossless = {m: Path(p) for m, p in (paths.get("lossless") or {}).items()}
-    preset = c["profile"]
+    sets = {} if c["models"] == "offline" else {"backbone.models": c["models"]}
 
     def sub_setting() -> Any:
         nonlocal setting
@@ -104,12 +104,12 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
         for s in (c["loss_seeds"] if p > 0 else [0]):
             for m in c["methods"]:
                 reuse = lossless.get(m)
-                if p == 0 and reuse is not None and run_is_current(reuse, manifest, m, preset):
+                if p == 0 and reuse is not None and run_is_current(reuse, manifest, m, sets=sets):
                     plan.append((m, p, -1, reuse))
                     continue
                 out = run_dir(runs, m, p, s)
-                if not run_is_current(out, manifest, m, preset):
-                    run_method(manifest, m, out, profile=preset, seed=int(c["seed"]), overwrite=True,
+                if not run_is_current(out, manifest, m, sets=sets):
+                    run_method(manifest, m, out, sets=sets, seed=int(c["seed"]), overwrite=True,
                                progress=progress, setting=sub_setting(),
                                loss=LossSpec(p, float(c["garble"]) if p > 0 else 0.0, int(s)))
                 plan.append((m, p, int(s), out))
@@ -220,7 +220,7 @@ def context_paths(ctx: Any, conf: dict | None = None) -> tuple[dict, dict]:
     c = merge_conf(default_conf, conf or {}, "message_loss")
     entry = _entry(ctx, c["setting"])
     lossless = {m: ctx.run_dirs[(entry.name, m)] for m in c["methods"] if (entry.name, m) in ctx.run_dirs}
-    return {**c, "profile": ctx.preset}, {"manifest": entry.run_manifest,
+    return {**c, "models": ctx.models}, {"manifest": entry.run_manifest,
                                           "runs": ctx.runs_root / entry.name / "message-loss", "lossless": lossless}
 
 

@@ -1,6 +1,6 @@
 """Build every table and figure of the paper (what ``make paper`` runs).
 
-Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture] [--jobs N]``
+Usage: ``cerpe paper [--models offline|paper] [--suite paper-default|fixture] [--jobs N]``
 
 1. every manifest in ``datasets_manifest/``: enabled ones are loaded (synthetic
    settings are generated on demand with the chosen suite); disabled ones are
@@ -16,8 +16,8 @@ Usage: ``cerpe paper [--profile default|paper] [--suite paper-default|fixture] [
    fingerprints, notebooks, evaluation/plotting code, parameters) is unchanged
    and every output exists, the notebooks are not executed again.
 
-``--profile`` selects the backbone preset (``default`` = ``offline``, runs here;
-``paper`` = VGGT + SALAD/DINOv2 + Metric3Dv2 with user-supplied weights).
+``--models`` sets ``backbone.models`` of every CERPE run (``offline``: the stand-ins that run here;
+``paper``: VGGT + SALAD/DINOv2 + Metric3Dv2 with user-supplied weights).
 ``--suite fixture`` is the tiny suite the tests use; it writes to
 ``build/fixture/{runs,figures,tables}`` and never touches the paper outputs.
 
@@ -46,7 +46,7 @@ from .evaluate import (GATE_OVERLAP, EvalError, covisibility_pairs, evaluate_run
                        sigma_calibration)
 from .methods import BASELINE_METHODS, METHOD_LABELS, UNAVAILABLE
 from .run import run_method
-from .runcheck import run_is_current
+from .runcheck import gate_tau, run_is_current
 from .table1 import EXPECTED_TABLES
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.c
                                     "calibration.csv",  # notebook 05
                                     "message_loss.csv", "message_loss.md",  # notebook 06
                                     "pareto.csv", "pareto.md")  # notebook 07
-PRESETS = {"default": "offline", "offline": "offline", "paper": "paper"}
+MODELS: tuple[str, ...] = ("offline", "paper")  # backbone.models of the CERPE runs
 SYNTHETIC_ORDER = ("cad-intersection", "indoor-team")
 
 
@@ -93,7 +93,7 @@ class SettingEntry:
 class PaperContext:
     profile: str
     suite: str
-    preset: str
+    models: str
     runs_root: Path
     figures_dir: Path
     tables_dir: Path
@@ -107,14 +107,25 @@ class PaperContext:
     def ok_settings(self) -> list[SettingEntry]:
         return [s for s in self.settings if s.status == "ok"]
 
+    @property
+    def sets(self) -> dict[str, Any]:
+        """The knobs every CERPE run of the context sets besides its preset."""
+        return {} if self.models == "offline" else {"backbone.models": self.models}
 
-def _layout(profile: str, preset: str, root: Path) -> dict[str, Path]:
+    def sets_of(self, method: str) -> dict[str, Any] | None:
+        """:attr:`sets` for a CERPE method, None for a baseline."""
+        from .methods import CERPE_METHODS
+
+        return self.sets if method in CERPE_METHODS else None
+
+
+def _layout(profile: str, models: str, root: Path) -> dict[str, Path]:
     if profile == "fixture":
         base = root / "build" / "fixture"
-        return {"runs": base / "runs" / preset, "figures": base / "figures", "tables": base / "tables",
+        return {"runs": base / "runs" / models, "figures": base / "figures", "tables": base / "tables",
                 "notebooks": base / "notebooks", "manifests": base / "manifests"}
     if profile == "paper-default":
-        runs = root / "build" / "runs" if preset == "offline" else root / "build" / f"runs-{preset}"
+        runs = root / "build" / "runs" if models == "offline" else root / "build" / f"runs-{models}"
         return {"runs": runs, "figures": root / "figures", "tables": root / "tables",
                 "notebooks": root / "build" / "notebooks", "manifests": root / "build" / "manifests" / profile}
     raise PaperError(f"unknown notebook profile {profile!r}; use 'fixture' or 'paper-default'")
@@ -177,7 +188,7 @@ def _ensure_loaded(e: SettingEntry) -> bool:
     return e.status == "ok"
 
 
-def context(profile: str = "fixture", preset: str = "offline", build: bool = True,
+def context(profile: str = "fixture", models: str = "offline", build: bool = True,
             methods: Sequence[str] = RUN_METHODS, root: Path | None = None, progress: bool = True,
             validate: bool = False) -> PaperContext:
     """Locate (and with ``build``, create or resume) every run of a notebook profile.
@@ -188,10 +199,11 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
     enabled setting even when its runs are cached (surfaces data errors).
     """
     root = Path(root or ROOT)
-    preset = PRESETS.get(preset, preset)
-    lay = _layout(profile, preset, root)
+    if models not in MODELS:
+        raise PaperError(f"unknown models {models!r}; known: {', '.join(MODELS)}")
+    lay = _layout(profile, models, root)
     suite = "fixture" if profile == "fixture" else "paper-default"
-    ctx = PaperContext(profile, suite, preset, lay["runs"], lay["figures"], lay["tables"], lay["notebooks"])
+    ctx = PaperContext(profile, suite, models, lay["runs"], lay["figures"], lay["tables"], lay["notebooks"])
     ctx.settings = discover_settings(profile, suite, root / "datasets_manifest", lay["manifests"], load=validate)
     for e in ctx.settings:
         if e.status != "ok":
@@ -199,12 +211,12 @@ def context(profile: str = "fixture", preset: str = "offline", build: bool = Tru
         for m in methods:
             out = ctx.runs_root / e.name / m
             ctx.run_dirs[(e.name, m)] = out
-            if not build or run_is_current(out, e.run_manifest, m, preset):
+            if not build or run_is_current(out, e.run_manifest, m, sets=ctx.sets_of(m)):
                 continue
             try:
                 if not _ensure_loaded(e):
                     break
-                run_method(e.run_manifest, m, out, profile=preset, overwrite=True, progress=progress,
+                run_method(e.run_manifest, m, out, sets=ctx.sets_of(m), overwrite=True, progress=progress,
                            setting=e.setting)
             except CerpeError as exc:
                 msg = f"{e.name}/{m}: {exc}"
@@ -388,9 +400,7 @@ def calibration_data(ctx: PaperContext, n_bins: int = 6) -> dict:
 
 def _run_tau(run_dir: Path, method: str) -> float | None:
     """The gate threshold a CERPE run used (``run.json``), or None."""
-    meta = json.loads((run_dir / "run.json").read_text())
-    tau = meta.get("config", {}).get("method_config", {}).get(method, {}).get("tau")
-    return None if tau is None else float(tau)
+    return gate_tau(json.loads((run_dir / "run.json").read_text()))
 
 
 def gate_data(ctx: PaperContext, method: str = "cerpe") -> dict:
@@ -463,7 +473,7 @@ def expected_outputs(ctx: PaperContext) -> list[Path]:
 
 def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
     """Execute the notebooks with papermill unless inputs and outputs are unchanged. Returns True if run."""
-    params = {"PROFILE": ctx.profile, "PRESET": ctx.preset}
+    params = {"PROFILE": ctx.profile, "MODELS": ctx.models}
     fp = _inputs_fingerprint(ctx, params)
     stamp = ctx.notebooks_dir / "inputs.json"
     if not force and stamp.exists() and all(p.exists() for p in expected_outputs(ctx)):
@@ -492,13 +502,12 @@ def run_notebooks(ctx: PaperContext, force: bool = False) -> bool:
     return True
 
 
-def build_paper(profile_preset: str = "default", suite: str = "paper-default", force_notebooks: bool = False,
+def build_paper(models: str = "offline", suite: str = "paper-default", force_notebooks: bool = False,
                 progress: bool = True, jobs: int = 2) -> PaperContext:
     """Every run, then the notebooks. With ``jobs`` > 1 (paper-default only) the runs go to that many
     worker processes (:mod:`cerpe.pipeline.schedule`); the results are the same as with one."""
     nb_profile = "fixture" if suite == "fixture" else "paper-default"
-    preset = PRESETS.get(profile_preset, profile_preset)
-    if preset == "paper":  # one error listing what is missing, before any work
+    if models == "paper":  # one error listing what is missing, before any work
         from ..backbones.paper_profile import require_paper
 
         require_paper()
@@ -506,11 +515,11 @@ def build_paper(profile_preset: str = "default", suite: str = "paper-default", f
     if pool:  # the synthetic worlds render side by side (an error surfaces when context loads it below)
         from .schedule import Job, load_job, run_jobs
 
-        lay = _layout(nb_profile, preset, ROOT)
+        lay = _layout(nb_profile, models, ROOT)
         synth = [e for e in discover_settings(nb_profile, nb_profile, ROOT / "datasets_manifest", lay["manifests"],
                                               load=False) if e.world and e.status == "ok"]
         run_jobs([Job(f"{e.name}/render", load_job, (e.run_manifest,)) for e in synth], int(jobs), progress)
-    ctx = context(nb_profile, preset=preset, build=not pool, progress=progress, validate=True)
+    ctx = context(nb_profile, models=models, build=not pool, progress=progress, validate=True)
     t0 = time.perf_counter()
     if pool:
         from .schedule import paper_jobs
@@ -533,8 +542,9 @@ def build_paper(profile_preset: str = "default", suite: str = "paper-default", f
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--profile", default="default", choices=sorted(PRESETS),
-                   help="backbone preset: default/offline (runs here) or paper (needs user weights)")
+    p.add_argument("--models", default="offline", choices=MODELS,
+                   help="backbone.models of every CERPE run: offline (the stand-ins that run here) or paper "
+                        "(VGGT + SALAD/DINOv2 + Metric3Dv2, needs your weights: docs/PAPER_MODELS.md)")
     p.add_argument("--suite", default="paper-default", choices=("paper-default", "fixture"),
                    help="synthetic suite size; fixture writes to build/fixture/ only")
     p.add_argument("--force-notebooks", action="store_true", help="execute the notebooks even if nothing changed")
@@ -550,7 +560,7 @@ def main(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         print(f"cerpe paper: error: --jobs {args.jobs}: at least 1", file=sys.stderr)
         return 2
-    ctx = build_paper(args.profile, args.suite, args.force_notebooks, progress=not args.no_progress, jobs=args.jobs)
+    ctx = build_paper(args.models, args.suite, args.force_notebooks, progress=not args.no_progress, jobs=args.jobs)
     print(f"tables:    {ctx.tables_dir}")
     print(f"figures:   {ctx.figures_dir}")
     print(f"notebooks: {ctx.notebooks_dir}")

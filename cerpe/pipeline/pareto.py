@@ -1,25 +1,23 @@
-"""Bytes against accuracy (issue 21 item 5a): the Pareto table and the runs behind it.
+"""Bytes against accuracy: the Pareto table and the runs behind it.
 
 Schemes, each a point of bytes per robot per step against e_rot / e_pos:
 
 * ``paper``: the paper's protocol (gate, then an image request every time it opens):
   the ``cerpe`` runs Table I already made, read on the same encounters, never re-run;
-* :data:`PARETO_SETTINGS`: CERPE with configuration overrides, run on a small subset
-  of each setting's encounters (``n_encounters`` per setting, the first ones) to keep
-  ``make paper`` cheap: ``always`` (an image to every peer at every step: the
-  always-send reference) and ours at several settings
-  (about a minute of ``make paper`` each);
+* :data:`PARETO_PRESETS`: CERPE at other named presets (:data:`cerpe.method_config.PRESETS`),
+  run on a small subset of each setting's encounters (``n_encounters`` per setting, the first
+  ones) to keep ``make paper`` cheap: ``always`` (an image to every peer at every step: the
+  always-send reference) and ours at several settings;
 * the per-frame baselines (images every step, as always-send) where their runs exist.
 
 Runs of the settings live beside the method runs, ``<runs>/<setting>/pareto-<name>/``,
-cached and resumed like every run (a changed override is a new run). Plain functions;
+cached and resumed like every run (a changed preset is a new run). Plain functions;
 the figure is :func:`cerpe.plotting.pareto_figure`, the notebook ``07_pareto``.
 """
 from __future__ import annotations
 
 import dataclasses
 import fnmatch
-import json
 import logging
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -29,21 +27,13 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, read_json
 from ..errors import CerpeError
-from ..algorithm.config import COMPRESSED_MESSAGES, LEAN
 from .evaluate import frame_errors, load_run, summarise
 from .runcheck import run_is_current
 
 log = logging.getLogger(__name__)
 
-# The Pareto settings: name -> CerpeConfig overrides (strict: unknown keys are errors). One line each.
-PAYS = {"mode": "pays"}  # thresholds: PolicyConfig's defaults (tuned on development data)
-PARETO_SETTINGS: dict[str, dict] = {
-    "always": {"request_policy": {"mode": "always"}},
-    "pays": {"request_policy": PAYS},
-    "pays-compressed": {"request_policy": PAYS, **COMPRESSED_MESSAGES},  # pca-int8 descriptor, WebP-75 replies
-    "lean": LEAN,  # ours at its leanest: pays + back-off from gates whose images place nothing + recheck, compressed
-    # each further line costs about a minute of `make paper` (one encounter per synthetic setting); at most 4
-}
+# The presets of the Pareto figure besides the paper's (each costs about a minute of `make paper`; at most 4)
+PARETO_PRESETS: tuple[str, ...] = ("always", "pays", "pays-compressed", "lean")
 PARETO_LABELS: dict[str, str] = {
     "paper": "paper's protocol (gate, request every time)",
     "always": "always send (image to every peer, every step)",
@@ -75,26 +65,26 @@ def run_dir(runs_root: Path, setting: str, scheme: str) -> Path:
     return Path(runs_root) / setting / f"pareto-{scheme}"
 
 
-def is_current(path: Path, manifest: Path, profile: str, overrides: Mapping, encounters: Sequence[str]) -> bool:
-    """A finished run of the current code and manifest with these overrides and encounters."""
+def is_current(path: Path, manifest: Path, preset: str, knob_sets: Mapping | None, encounters: Sequence[str]) -> bool:
+    """A finished run of the current code and manifest with this preset, these knobs and encounters."""
     try:
         cfg = read_json(path / "run.json", "run.json")["config"]
     except (AtomicIOError, KeyError, OSError):
         return False
-    return (json.dumps(cfg.get("overrides"), sort_keys=True) == json.dumps(dict(overrides), sort_keys=True)
-            and list(cfg.get("encounters", [])) == list(encounters)
-            and run_is_current(path, manifest, "cerpe", profile, dict(overrides) or None))
+    return (list(cfg.get("encounters", [])) == list(encounters)
+            and run_is_current(path, manifest, "cerpe", preset, knob_sets))
 
 
-def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profile: str = "offline",
-                schemes: Mapping[str, dict] | None = None, n_encounters: int | None = N_ENCOUNTERS,
+def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, knob_sets: Mapping | None = None,
+                schemes: Sequence[str] | None = None, n_encounters: int | None = N_ENCOUNTERS,
                 build: bool = True, progress: bool = True,
                 only: Sequence[str] | None = None) -> tuple[list[SchemeRun], list[str]]:
     """Run (or find) every Pareto setting on the first ``n_encounters`` encounters of each set.
 
     Args:
         sets: ``(name, manifest, Setting or None)``; a None setting is loaded when a run is needed.
-        schemes: name -> overrides (default :data:`PARETO_SETTINGS`).
+        knob_sets: dotted knobs every run takes besides its preset (``cerpe paper --set``).
+        schemes: preset names (default :data:`PARETO_PRESETS`).
         n_encounters: encounters per set (None: all).
         only: keep the encounters whose name matches one of these shell patterns (before
             ``n_encounters``; a set none of whose encounters match is left out).
@@ -106,11 +96,11 @@ def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profi
     """
     from .run import load_manifest_setting, run_method
 
-    schemes = PARETO_SETTINGS if schemes is None else schemes
+    schemes = PARETO_PRESETS if schemes is None else tuple(schemes)
     out, errors = [], []
     for name, manifest, setting in sets:
         manifest = Path(manifest)
-        for scheme, overrides in schemes.items():
+        for scheme in schemes:
             path = run_dir(runs_root, name, scheme)
             try:
                 if setting is None and (build or not (path / "run.json").exists()):
@@ -125,13 +115,13 @@ def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, profi
                             continue
                     encs = encs if n_encounters is None else encs[:int(n_encounters)]
                     wanted = [e.name for e in encs]
-                if not is_current(path, manifest, profile, overrides, wanted):
+                if not is_current(path, manifest, scheme, knob_sets, wanted):
                     if not build:
                         errors.append(f"{name}/pareto-{scheme}: no current run under {path}")
                         continue
                     sub = dataclasses.replace(setting, encounters=encs)
-                    run_method(manifest, "cerpe", path, profile=profile, overwrite=True, progress=progress,
-                               setting=sub, overrides=overrides)
+                    run_method(manifest, "cerpe", path, preset=scheme, sets=knob_sets, overwrite=True,
+                               progress=progress, setting=sub)
                 out.append(SchemeRun(name, scheme, path))
             except (CerpeError, KeyError) as exc:
                 errors.append(f"{name}/pareto-{scheme}: {exc}")
@@ -201,7 +191,7 @@ def pareto_table(runs: Sequence[SchemeRun]) -> pd.DataFrame:
                                                             else "image_bytes"]
         num = t["bytes_per_robot_step"] if ref == "always" else t["image_bytes"]
         t[col] = num / t["setting"].map(base).replace(0, np.nan)
-    order = {k: i for i, k in enumerate(["always", "paper", *PARETO_SETTINGS, *BASELINES])}
+    order = {k: i for i, k in enumerate(["always", "paper", *PARETO_PRESETS, *BASELINES])}
     t["_o"] = t["scheme"].map(lambda s: order.get(s, len(order)))
     t = t.sort_values(["setting", "_o"], key=lambda c: c if c.name == "_o" else c.map(lambda v: (v == "all", v)))
     return t.drop(columns="_o").reset_index(drop=True)
@@ -266,7 +256,7 @@ def context_runs(ctx: Any, build: bool = False, progress: bool = True,
     ``build``) or found on its synthetic settings' first encounters, the paper protocol and the
     baselines read from the context's runs on the same encounters."""
     sets = [(e.name, e.run_manifest, e.setting) for e in ctx.ok_settings if e.world]  # synthetic only
-    runs, errors = scheme_runs(sets, ctx.runs_root, profile=ctx.preset, n_encounters=n_encounters, build=build,
+    runs, errors = scheme_runs(sets, ctx.runs_root, knob_sets=ctx.sets, n_encounters=n_encounters, build=build,
                                progress=progress)
     for r in list(runs):
         if r.scheme != "always":

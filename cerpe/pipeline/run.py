@@ -1,13 +1,16 @@
 """Run one method on every encounter of a dataset manifest and write a run folder.
 
-Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--profile offline] [--loss P [--garble P] [--loss-seed N]]
-[--set KEY=VALUE ...]``
+Usage: ``cerpe run MANIFEST --method M --out RUNDIR [--preset P] [--set KEY=VALUE ...]
+[--loss P [--garble P] [--loss-seed N]]``
 
 Methods: ``cerpe`` (Algorithm 1), ``cerpe-wo-em`` (no ego-motion propagation:
 only direct estimates), ``cerpe-graph`` (our extension: the same messages, a robust
 pose graph per pair instead of the switch, with covariances), ``sift-ransac`` and ``aliked-lightglue`` (per pair and
 frame, no scale; ``aliked-lightglue`` stands in for the paper's SuperGlue row),
 and ``nope`` / ``co-visnet``, which exit with "not available offline".
+The cerpe methods' configuration is the tree of :mod:`cerpe.method_config`: a named ``--preset``
+(default ``paper``), the method's own override, then ``--set`` dotted keys (``--set
+backbone.models=paper``, ``--set anchors.rot_tol_rad=0.2``), all recorded in ``run.json``.
 ``--loss`` / ``--garble`` run the cerpe methods' robots over the in-process lossy
 channel (:class:`cerpe.transport.LossSpec`, recorded in ``run.json``).
 
@@ -24,8 +27,9 @@ The run folder (see ``docs/ARCHITECTURE.md``)::
 
 Every file is written to a temporary name and renamed. A rerun skips finished
 encounters and recomputes unfinished ones (an interrupted run continues). A
-folder whose ``run.json`` fingerprint differs (other method, parameters, profile,
-seed, manifest or code) is refused unless ``--overwrite`` is given.
+folder whose ``run.json`` fingerprint differs (other method, configuration,
+seed, manifest or code) is refused unless ``--overwrite`` is given, and so is one written by
+an older version of cerpe (another run format).
 """
 from __future__ import annotations
 
@@ -37,10 +41,11 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from .. import knobs
 from ..atomicio import AtomicIOError, atomic_write_json, atomic_write_text, ensure_dir, read_json
 from ..tum import format_tum, format_tum_cov
 from ..errors import CerpeError
@@ -52,7 +57,7 @@ from .provenance import code_hash, config_dict, file_digest, fingerprint, git_re
 
 log = logging.getLogger(__name__)
 
-RUN_FORMAT = 1
+RUN_FORMAT = 2
 
 
 class RunError(CerpeError, ValueError):
@@ -63,80 +68,64 @@ class RunError(CerpeError, ValueError):
 StepSource = Callable[[Any], Iterator[StepResult]]
 
 
-def prepare_method(method: str, profile: str, seed: int, metric_depth: str | None = None,
+def prepare_method(method: str, seed: int, metric_depth: str | None = None,
                    every: int = 1, depth_options: dict | None = None,
-                   channel: LossSpec | None = None, overrides: dict | None = None) -> tuple[dict, StepSource]:
+                   channel: LossSpec | None = None, preset: str = "paper",
+                   sets: Mapping[str, Any] | None = None) -> tuple[dict, StepSource]:
     """Build a method once: its parameters (for run.json and the fingerprint) and its stepper.
 
     ``metric_depth`` is the setting's depth source (manifest ``metric_depth``) for
-    the cerpe methods; None keeps the preset's default; ``depth_options`` its
+    the cerpe methods; None keeps the models' default; ``depth_options`` its
     keyword options (manifest ``metric_depth_options``); ``channel`` the lossy
     channel of the cerpe methods (None: lossless). ``every`` is the
     setting's evaluation stride: per-frame baselines only compute evaluated steps
-    (CERPE runs every step: its odometry and propagation need them). ``overrides``:
-    :class:`~cerpe.algorithm.CerpeConfig` fields merged strictly into the method's
-    configuration (cerpe methods only; e.g. ``{"request_policy": {"mode": "pays"}}``).
+    (CERPE runs every step: its odometry and propagation need them). ``preset`` and ``sets``
+    (dotted keys): the cerpe methods' configuration tree (:func:`cerpe.method_config.build`).
 
     Raises :class:`~cerpe.pipeline.methods.MethodUnavailable` for ``nope`` / ``co-visnet``.
     """
     check_method(method)
-    if overrides and method not in CERPE_METHODS:
-        raise RunError(f"method {method!r}: configuration overrides apply to the cerpe methods only")
+    if (sets or preset != "paper") and method not in CERPE_METHODS:
+        raise RunError(f"method {method!r}: --preset and --set configure the cerpe methods only")
     if method in BASELINE_METHODS:
         if channel is not None and not channel.lossless:
             raise RunError(f"--loss/--garble: {method} exchanges no messages (a per-frame baseline); "
                            f"only the cerpe methods run over the lossy channel")
         steps, conf = _baseline_steps(method, seed, every)
         return {"baseline": conf, "image_exchange": "always (JPEG quality 90)"}, steps
-    return _cerpe_steps(method, profile, seed, metric_depth, depth_options, channel or LossSpec(), overrides)
+    return _cerpe_steps(method, seed, metric_depth, depth_options, channel or LossSpec(), preset, sets)
 
 
-def _conf_of(obj: Any) -> Any:
-    conf = getattr(obj, "conf", None)
-    if conf is None:
-        conf = getattr(obj, "config", None)
-    return config_dict(conf) if conf is not None else type(obj).__name__
-
-
-def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
-                             depth_options: dict | None = None, overrides: dict | None = None) -> tuple[Any, Any, dict]:
-    """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
+def cerpe_plugins_and_config(method: str, metric_depth: str | None, depth_options: dict | None = None,
+                             preset: str = "paper", sets: Mapping[str, Any] | None = None) -> tuple[Any, Any, dict]:
+    """Plug-ins, resolved :class:`~cerpe.method_config.CerpeConfig` and the run.json parameters of a CERPE method.
 
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
     """
-
-    from .. import algorithm
+    from .. import method_config
     from ..backbones.build import build_plugins
 
-    plugins = build_plugins(profile, {"depth_conf": dict(depth_options or {})}, depth=metric_depth)
-    # Without any metric depth (e.g. RGB-only data) poses stay up to scale: evaluated at GT scale only.
-    cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method != "cerpe-wo-em"),
-                              backend="graph" if method == "cerpe-graph" else "switch",
-                              unit_scale_without_depth=(metric_depth == "none"))
-    if overrides:
-        from ..config import ConfigError, merge_conf
-
-        try:
-            cfg = algorithm.CerpeConfig(**merge_conf(cfg.as_dict(), overrides, "cerpe config"))
-        except ConfigError as exc:
-            raise RunError(str(exc)) from None
-    cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
+    try:
+        tree = method_config.build(preset, method, sets)
+    except method_config.ConfigError as exc:
+        raise RunError(str(exc)) from None
+    plugins = build_plugins(tree.backbone, depth=metric_depth, depth_options=depth_options)
+    cfg = tree.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
-        "cerpe": config_dict(cfg), "preset": profile,
-        "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
-                    "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__),
-                    "depth_options": dict(depth_options or {})},
+        "tree": config_dict(knobs.as_dict(cfg)), "preset": preset, "sets": config_dict(dict(sets or {})),
+        "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__),
+        "depth_options": config_dict(dict(depth_options or {})),
     }
     return plugins, cfg, conf
 
 
-def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
-                 depth_options: dict | None = None, loss: LossSpec = LossSpec(),
-                 overrides: dict | None = None) -> tuple[dict, StepSource]:
-    """Algorithm 1 with the plug-ins of preset ``profile``; ``cerpe-wo-em`` never propagates."""
+def _cerpe_steps(method: str, seed: int, metric_depth: str | None, depth_options: dict | None = None,
+                 loss: LossSpec = LossSpec(), preset: str = "paper",
+                 sets: Mapping[str, Any] | None = None) -> tuple[dict, StepSource]:
+    """Algorithm 1 with the configuration tree of ``preset``, ``method`` and ``sets``."""
     from .. import algorithm
 
-    plugins, cfg, conf = cerpe_plugins_and_config(method, profile, metric_depth, depth_options, overrides)
+    plugins, cfg, conf = cerpe_plugins_and_config(method, metric_depth, depth_options, preset, sets)
     conf["channel"] = loss.as_dict()
 
     # Propagation and the pose graph feed nothing back (anchors come only from direct
@@ -146,18 +135,21 @@ def _cerpe_steps(method: str, profile: str, seed: int, metric_depth: str | None,
     # propagated estimates removed, "cerpe-graph" the pass itself. A CERPE method run
     # after another in the same process reuses the pass (tests/test_pipeline_woem.py
     # checks each view against a real run of that configuration).
-    pass_cfg = dataclasses.replace(cfg, propagate=True, backend="graph")
+    backend = cfg.backend
+    pass_cfg = dataclasses.replace(cfg, backend=dataclasses.replace(backend, propagate=True, kind="graph"))
     # ... unless something reads the graph back: the "pays" request policy reads its sigma
-    shared = ((cfg.propagate, cfg.backend) in ((True, "switch"), (False, "switch"), (True, "graph"))
-              and cfg.request_policy.mode in ("gate", "always"))
-    pass_key = json.dumps({**conf, "cerpe": {**conf["cerpe"], "propagate": None, "backend": None}},
+    shared = ((backend.propagate, backend.kind) in ((True, "switch"), (False, "switch"), (True, "graph"))
+              and cfg.policy.mode in ("gate", "always"))
+    tree = conf["tree"]
+    pass_key = json.dumps({**conf, "sets": None, "tree": {**tree, "backend": {**tree["backend"], "propagate": None,
+                                                                              "kind": None}}},
                           sort_keys=True, default=str)
 
     def view(res: StepResult) -> StepResult:
-        if cfg.backend == "graph":
+        if backend.kind == "graph":
             return res
         res = switch_view(res)
-        return res if cfg.propagate else without_propagation(res)
+        return res if backend.propagate else without_propagation(res)
 
     def steps(encounter: Any) -> Iterator[StepResult]:
         channel = None if loss.lossless else loss.channel(encounter.robot_ids, encounter.name)
@@ -398,17 +390,18 @@ def evaluation_every(setting: Any, manifest: Path | None = None) -> int:
     return every
 
 
-def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: str = "offline",
-               seed: int = 0, overwrite: bool = False, progress: bool = True,
-               setting: Any = None, loss: LossSpec | None = None, overrides: dict | None = None) -> Path:
+def run_method(manifest: Path | str, method: str, out: Path | str, *, preset: str = "paper",
+               sets: Mapping[str, Any] | None = None, seed: int = 0, overwrite: bool = False, progress: bool = True,
+               setting: Any = None, loss: LossSpec | None = None) -> Path:
     """Run ``method`` on every encounter of ``manifest`` into run folder ``out``.
 
-    ``loss``: the cerpe methods' robots talk over a lossy channel (None: lossless).
+    ``preset``, ``sets``: a cerpe method's configuration tree (dotted keys; recorded in ``run.json``;
+    see :func:`prepare_method`). ``loss``: the cerpe methods' robots talk over a lossy channel (None:
+    lossless).
 
     Finished encounters (``DONE.json`` with this fingerprint) are skipped; a
-    folder from another configuration raises :class:`RunError` unless
-    ``overwrite`` (then it is replaced). ``overrides``: CerpeConfig fields for a cerpe
-    method (recorded in ``run.json``; see :func:`prepare_method`). Returns ``out``.
+    folder from another configuration or an older run format raises :class:`RunError` unless
+    ``overwrite`` (then it is replaced). Returns ``out``.
     """
     check_method(method)
     if int(seed) < 0:
@@ -430,24 +423,28 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
 
     depth = getattr(setting, "metric_depth", None)
     try:
-        mconf, steps = prepare_method(method, profile, seed, depth, every,
-                                      getattr(setting, "metric_depth_options", None), **lossy,
-                                      **({"overrides": overrides} if overrides else {}))
+        mconf, steps = prepare_method(method, seed, depth, every, getattr(setting, "metric_depth_options", None),
+                                      **lossy, **({"preset": preset} if preset != "paper" else {}),
+                                      **({"sets": dict(sets)} if sets else {}))
     except DepthSourceError as exc:  # the manifest's depth source: name the file and its fields
         raise RunError(f"{manifest}: metric_depth {depth!r} / metric_depth_options: {exc}") from None
     config = {
-        "format": RUN_FORMAT, "method": method, "profile": profile if method in CERPE_METHODS else "n/a",
+        "format": RUN_FORMAT, "method": method, "preset": preset if method in CERPE_METHODS else "n/a",
         "seed": int(seed), "setting": setting.name, "manifest_sha": file_digest(manifest),
         "encounters": [e.name for e in setting.encounters], "evaluation_every": every,
         "method_config": mconf, "code": code_hash(method),
         "torch_threads": torch_threads(),  # a CPU convolution's last bits depend on it (cerpe.threads)
     }
-    if overrides:
-        config["overrides"] = overrides
+    if sets:
+        config["sets"] = config_dict(dict(sets))
     fp = fingerprint(config)
     run_json = out / "run.json"
     if run_json.exists():
         old = read_json(run_json, "run.json")
+        fmt = old.get("config", {}).get("format")
+        if fmt != RUN_FORMAT and not overwrite:
+            raise RunError(f"{run_json}: written by another version of cerpe (run format {fmt}, this one writes "
+                           f"{RUN_FORMAT}); rerun with --overwrite to replace it, or choose another --out")
         if old.get("fingerprint") != fp:
             if not overwrite:
                 diff = sorted(k for k in config if old.get("config", {}).get(k) != config[k])
@@ -466,7 +463,7 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, profile: s
         "metric_scale": method in CERPE_METHODS and getattr(setting, "metric_depth", None) != "none",
         "manifest": str(manifest),
         "package_versions": package_versions(), "git_revision": git_revision(), "seed": int(seed),
-        "profile": config["profile"], "setting": setting.name, "command": " ".join(sys.argv),
+        "preset": config["preset"], "setting": setting.name, "command": " ".join(sys.argv),
         "channel": mconf.get("channel", "n/a"),
     })
     from tqdm import tqdm
@@ -499,8 +496,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "aliked-lightglue "
                         "(SuperGlue stand-in) | nope, co-visnet (not available offline)")
     p.add_argument("--out", required=True, type=Path, help="run folder to write (resumed when it exists)")
-    p.add_argument("--profile", default="offline",
-                   help="backbone preset for the cerpe methods (default: offline; paper needs user weights)")
+    p.add_argument("--preset", default="paper", metavar="P",
+                   help="cerpe methods: a named configuration (default: paper, the paper's protocol); "
+                        "`cerpe config show --presets` lists them")
     p.add_argument("--seed", type=int, default=0, help="random seed (RANSAC; the lossy channel's unless --loss-seed)")
     p.add_argument("--loss", type=float, default=0.0, metavar="P",
                    help="cerpe methods: run the robots over the in-process lossy channel, each frame (descriptor, "
@@ -515,35 +513,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seed of the channel's draws (default: --seed); the same seed reproduces the run bit for "
                         "bit, another seed draws other losses")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
-                   help="cerpe methods: a CerpeConfig field (dotted for a sub-config: request_policy.mode=pays; "
-                        "the value is YAML: true, 0.3, [1, 2]); repeatable. Unknown keys are errors that list the "
-                        "known ones; recorded in run.json (config.overrides), part of the run's fingerprint. "
-                        "E.g. --set share_estimates=true (our extension: robots share their direct estimates)")
+                   help="cerpe methods: one knob of the configuration tree by its dotted path, the value as YAML "
+                        "(true, 0.3, paper), e.g. --set policy.mode=pays, --set backbone.models=paper; repeatable. "
+                        "`cerpe config show` lists every knob; an unknown key is an error listing the known ones. "
+                        "Recorded in run.json, part of the run's fingerprint")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a run folder written with another configuration instead of refusing")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def parse_sets(items: Sequence[str]) -> dict:
-    """``--set KEY=VALUE`` arguments -> nested overrides (dotted keys nest; values parsed as YAML)."""
+def parse_sets(items: Sequence[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` arguments -> ``{"dotted.key": value}`` (values parsed as YAML; the last of a key wins).
+
+    The keys are checked against the tree when the configuration is built (:func:`cerpe.method_config.build`).
+    """
     import yaml
 
-    out: dict = {}
+    out: dict[str, Any] = {}
     for item in items:
         key, sep, raw = str(item).partition("=")
         parts = [k.strip() for k in key.split(".")]
         if not sep or not all(parts):
-            raise RunError(f"--set {item!r}: expected KEY=VALUE, e.g. share_estimates=true")
+            raise RunError(f"--set {item!r}: expected KEY=VALUE with a dotted key, e.g. policy.mode=pays")
         try:
             value = yaml.safe_load(raw)
         except yaml.YAMLError as exc:
             raise RunError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})") from None
-        node = out
-        for k in parts[:-1]:
-            node = node.setdefault(k, {})
-            if not isinstance(node, dict):
-                raise RunError(f"--set {item!r}: {k} was given a value and sub-keys")
-        node[parts[-1]] = value
+        out[".".join(parts)] = value
     return out
 
 
@@ -554,8 +550,7 @@ def main(args: argparse.Namespace) -> int:
         return 3
     loss = None if args.loss == 0 and args.garble == 0 else \
         LossSpec(args.loss, args.garble, args.seed if args.loss_seed is None else args.loss_seed)
-    out = run_method(args.manifest, args.method, args.out, profile=args.profile, seed=args.seed,
-                     overwrite=args.overwrite, progress=not args.no_progress, loss=loss,
-                     overrides=parse_sets(args.sets) or None)
+    out = run_method(args.manifest, args.method, args.out, preset=args.preset, sets=parse_sets(args.sets) or None,
+                     seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress, loss=loss)
     print(f"run folder: {out}")
     return 0

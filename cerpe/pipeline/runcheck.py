@@ -8,29 +8,40 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any, Mapping
 
 from ..atomicio import AtomicIOError, read_json
 from .methods import CERPE_METHODS
 from .provenance import code_hash, file_digest
 
 
-def run_is_current(out: Path, manifest: Path, method: str, preset: str, overrides: dict | None = None) -> bool:
+def run_is_current(out: Path, manifest: Path, method: str, preset: str = "paper",
+                   sets: Mapping[str, Any] | None = None) -> bool:
     """Cheap check that a cached run folder is finished and matches the current code and manifest.
 
-    Compares ``run.json``'s code hash, manifest digest, preset and configuration overrides
-    (``cerpe run --set``; none is none) and requires a ``DONE.json`` with the run's
+    Compares ``run.json``'s run format, code hash, manifest digest, and for the cerpe methods the
+    preset and ``--set`` knobs (none is none), and requires a ``DONE.json`` with the run's
     fingerprint for every encounter; builds no model.
     """
+    from .run import RUN_FORMAT
+
     try:
         meta = read_json(out / "run.json", "run.json")
         cfg = meta["config"]
-        if cfg.get("code") != code_hash(method) or cfg.get("manifest_sha") != file_digest(manifest):
+        if (cfg.get("format") != RUN_FORMAT or cfg.get("code") != code_hash(method)
+                or cfg.get("manifest_sha") != file_digest(manifest)):
             return False
-        if (cfg.get("overrides") or None) != (json.loads(json.dumps(overrides)) if overrides else None):
+        if (cfg.get("sets") or None) != (json.loads(json.dumps(dict(sets))) if sets else None):
             return False
-        if method in CERPE_METHODS and cfg.get("profile") != preset:
+        if method in CERPE_METHODS and cfg.get("preset") != preset:
             return False
         return all(read_json(out / enc / "DONE.json", "DONE.json").get("fingerprint") == meta["fingerprint"]
                    for enc in cfg.get("encounters", []))
     except (AtomicIOError, KeyError, OSError):
         return False
+
+
+def gate_tau(meta: Mapping[str, Any]) -> float | None:
+    """The gate threshold a CERPE run used, from its ``run.json`` (None for a baseline's)."""
+    tau = (meta.get("config", {}).get("method_config", {}).get("tree", {}).get("gate", {}).get("tau"))
+    return None if tau is None else float(tau)

@@ -52,15 +52,16 @@ class Job:
 
 
 # --------------------------------------------------------------------------- jobs (module level: picklable)
-def methods_job(manifest: Path, methods: Sequence[str], runs_root: Path, preset: str) -> str:
+def methods_job(manifest: Path, methods: Sequence[str], runs_root: Path, sets: dict) -> str:
     """Every method of ``methods`` on one setting, one after another in this process (CERPE's share a pass)."""
+    from .methods import CERPE_METHODS
     from .run import load_manifest_setting, run_method
 
     try:
         setting = load_manifest_setting(manifest)
         for m in methods:
-            run_method(manifest, m, Path(runs_root) / setting.name / m, profile=preset, overwrite=True,
-                       progress=False, setting=setting)
+            run_method(manifest, m, Path(runs_root) / setting.name / m, sets=sets if m in CERPE_METHODS else None,
+                       overwrite=True, progress=False, setting=setting)
     except CerpeError as exc:
         return str(exc)
     return ""
@@ -77,12 +78,11 @@ def load_job(manifest: Path) -> str:
     return ""
 
 
-def pareto_job(name: str, manifest: Path, runs_root: Path, preset: str, scheme: str, overrides: dict,
-               n_encounters: int | None) -> str:
-    """One Pareto setting on one synthetic setting (:func:`cerpe.pipeline.pareto.scheme_runs`)."""
+def pareto_job(name: str, manifest: Path, runs_root: Path, sets: dict, scheme: str, n_encounters: int | None) -> str:
+    """One Pareto preset on one synthetic setting (:func:`cerpe.pipeline.pareto.scheme_runs`)."""
     from .pareto import scheme_runs
 
-    _, errors = scheme_runs([(name, manifest, None)], runs_root, profile=preset, schemes={scheme: overrides},
+    _, errors = scheme_runs([(name, manifest, None)], runs_root, knob_sets=sets, schemes=(scheme,),
                             n_encounters=n_encounters, build=True, progress=False)
     return "; ".join(errors)
 
@@ -111,25 +111,25 @@ def paper_jobs(ctx: Any, run_is_current: Callable[..., bool]) -> list[Job]:
     for e in ctx.ok_settings:
         steps = _robot_steps(e.setting.encounters) if e.setting is not None else 100
         stale = [m for (s, m), out in ctx.run_dirs.items()
-                 if s == e.name and not run_is_current(out, e.run_manifest, m, ctx.preset)]
+                 if s == e.name and not run_is_current(out, e.run_manifest, m, sets=ctx.sets_of(m))]
         ours = tuple(m for m in CERPE_METHODS if m in stale)
         if ours:
             jobs.append(Job(f"{e.name}/{'+'.join(ours)}", methods_job, (e.run_manifest, ours, ctx.runs_root,
-                                                                       ctx.preset),
+                                                                       ctx.sets),
                             COST_PER_STEP_S["cerpe"] * steps, outputs=tuple((e.name, m) for m in ours)))
         for m in (m for m in BASELINE_METHODS if m in stale):
-            jobs.append(Job(f"{e.name}/{m}", methods_job, (e.run_manifest, (m,), ctx.runs_root, ctx.preset),
+            jobs.append(Job(f"{e.name}/{m}", methods_job, (e.run_manifest, (m,), ctx.runs_root, ctx.sets),
                             COST_PER_STEP_S[m] * steps, outputs=((e.name, m),)))
         if not e.world or e.setting is None:  # the Pareto settings run on the synthetic settings only
             continue
         encs = e.setting.encounters[: pareto.N_ENCOUNTERS]
         sub_steps = _robot_steps(encs)
-        for scheme, overrides in pareto.PARETO_SETTINGS.items():
+        for scheme in pareto.PARETO_PRESETS:
             path = pareto.run_dir(ctx.runs_root, e.name, scheme)
-            if not pareto.is_current(path, e.run_manifest, ctx.preset, overrides, [enc.name for enc in encs]):
+            if not pareto.is_current(path, e.run_manifest, scheme, ctx.sets, [enc.name for enc in encs]):
                 jobs.append(Job(f"{e.name}/pareto-{scheme}", pareto_job,
-                                (e.name, e.run_manifest, ctx.runs_root, ctx.preset, scheme, overrides,
-                                 pareto.N_ENCOUNTERS), COST_PER_STEP_S["pareto"] * sub_steps))
+                                (e.name, e.run_manifest, ctx.runs_root, ctx.sets, scheme, pareto.N_ENCOUNTERS),
+                                COST_PER_STEP_S["pareto"] * sub_steps))
     try:
         conf, paths = message_loss.context_paths(ctx)
     except message_loss.MessageLossError:

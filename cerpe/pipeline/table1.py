@@ -24,10 +24,10 @@ class TableRuns(Protocol):
     """What Table I reads of a :class:`cerpe.pipeline.paper.PaperContext` (which builds on this module).
 
     ``settings``: one entry per column group, with ``name``, ``status`` (``ok`` or why not) and
-    ``detail``; ``run_dirs``: ``(setting, method) -> run folder``; ``preset``: the backbone preset.
+    ``detail``; ``run_dirs``: ``(setting, method) -> run folder``; ``models``: the CERPE runs' ``backbone.models``.
     """
 
-    preset: str
+    models: str
     settings: Sequence[Any]
     run_dirs: dict[tuple[str, str], Path]
 
@@ -104,56 +104,59 @@ CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with
            "not available offline (no code/weights). The last row, CERPE + pose graph, is our extension, not the "
            "paper's: the same messages as CERPE, each pair's direct estimates (whatever anchor verification said) and both "
            "odometries in a robust pose graph (GTSAM iSAM2, Cauchy kernel) instead of switching.")
-PRESET_NOTES = {
-    "offline": "CERPE here uses the offline backbone preset (XFeat + SALAD-style descriptor + multi-view "
+MODELS_NOTES = {
+    "offline": "CERPE here uses the offline models (XFeat + SALAD-style descriptor + multi-view "
                "geometry), not VGGT.",
-    "paper": "CERPE uses the paper preset (VGGT + SALAD/DINOv2 + Metric3Dv2).",
+    "paper": "CERPE uses the paper's models (VGGT + SALAD/DINOv2 + Metric3Dv2).",
 }
 
 
-def cerpe_row_note(preset: str, cerpe_configs: Sequence[dict]) -> str:
-    """What the CERPE rows are, from the ``CerpeConfig`` their runs recorded (``run.json``).
+def cerpe_row_note(models: str, cerpe_configs: Sequence[dict]) -> str:
+    """What the CERPE rows are, from the configuration trees their runs recorded (``run.json``).
 
     Says whether the scale step ran (it is skipped for passes whose unit is already the
-    metre, ``BackboneOutput.metric_unit``, when ``backbone_metric_unit`` is on: the offline
+    metre, ``BackboneOutput.metric_unit``, when ``scale.metric_unit`` is on: the offline
     backbone anchors its passes on the metric depth priors) and through which view ego-motion
-    is chained (``track_previous``: the previous frame; off: keyframes only, the paper's pass),
-    and whether the odometry's step-length rule was on (``ego_max_accel_mps2`` > 0), whether anchor
-    verification was (``verify_anchors``) and with it the weak-estimate rule (``anchor_min_inliers`` > 0).
+    is chained (``odometry.track_previous``: the previous frame; off: keyframes only, the paper's pass),
+    and whether the odometry's step-length rule was on (``odometry.max_accel_mps2`` > 0), whether anchor
+    verification was (``anchors.verify``) and with it the weak-estimate rule (``anchors.min_inliers`` > 0).
     """
-    note = [PRESET_NOTES.get(preset, f"CERPE uses the {preset!r} backbone preset.")]
-    metric = {bool(c["backbone_metric_unit"]) for c in cerpe_configs if "backbone_metric_unit" in c}
-    prev = {bool(c["track_previous"]) for c in cerpe_configs if "track_previous" in c}
-    if metric == {True} and preset == "offline":
+    note = [MODELS_NOTES.get(models, f"CERPE uses the {models!r} models.")]
+    get = lambda c, g, k: c.get(g, {}).get(k)  # noqa: E731
+    metric = {bool(get(c, "scale", "metric_unit")) for c in cerpe_configs if get(c, "scale", "metric_unit") is not None}
+    prev = {bool(get(c, "odometry", "track_previous")) for c in cerpe_configs
+            if get(c, "odometry", "track_previous") is not None}
+    if metric == {True} and models == "offline":
         note.append("The default CERPE row skips the scale step (s = 1): the offline backbone's passes are "
                     "already metric, anchored on the depth priors (BackboneOutput.metric_unit, "
-                    "CerpeConfig.backbone_metric_unit).")
+                    "scale.metric_unit).")
     elif metric == {True}:
         note.append("The scale step is skipped for passes that say they are metric (BackboneOutput.metric_unit); "
                     "the others are scaled by the metric depth.")
     elif metric == {False}:
-        note.append("Every pass is scaled by the metric depth (CerpeConfig.backbone_metric_unit off).")
+        note.append("Every pass is scaled by the metric depth (scale.metric_unit off).")
     if prev == {True}:
-        note.append("Ego-motion is chained through the previous frame (CerpeConfig.track_previous), not only "
+        note.append("Ego-motion is chained through the previous frame (odometry.track_previous), not only "
                     "through the keyframes as in the paper's pass.")
     elif prev == {False}:
         note.append("Ego-motion is chained through the keyframes, as in the paper's pass (track_previous off).")
-    held = {float(c["ego_max_accel_mps2"]) > 0 for c in cerpe_configs if "ego_max_accel_mps2" in c}
+    held = {float(get(c, "odometry", "max_accel_mps2")) > 0 for c in cerpe_configs
+            if get(c, "odometry", "max_accel_mps2") is not None}
     if held == {True}:
         note.append("A metric ego-motion step far slower than the robot's last steady ones, more than braking "
-                    "explains, is held at their speed (CerpeConfig.ego_max_accel_mps2; not in the paper).")
-    verify = {bool(c["verify_anchors"]) for c in cerpe_configs if "verify_anchors" in c}
-    weak = {int(c.get("anchor_min_inliers", 0)) for c in cerpe_configs if c.get("verify_anchors")}
+                    "explains, is held at their speed (odometry.max_accel_mps2; not in the paper).")
+    verify = {bool(get(c, "anchors", "verify")) for c in cerpe_configs if get(c, "anchors", "verify") is not None}
+    weak = {int(get(c, "anchors", "min_inliers") or 0) for c in cerpe_configs if get(c, "anchors", "verify")}
     if verify == {True}:
         note.append("A direct estimate becomes the pair's anchor only when verified: consistent with the anchor "
-                    "propagated to it, or, before one, with a second estimate (CerpeConfig.verify_anchors; not in "
+                    "propagated to it, or, before one, with a second estimate (anchors.verify; not in "
                     "the paper, where every direct estimate is the anchor); one that disagrees is not reported "
                     "and the anchor is propagated instead.")
         if len(weak) == 1 and min(weak) > 0:
             note.append(f"With an anchor, an estimate on fewer than {min(weak)} registration inliers is not "
-                        "reported either (CerpeConfig.anchor_min_inliers).")
+                        "reported either (anchors.min_inliers).")
     elif verify == {False}:
-        note.append("Every direct estimate is the new anchor, as in the paper (verify_anchors off).")
+        note.append("Every direct estimate is the new anchor, as in the paper (anchors.verify off).")
     if len(metric) > 1 or len(prev) > 1 or len(held) > 1 or len(verify) > 1 or len(weak) > 1:
         note.append("These settings differ between the CERPE runs (see their run.json).")
     return " ".join(note)
@@ -168,9 +171,9 @@ def table_caption(ctx: TableRuns) -> str:
                 mc = read_json(p / "run.json", "run.json").get("config", {}).get("method_config", {})
             except AtomicIOError:
                 continue
-            if isinstance(mc, dict) and isinstance(mc.get("cerpe"), dict):
-                configs.append(mc["cerpe"])
-    return CAPTION + " " + cerpe_row_note(ctx.preset, configs)
+            if isinstance(mc, dict) and isinstance(mc.get("tree"), dict):
+                configs.append(mc["tree"])
+    return CAPTION + " " + cerpe_row_note(ctx.models, configs)
 
 
 def _caption(df: pd.DataFrame, caption: str | None) -> str:
