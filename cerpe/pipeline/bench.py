@@ -498,6 +498,7 @@ def _load_encounters(args: argparse.Namespace) -> tuple[str, list, str | None, d
 
 def main(args: argparse.Namespace) -> int:
     from ..backbones.build import build_plugins
+    from ..backbones.config import BackboneConfig
 
     _check_args(args)
     what, encounters, metric_depth, depth_options = _load_encounters(args)
@@ -509,7 +510,8 @@ def main(args: argparse.Namespace) -> int:
         raise BenchError(f"--depth-conf must be a JSON object, got {args.depth_conf!r}")
 
     def fresh() -> Any:  # new plug-in objects per run: no descriptor or match cached by an earlier run
-        return build_plugins(args.preset, {"depth_conf": depth_conf}, depth=args.depth or metric_depth)
+        return build_plugins(BackboneConfig(models=args.preset), depth=args.depth or metric_depth,
+                             depth_options=depth_conf)
 
     sizes = sorted({len(e.robots) for e in encounters})
     for n in args.robots:

@@ -91,13 +91,6 @@ def prepare_method(method: str, profile: str, seed: int, metric_depth: str | Non
     return _cerpe_steps(method, profile, seed, metric_depth, depth_options, channel or LossSpec(), overrides)
 
 
-def _conf_of(obj: Any) -> Any:
-    conf = getattr(obj, "conf", None)
-    if conf is None:
-        conf = getattr(obj, "config", None)
-    return config_dict(conf) if conf is not None else type(obj).__name__
-
-
 def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None,
                              depth_options: dict | None = None, overrides: dict | None = None) -> tuple[Any, Any, dict]:
     """Plug-ins, resolved :class:`~cerpe.algorithm.CerpeConfig` and the run.json parameters of a CERPE method.
@@ -105,10 +98,15 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     One place for ``cerpe run`` and ``cerpe online``, so both build the same thing.
     """
 
-    from .. import algorithm
+    from .. import algorithm, knobs
     from ..backbones.build import build_plugins
+    from ..backbones.config import BackboneConfig
 
-    plugins = build_plugins(profile, {"depth_conf": dict(depth_options or {})}, depth=metric_depth)
+    try:
+        backbone_conf = BackboneConfig(models=profile)
+    except knobs.KnobError as exc:
+        raise RunError(f"backbone profile: {exc}") from None
+    plugins = build_plugins(backbone_conf, depth=metric_depth, depth_options=depth_options)
     # Without any metric depth (e.g. RGB-only data) poses stay up to scale: evaluated at GT scale only.
     cfg = dataclasses.replace(algorithm.CerpeConfig(), propagate=(method != "cerpe-wo-em"),
                               backend="graph" if method == "cerpe-graph" else "switch",
@@ -123,7 +121,7 @@ def cerpe_plugins_and_config(method: str, profile: str, metric_depth: str | None
     cfg = cfg.resolved(getattr(plugins.descriptor, "thresholds", None))
     conf = {
         "cerpe": config_dict(cfg), "preset": profile,
-        "plugins": {"descriptor": _conf_of(plugins.descriptor), "backbone": _conf_of(plugins.backbone),
+        "plugins": {"backbone": knobs.as_dict(backbone_conf),
                     "depth": getattr(plugins.depth, "name", type(plugins.depth).__name__),
                     "depth_options": dict(depth_options or {})},
     }
