@@ -84,6 +84,8 @@ class CrossConfig(Group):
 class OfflineConfig(Group):
     """The offline plug-ins: XFeat, the SALAD-style descriptor and the classical multi-view backbone."""
 
+    # 1024: `cerpe bench --all-encounters` shows the latency/accuracy trade-off against 2048; the
+    # descriptor aggregates the best 1024 either way
     keypoints: int = knob(1024, "XFeat keypoints per image (shared by descriptor and backbone), count", low=1)
     descriptor: DescriptorConfig = group(DescriptorConfig, "the SALAD-style global descriptor over XFeat")
     min_inliers: int = knob(25, "inliers an image pair needs (essential matrix, or the current view's "
