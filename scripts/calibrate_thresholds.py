@@ -110,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     a = _args(argv)
     import pandas as pd
 
+    from cerpe import knobs
     from cerpe.atomicio import atomic_write_text
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
     from cerpe.pipeline.calibrate import (consecutive_similarity, cross_scene_negatives, describe_encounter,
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     old = json.loads(a.out.read_text())["thresholds"] if a.out.is_file() else {"tau": np.nan, "tau_m": np.nan,
                                                                                  "tau_k": np.nan}
-    desc = XFeatSaladDescriptor({"thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
+    desc = XFeatSaladDescriptor(thresholds={"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0})
     sets = _sets(a)
     if not sets:
         print("calibrate: no calibration data", file=sys.stderr)
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             "git_revision": git_revision(), "date": time.strftime("%Y-%m-%d"),
             "never": "the paper-default suite (seed 0)"},
         "descriptor_dim": desc.dim,
-        "descriptor_conf": {k: v for k, v in desc.conf.items() if k not in ("thresholds", "xfeat")},
+        "descriptor_conf": knobs.as_dict(desc.conf),
     }
     if a.samples:
         rows = [t[n].assign(set=n, sample=lab) for lab, t in (("any_step", any_step), ("same_step", same_step))

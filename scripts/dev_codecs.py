@@ -97,7 +97,7 @@ def main(argv=None) -> int:
         manifests += [synthetic_set(st, seed, "dev", a.dev_out, progress=False).manifest for st in SUITES["paper-default"]]
     manifests += [ROOT / "datasets_manifest" / f"{n}.yaml" for n in a.real
                   if (ROOT / "datasets_manifest" / f"{n}.yaml").is_file()]
-    backbone = build_plugins("offline").backbone
+    backbone = build_plugins().backbone
     rows = []
     t0 = time.perf_counter()
     for man in manifests:

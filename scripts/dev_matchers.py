@@ -60,8 +60,8 @@ class Matcher:
     match: Callable[[dict, dict], np.ndarray]
 
 
-def _lightglue(conf: dict) -> Callable[[dict, dict], np.ndarray]:
-    lg = LightGlueMatcher(conf)
+def _lightglue(**kw) -> Callable[[dict, dict], np.ndarray]:
+    lg = LightGlueMatcher(**kw)
     return lambda a, b: lg({"image0": a, "image1": b})["matches"]
 
 
@@ -75,13 +75,13 @@ def build_matchers(names: list[str]) -> list[Matcher]:
             if n == "xfeat-mnn":
                 out.append(Matcher(n, "xfeat", feats, lambda a, b: match_mnn(a["descriptors"], b["descriptors"], 0.82, 0.95)))
             elif n in ("xfeat-lg", "xfeat-lg-2k"):
-                out.append(Matcher(n, "xfeat", feats, _lightglue({"features": "xfeat",
-                                                                  "max_keypoints": None if n.endswith("2k") else 1024})))
+                out.append(Matcher(n, "xfeat", feats, _lightglue(features="xfeat",
+                                                                 max_keypoints=None if n.endswith("2k") else 1024)))
             else:
                 raise SystemExit(f"unknown matcher {n!r}; known: {MATCHERS}")
         elif n in ("aliked-lg", "aliked-lg-512"):
-            ex = AlikedExtractor({"max_keypoints": 1024, "max_side_px": 512 if n.endswith("512") else 640})
-            out.append(Matcher(n, n, ex, _lightglue({"features": "aliked"})))
+            ex = AlikedExtractor(max_keypoints=1024, max_side_px=512 if n.endswith("512") else 640)
+            out.append(Matcher(n, n, ex, _lightglue(features="aliked")))
         else:
             raise SystemExit(f"unknown matcher {n!r}; known: {MATCHERS}")
     return out

@@ -41,6 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from dev_sets import DATA, DIST_FR1, Frame, fr1_frames, gt_T_b_a, sun3d_fragment, transfer_depth  # noqa: E402
 
+from cerpe.backbones.config import OfflineConfig  # noqa: E402
 from cerpe.backbones.offline import OfflineGeometryBackbone, keypoint_depths, match_mnn  # noqa: E402
 from cerpe.backbones.xfeat import XFeatEncoder  # noqa: E402
 from cerpe.protocols import View  # noqa: E402
@@ -236,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     enc = XFeatEncoder()
     bbs = {"backbone": OfflineGeometryBackbone(encoder=enc),
-           "backbone-nodense": OfflineGeometryBackbone({"dense_refine": False}, encoder=enc)}
+           "backbone-nodense": OfflineGeometryBackbone(OfflineConfig(dense={"refine": False}), encoder=enc)}
     print("| data | method | pairs placed | median |t|/|t_gt| (IQR) | median along | median t err mm | median rot err deg |")
     print("|---|---|---|---|---|---|---|")
     if "fr1" in args.data and (DATA / "tum-fr1-xyz-10").is_dir():

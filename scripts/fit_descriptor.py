@@ -79,10 +79,11 @@ def _images_from_glob(pattern: str, limit: int):
 def _fit_mean(images, a: argparse.Namespace, source: str) -> int:
     """Mean of the uncentred unit descriptors of ``images`` -> ``a.out`` (``mean [dim]`` + provenance)."""
     from cerpe.atomicio import atomic_write_npz
+    from cerpe.backbones.config import DescriptorConfig
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
     from cerpe.protocols import View
 
-    desc = XFeatSaladDescriptor({"centring": "none", "thresholds": {"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0}})
+    desc = XFeatSaladDescriptor(DescriptorConfig(mean="none"), thresholds={"tau": 0.0, "tau_m": 0.0, "tau_k": 0.0})
     D = []
     for name, img in tqdm(images, desc="descriptor", unit="img"):
         h, w = img.shape[:2]
@@ -125,9 +126,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from cerpe.atomicio import atomic_write_npz
     from cerpe.backbones.descriptor import fit_centres
-    from cerpe.backbones.xfeat import XFeatEncoder
+    from cerpe.backbones.xfeat import TOP_K, XFeatEncoder
 
-    enc = XFeatEncoder({"top_k": max(a.max_keypoints, XFeatEncoder.default_conf["top_k"])})
+    enc = XFeatEncoder(max(a.max_keypoints, TOP_K))
     if a.synth:
         it = _images_from_synth(a.synth, a.frames, a.every, a.limit)
     elif a.manifest:

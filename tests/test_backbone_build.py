@@ -1,4 +1,4 @@
-"""Presets, depth sources, and the offline plug-ins run through cerpe.algorithm.Team end to end."""
+"""Plug-ins by name, depth sources, and the offline plug-ins run through cerpe.algorithm.Team end to end."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,11 +10,12 @@ from test_backbone_offline import K, Room, pose
 
 
 def test_unknown_names_list_the_valid_ones():
-    from cerpe.backbones.build import BuildError, build_plugins
+    from cerpe.backbones.config import BackboneConfig
     from cerpe.backbones.depth import DepthSourceError, build_depth_source
+    from cerpe.knobs import KnobError
 
-    with pytest.raises(BuildError, match="offline"):
-        build_plugins("nope")
+    with pytest.raises(KnobError, match="models: 'nope' is not one of \\['offline', 'paper'\\]"):
+        BackboneConfig(models="nope")
     with pytest.raises(DepthSourceError, match="sensor, mono-sim, dataset, metric3d, none"):
         build_depth_source("lidar-magic")
 
@@ -39,10 +40,9 @@ def test_offline_preset_through_team_with_metric_depth():
     from cerpe.backbones.build import build_plugins
 
     room = Room(0)
-    pl = build_plugins("offline", {"descriptor": {"thresholds": {"tau": 0.3, "tau_m": 0.9, "tau_k": 0.2}}},
-                       depth="dataset")
+    pl = build_plugins(depth="dataset")
     assert pl.descriptor.encoder is pl.backbone.encoder  # one XFeat pass per image
-    team = Team(["a", "b"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"memory.delta_k": 2}))
+    team = Team(["a", "b"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"gate.tau": 0.3, "memory.tau_m": 0.9, "memory.tau_k": 0.2, "memory.delta_k": 2}))
     traj = [lambda t: pose((0.08 * t, 0, 0.1 * t), (0, 1.0 * t, 0)),
             lambda t: pose((0.5 - 0.05 * t, 0.1, 0.2 + 0.08 * t), (0, -10 + 0.5 * t, 0))]
     X: dict[str, list[np.ndarray]] = {"a": [], "b": []}
@@ -64,7 +64,7 @@ def test_offline_preset_through_team_with_metric_depth():
         est_rel = G.se3_inverse(X[r][0]) @ X[r][-1]
         path = sum(np.linalg.norm(f(t)[:3, 3] - f(t - 1)[:3, 3]) for t in range(1, T))
         # 320x240 renders (the 2 % target is measured at 640x480 by `cerpe bench`); the preset's 1024
-        # keypoints drift 8.4 % here (2048 stayed under 8 %: the latency/accuracy trade-off in build.py)
+        # keypoints drift 8.4 % here (2048 stayed under 8 %: the latency/accuracy trade-off of offline.keypoints)
         assert np.linalg.norm(est_rel[:3, 3] - gt_rel[:3, 3]) < 0.10 * path
         assert G.rotation_angle(est_rel[:3, :3].T @ gt_rel[:3, :3]) < np.radians(1.0)
 

@@ -1,65 +1,69 @@
-"""Every plug-in merges its configuration strictly (cerpe.config.merge_conf): nested dicts keep
-the defaults they do not override, and an unknown key is refused with the list of known ones."""
+"""The backbone's configuration tree (cerpe.backbones.config): every knob described, overrides keep the
+defaults they do not change, and an unknown key or a value of the wrong type is refused naming its
+dotted key; the paper adapters still merge their own architecture confs strictly."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
-from test_backbone_rgbd_align import T_GT, pair  # noqa: F401  (a fixture)
 
+from cerpe import knobs
+from cerpe.backbones.config import BackboneConfig, CrossConfig, DenseConfig, OfflineConfig, PaperModelsConfig
 from cerpe.config import ConfigError
-from cerpe.scene import CameraIntrinsics
-
-K = CameraIntrinsics(fx=260.0, fy=260.0, cx=159.5, cy=119.5, width=320, height=240)
+from cerpe.knobs import KnobError
 
 
-def test_offline_backbone_keeps_nested_defaults_and_refuses_typos():
-    from cerpe.backbones.offline import OfflineGeometryBackbone
-    from cerpe.backbones.rgbd_align import default_conf as dense
-    from cerpe.backbones.xfeat import shared_encoder
-
-    enc = shared_encoder()
-    bb = OfflineGeometryBackbone({"dense": {"stride": 4}, "min_matches": 20}, encoder=enc)
-    assert bb.conf["dense"] == {**dense, "stride": 4, "iterations": 12}  # the backbone's own dense default kept
-    assert bb.conf["min_matches"] == 20 and bb.conf["ratio"] == OfflineGeometryBackbone.default_conf["ratio"]
-    with pytest.raises(ConfigError, match=r"offline backbone conf: unknown option\(s\) 'min_matchs'; known: .*min_matches"):
-        OfflineGeometryBackbone({"min_matchs": 20}, encoder=enc)
-    with pytest.raises(ConfigError, match=r"offline backbone conf\.dense: unknown option\(s\) 'strid'; known: .*stride"):
-        OfflineGeometryBackbone({"dense": {"strid": 4}}, encoder=enc)
-    with pytest.raises(ConfigError, match="offline backbone conf.dense: expected a mapping"):
-        OfflineGeometryBackbone({"dense": 4}, encoder=enc)
+def test_every_knob_has_a_description_and_the_defaults_pass_their_own_checks():
+    listed = list(knobs.knobs(BackboneConfig))
+    assert 25 <= len(listed) <= 35 and len({k.path for k in listed}) == len(listed)
+    for k in listed:
+        assert k.doc and len(k.doc.splitlines()) == 1 and k.value == k.default, k.path
+    assert {p for p, _ in knobs.groups(BackboneConfig)} == {
+        "offline", "offline.descriptor", "offline.dense", "offline.cross", "paper"}
+    assert all(doc for _, doc in knobs.groups(BackboneConfig))
+    # a tree rebuilt from its own dict is the same tree
+    conf = knobs.override(BackboneConfig(), {"offline.cross.enabled": True, "paper.device": "cpu"})
+    assert knobs.from_dict(BackboneConfig, knobs.as_dict(conf)) == conf
 
 
-def test_xfeat_and_descriptor_refuse_typos():
-    from cerpe.backbones.descriptor import XFeatSaladDescriptor
-    from cerpe.backbones.xfeat import XFeatEncoder, shared_encoder
-
-    with pytest.raises(ConfigError, match=r"xfeat conf: unknown option\(s\) 'topk'; known: .*top_k"):
-        XFeatEncoder({"topk": 512})
-    with pytest.raises(ConfigError, match="xfeat conf: unknown option"):
-        shared_encoder({"topk": 512})
-    enc = shared_encoder()
-    with pytest.raises(ConfigError, match=r"descriptor conf: unknown option\(s\) 'betta'; known: .*beta"):
-        XFeatSaladDescriptor({"betta": 50.0}, encoder=enc)
-    d = XFeatSaladDescriptor({"thresholds": {"tau": 0.3, "tau_m": 0.9, "tau_k": 0.2}, "beta": 50.0}, encoder=enc)
-    assert d.thresholds["tau"] == 0.3 and d.conf["beta"] == 50.0
-    assert d.conf["dustbin_cos"] == XFeatSaladDescriptor.default_conf["dustbin_cos"]
+@pytest.mark.parametrize("values, key", [
+    ({"offline.min_matchs": 20}, "offline.min_matchs"),
+    ({"offline.dense.strid": 4}, "offline.dense.strid"),
+    ({"backbon": {}}, "backbon"),
+    ({"paper.weights_dri": "/tmp"}, "paper.weights_dri"),
+])
+def test_an_unknown_key_is_refused_naming_it_and_the_known_ones(values, key):
+    with pytest.raises(KnobError, match=rf"unknown key '{key}'; known"):
+        knobs.override(BackboneConfig(), values)
 
 
-def test_rgbd_align_keeps_defaults_and_refuses_typos(pair):  # noqa: F811
-    from cerpe.backbones.rgbd_align import align_rgbd, default_conf
+@pytest.mark.parametrize("values, key", [
+    ({"offline.dense": 4}, "offline.dense"),
+    ({"offline.keypoints": "many"}, "offline.keypoints"),
+    ({"offline.keypoints": 0}, "offline.keypoints"),
+    ({"offline.mask_moving": 1}, "offline.mask_moving"),
+    ({"offline.cross.enabled": "sometimes"}, "offline.cross.enabled"),
+    ({"offline.cross.fallback": "yes"}, "offline.cross.fallback"),
+    ({"offline.cross.min_inliers_pnp": 0}, "offline.cross.min_inliers_pnp"),
+    ({"offline.cross.appearance_min_ncc_highpass": 1.5}, "offline.cross.appearance_min_ncc_highpass"),
+    ({"offline.cross.matcher": "sift"}, "offline.cross.matcher"),
+    ({"paper.metric3d_model": "metric3d_vit_huge"}, "paper.metric3d_model"),
+    ({"models": "nope"}, "models"),
+])
+def test_a_value_of_the_wrong_type_or_out_of_range_is_refused_naming_its_dotted_key(values, key):
+    with pytest.raises(KnobError, match=rf"^{key}: "):
+        knobs.override(BackboneConfig(), values)
 
-    img0, d0, img1, d1 = pair
-    part = align_rgbd(img0, d0, img1, d1, K.K, K.K, T_GT, {"stride": 4})
-    full = align_rgbd(img0, d0, img1, d1, K.K, K.K, T_GT, {**default_conf, "stride": 4})
-    assert part.ok and np.array_equal(part.T_cur_ref, full.T_cur_ref) and part.iterations == full.iterations
-    with pytest.raises(ConfigError, match=r"align_rgbd conf: unknown option\(s\) 'strid'; known: .*stride"):
-        align_rgbd(img0, d0, img1, d1, K.K, K.K, T_GT, {"strid": 4})
+
+def test_overrides_keep_the_defaults_they_do_not_change():
+    conf = knobs.override(BackboneConfig(), {"offline": {"dense": {"stride": 4}}, "offline.min_inliers": 20})
+    assert conf.offline.dense == DenseConfig(stride=4) and conf.offline.dense.iterations == 12
+    assert conf.offline.min_inliers == 20 and conf.offline.pnp_px == OfflineConfig().pnp_px
+    assert conf.offline.cross == CrossConfig() and conf.paper == PaperModelsConfig()
+    assert OfflineConfig(cross={"enabled": True}).cross.enabled is True  # a mapping builds the sub-group
 
 
 def test_paper_adapters_merge_strictly():
     import torch
 
-    from cerpe.backbones.paper_profile import check_paper_requirements
     from cerpe.backbones.salad_dinov2 import SaladDinoV2Descriptor, SaladDinoV2Model
     from cerpe.backbones.vggt import VGGTBackbone
 
@@ -71,17 +75,14 @@ def test_paper_adapters_merge_strictly():
     assert desc.conf["dinov2"]["depth"] == 1 and desc.conf["dinov2"]["preset"] == "dinov2_vitb14"
     with pytest.raises(ConfigError, match=r"SALAD/DINOv2 conf\.dinov2: unknown option\(s\) 'dept'; known: .*depth"):
         SaladDinoV2Descriptor({"device": "cpu", "dinov2": {"dept": 1}}, model=small)
-    with pytest.raises(ConfigError, match=r"paper profile conf: unknown option\(s\) 'weights_dri'; known: .*weights_dir"):
-        check_paper_requirements({"weights_dri": "/tmp"})
 
 
-def test_build_plugins_merges_presets_strictly():
+def test_build_plugins_reads_the_tree():
     from cerpe.backbones.build import build_plugins
 
-    pl = build_plugins("offline", {"backbone": {"dense": {"stride": 4}}, "depth": "dataset"})
-    assert pl.backbone.conf["dense"]["stride"] == 4 and pl.backbone.conf["dense"]["iterations"] == 12
-    assert pl.backbone.encoder.conf["top_k"] == 1024 and pl.descriptor.encoder is pl.backbone.encoder
-    with pytest.raises(ConfigError, match=r"preset 'offline' conf: unknown option\(s\) 'backbon'; known: .*backbone"):
-        build_plugins("offline", {"backbon": {}})
-    with pytest.raises(ConfigError, match=r"offline backbone conf: unknown option\(s\) 'min_matchs'"):
-        build_plugins("offline", {"backbone": {"min_matchs": 3}})
+    conf = knobs.override(BackboneConfig(), {"offline.dense.stride": 4, "offline.descriptor.mean": "none"})
+    pl = build_plugins(conf, depth="dataset")
+    assert pl.models == "offline" and pl.backbone.conf is conf.offline and pl.depth.name == "dataset"
+    assert pl.backbone.conf.dense.stride == 4 and pl.backbone.conf.dense.iterations == 12
+    assert pl.descriptor.descriptor_mean is None  # mean: none
+    assert pl.backbone.encoder.top_k == 1024 and pl.descriptor.encoder is pl.backbone.encoder

@@ -33,9 +33,11 @@ def view(room: Room, name: str, depth: bool = True, role: str | None = None) -> 
 
 
 def backbone(**cross):
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
 
-    return OfflineGeometryBackbone({"cross": {"enabled": True, **cross}})
+    # 2048 keypoints, as test_backbone_offline's backbone: the image-only registrations need them here
+    return OfflineGeometryBackbone(OfflineConfig(keypoints=2048, cross={"enabled": True, **cross}))
 
 
 def errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
@@ -81,9 +83,10 @@ class SpyMatcher:
     """The real learned matcher (LighterGlue over XFeat), counting its calls."""
 
     def __init__(self) -> None:
-        from cerpe.backbones.offline.cross import LearnedMatcher, default_conf
+        from cerpe.backbones.config import CrossConfig
+        from cerpe.backbones.offline.cross import LearnedMatcher
 
-        self.inner = LearnedMatcher({**default_conf, "matcher": "xfeat"})
+        self.inner = LearnedMatcher(CrossConfig(matcher="xfeat"))
         self.calls: list[str] = []
 
     def features(self, p, s):
@@ -96,10 +99,12 @@ class SpyMatcher:
 
 
 def test_the_learned_matcher_runs_only_when_the_cheap_one_fails(room):
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
 
     spy = SpyMatcher()
-    bb = OfflineGeometryBackbone({"cross": {"enabled": True, "matcher": "xfeat", "max_views": 2}}, learned=spy)
+    bb = OfflineGeometryBackbone(OfflineConfig(cross={"enabled": True, "matcher": "xfeat", "max_views": 2}),
+                                 learned=spy)
     own = [view(room, "cur"), view(room, "kf"), view(room, "prev")]
     out = bb.infer(own + [view(room, "near", depth=False)])
     assert spy.calls == [] and len(out.registrations[3]) == 3  # mutual-NN + P3P were enough
@@ -155,14 +160,20 @@ def test_bad_collaborators_are_left_unplaced_with_a_reason(room):
         bb.infer([own[0], View(("r0", "x"), img[:16, :16], K, role="keyframe")])
 
 
-def test_features_evicted_from_every_cache_give_the_same_registrations(room):
+def test_features_evicted_from_every_cache_give_the_same_registrations(room, monkeypatch):
     """A keyframe whose XFeat features, matches and learned features are no longer cached (caches of
     size 0) is recomputed from its pixels: the same passes, registration for registration."""
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.offline import backbone as bb_mod
+    from cerpe.backbones.offline import cross as cross_mod
+    from cerpe.backbones.xfeat import XFeatEncoder
 
-    tiny = OfflineGeometryBackbone({"xfeat": {"cache_size": 0}, "match_cache_size": 0,
-                                    "cross": {"enabled": True, "matcher": "xfeat", "feature_cache_size": 0}})
     warm = backbone(matcher="xfeat")
+    monkeypatch.setattr(bb_mod, "MATCH_CACHE_SIZE", 0)
+    monkeypatch.setattr(cross_mod, "FEATURE_CACHE_SIZE", 0)
+    conf = OfflineConfig(keypoints=2048, cross={"enabled": True, "matcher": "xfeat"})
+    tiny = OfflineGeometryBackbone(conf, encoder=XFeatEncoder(conf.keypoints, cache_size=0))
     passes = [[view(room, "kf")], [view(room, "cur"), view(room, "kf"), view(room, "near", depth=False)],
               [view(room, "prev"), view(room, "kf"), view(room, "cur"), view(room, "wide", depth=False)]]
     for views in passes:
@@ -229,7 +240,9 @@ def test_the_agent_hands_every_view_its_role():
 def test_cross_registration_by_default_only_where_own_views_have_no_depth(monkeypatch):
     """``cross.enabled="without-depth"`` (the default): RGB-only passes register collaborators
     apart; with depth on the own views they join the joint reconstruction (the paper's pass)."""
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.knobs import KnobError
     from cerpe.protocols import View
 
     bb = OfflineGeometryBackbone()
@@ -238,7 +251,7 @@ def test_cross_registration_by_default_only_where_own_views_have_no_depth(monkey
     collab = View("c", None, None, d, role="collaborator")  # a collaborator's depth does not count
     assert bb._cross_on(own_rgb + [collab])
     assert not bb._cross_on([View("a", None, None, d, role="current")] + own_rgb[1:] + [collab])
-    assert OfflineGeometryBackbone({"cross": {"enabled": True}})._cross_on([View("a", None, None, d)])
-    assert not OfflineGeometryBackbone({"cross": {"enabled": False}})._cross_on(own_rgb)
-    with pytest.raises(Exception, match="cross.enabled"):
-        OfflineGeometryBackbone({"cross": {"enabled": "sometimes"}})
+    assert OfflineGeometryBackbone(OfflineConfig(cross={"enabled": True}))._cross_on([View("a", None, None, d)])
+    assert not OfflineGeometryBackbone(OfflineConfig(cross={"enabled": False}))._cross_on(own_rgb)
+    with pytest.raises(KnobError, match="cross.enabled"):
+        OfflineConfig(cross={"enabled": "sometimes"})

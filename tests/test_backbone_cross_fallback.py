@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from test_backbone_cross import SpyMatcher, errors, gt, view
 
+from cerpe.backbones.config import OfflineConfig
 from cerpe.backbones.offline import OfflineGeometryBackbone
+from cerpe.knobs import KnobError
 
 NAMES = ["cur", "kf", "prev", "wide"]
 
@@ -26,7 +28,7 @@ def rgbd_pass(room, hard, **cross):
     """The default backbone (cross off: own views with depth) over three own views and the "wide"
     collaborator (60 deg off), asked to try hard or not; returns (output, learned-matcher spy, backbone)."""
     spy = SpyMatcher()
-    bb = OfflineGeometryBackbone({"cross": cross}, learned=spy)
+    bb = OfflineGeometryBackbone(OfflineConfig(cross=cross), learned=spy)
     views = [view(room, n) for n in NAMES[:3]] + [dataclasses.replace(view(room, "wide", depth=False),
                                                                        try_hard=hard)]
     return bb.infer(views), spy, bb
@@ -59,10 +61,10 @@ def test_a_collaborator_not_asked_for_gets_no_fallback(room):
 
 
 def test_the_fallback_key_is_checked():
-    with pytest.raises(Exception, match="cross.fallback"):
-        OfflineGeometryBackbone({"cross": {"fallback": "yes"}})
-    with pytest.raises(Exception, match="cross.min_inliers_pnp"):
-        OfflineGeometryBackbone({"cross": {"min_inliers_pnp": 0}})
+    with pytest.raises(KnobError, match="cross.fallback"):
+        OfflineConfig(cross={"fallback": "yes"})
+    with pytest.raises(KnobError, match="cross.min_inliers_pnp"):
+        OfflineConfig(cross={"min_inliers_pnp": 0})
 
 
 def test_the_agent_asks_to_try_hard_until_the_pair_is_anchored():

@@ -32,6 +32,7 @@ def _r1(t: int) -> np.ndarray:
 def revisit():
     from cerpe.algorithm import AlgorithmConfig, Team
     from cerpe.backbones.build import build_plugins
+    from cerpe.backbones.config import BackboneConfig, CrossConfig, OfflineConfig
     from cerpe.scene import Encounter, RobotStream
 
     room = Room(0)
@@ -44,7 +45,8 @@ def revisit():
     enc = Encounter("revisit", robots)
     # the cheap stage only: the descriptor cannot tell this room's walls apart, so the gate opens at every
     # step and the learned stage would run (in vain) on every non-overlapping pair; it has its own tests
-    plugins = build_plugins("offline", {"backbone": {"cross": {"enabled": True, "matcher": "none"}}}, depth="sensor")
+    conf = BackboneConfig(offline=OfflineConfig(cross=CrossConfig(enabled=True, matcher="none")))
+    plugins = build_plugins(conf, depth="sensor")
     team = Team(enc.robot_ids, plugins.descriptor, plugins.backbone, plugins.depth, AlgorithmConfig())
     return enc, list(team.run_encounter(enc)), plugins.backbone
 

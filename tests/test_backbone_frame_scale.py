@@ -35,12 +35,13 @@ def _t(out, k: int, cur: str, other: str) -> tuple[float, float]:
     return float(np.linalg.norm(t - gt)), float(np.linalg.norm(t) / np.linalg.norm(gt))
 
 
-def _passes(frames, conf: dict, rel: float | None = MONO, memo_scale=None):
+def _passes(frames, frame_scale: bool = True, rel: float | None = MONO, memo_scale=None):
     """Pass 1: B (prior x1.08) on A (exact). Pass 2: C (exact) on B (prior x1.08, with pass 1's
     memo, its log scale replaced by ``memo_scale`` when given) and the collaborator Q (no depth)."""
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
 
-    bb = OfflineGeometryBackbone(conf)
+    bb = OfflineGeometryBackbone(OfflineConfig(frame_scale=frame_scale))
     o1 = bb.infer([_view(frames, "B", 1.08, rel, role="current"), _view(frames, "A", rel=rel, role="previous")])
     memo = o1.memos[0] if memo_scale is None else dict(o1.memos[0], log_scale=memo_scale)
     q = View(("q", "Q"), frames["Q"][0], K, role="collaborator")
@@ -51,13 +52,13 @@ def _passes(frames, conf: dict, rel: float | None = MONO, memo_scale=None):
 
 def test_a_scaled_prior_is_measured_against_the_previous_frame(frames):
     """B's prior 8 % long against A's exact one: its memo says log 1.08 (and the running mean
-    ``frame_scale_rate`` of it), and the ego-motion is as good as without the correction."""
-    o1, _ = _passes(frames, {})
+    ``FRAME_SCALE_RATE`` of it), and the ego-motion is as good as without the correction."""
+    o1, _ = _passes(frames)
     a, m = o1.memos[0]["log_scale"]
     assert a == pytest.approx(np.log(1.08), abs=0.005)
-    from cerpe.backbones.offline import OfflineGeometryBackbone
+    from cerpe.backbones.offline.framescale import FRAME_SCALE_RATE
 
-    assert m == pytest.approx(OfflineGeometryBackbone.default_conf["frame_scale_rate"] * a)
+    assert m == pytest.approx(FRAME_SCALE_RATE * a)
     assert _t(o1, 1, "B", "A")[0] < 0.002
 
 
@@ -65,8 +66,8 @@ def test_the_direct_estimate_is_placed_on_the_corrected_scale(frames):
     """B's memo says its prior is 8 % above the robot's running mean (log scale (log 1.08, 0)):
     the next pass brings it back, so B's translation and the collaborator Q's (placed on B's
     and C's points) come out at their true length; uncorrected, both are 4-8 % long."""
-    _, on = _passes(frames, {}, memo_scale=(float(np.log(1.08)), 0.0))
-    _, off = _passes(frames, {"frame_scale": False})
+    _, on = _passes(frames, memo_scale=(float(np.log(1.08)), 0.0))
+    _, off = _passes(frames, frame_scale=False)
     err_on, len_on = _t(on, 2, "C", "Q")
     err_off, len_off = _t(off, 2, "C", "Q")
     assert on.valid[2] and off.valid[2]
@@ -80,8 +81,8 @@ def test_the_direct_estimate_is_placed_on_the_corrected_scale(frames):
 def test_a_depth_sensor_prior_is_left_alone(frames, rel):
     """A prior whose source reports no scale noise (a depth sensor's 0, a dataset's 1 %, or none
     said): the same bits as with the correction off, and no scale in the memo."""
-    a = _passes(frames, {}, rel=rel)
-    b = _passes(frames, {"frame_scale": False}, rel=rel)
+    a = _passes(frames, rel=rel)
+    b = _passes(frames, frame_scale=False, rel=rel)
     for x, y in zip(a, b):
         _assert_same(x, y)
         assert x.memos[0]["log_scale"] is None

@@ -10,7 +10,6 @@ import pytest
 from cerpe.backbones.lightglue import (AlikedExtractor, LightGlueError, LightGlueMatcher, empty_features,
                                        lightglue_state, xfeat_inputs)
 from cerpe.backbones.xfeat import XFeatEncoder
-from cerpe.config import ConfigError
 from cerpe.scene import load_rgb
 
 FR3 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tum-fr3-office" / "rgb"
@@ -20,17 +19,17 @@ H_WARP = np.array([[0.9, 0.1, 30.0], [-0.08, 0.95, 20.0], [1e-4, -5e-5, 1.0]])
 
 @pytest.fixture(scope="module")
 def encoder() -> XFeatEncoder:
-    return XFeatEncoder({"fast_cpu": False})
+    return XFeatEncoder()
 
 
 @pytest.fixture(scope="module")
 def lighterglue() -> LightGlueMatcher:
-    return LightGlueMatcher({"features": "xfeat"})
+    return LightGlueMatcher("xfeat")
 
 
 @pytest.fixture(scope="module")
 def aliked() -> tuple[AlikedExtractor, LightGlueMatcher]:
-    return AlikedExtractor({"max_keypoints": 1024}), LightGlueMatcher({"features": "aliked"})
+    return AlikedExtractor(max_keypoints=1024), LightGlueMatcher("aliked")
 
 
 def drawn_image(seed: int = 0, hw: tuple[int, int] = (480, 640)) -> np.ndarray:
@@ -95,7 +94,7 @@ def test_xfeat_lighterglue_known_homography(encoder, lighterglue, name, image):
     assert np.mean(err < 3.0) > 0.9, (name, np.mean(err < 3.0))
     # each keypoint matched at most once, scores above the filter threshold
     assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)
-    assert np.all(out["scores"] >= lighterglue.conf["filter_threshold"])
+    assert np.all(out["scores"] >= lighterglue.filter_threshold)
 
 
 @pytest.mark.parametrize("name,image", _images(), ids=[n for n, _ in _images()])
@@ -114,9 +113,9 @@ def test_aliked_keypoints_are_in_input_pixels_when_downscaled():
 
     img = drawn_image(3, (240, 320))
     big = cv2.resize(img, (640, 480), interpolation=cv2.INTER_NEAREST)
-    small = AlikedExtractor({"max_keypoints": 256, "max_side_px": 320})
+    small = AlikedExtractor(max_keypoints=256, max_side_px=320)
     f_big = small(big)
-    f_ref = AlikedExtractor({"max_keypoints": 256, "max_side_px": 320})(img)
+    f_ref = AlikedExtractor(max_keypoints=256, max_side_px=320)(img)
     assert f_big["image_size"] == (640, 480)
     # the downscaled (area) copy of big is img: same keypoints, mapped by x -> 2x + 0.5
     np.testing.assert_allclose(f_big["keypoints"], 2 * f_ref["keypoints"] + 0.5, atol=1e-3)
@@ -126,7 +125,7 @@ def test_max_keypoints_keeps_the_best_and_indexes_the_full_arrays(encoder):
     img = drawn_image(1)
     f0 = xfeat_inputs(encoder.encode_image(img))
     f1 = xfeat_inputs(encoder.encode_image(_warp(img)))
-    capped = LightGlueMatcher({"features": "xfeat", "max_keypoints": 300})
+    capped = LightGlueMatcher("xfeat", max_keypoints=300)
     m = capped({"image0": f0, "image1": f1})["matches"]
     assert len(m) > 50
     top0 = set(np.argsort(-f0["scores"], kind="stable")[:300].tolist())
@@ -167,17 +166,17 @@ def test_malformed_features_are_one_clear_error(lighterglue, aliked):
 def test_missing_truncated_and_mismatched_weight_files(tmp_path):
     missing = tmp_path / "none.pt"
     with pytest.raises(LightGlueError, match=f"weight file not found: {missing}"):
-        LightGlueMatcher({"weights": str(missing)})
+        LightGlueMatcher(weights=missing)
     trunc = tmp_path / "xfeat-lighterglue.pt"
     with open(_shipped("xfeat"), "rb") as fh:
         trunc.write_bytes(fh.read(4096))
     with pytest.raises(LightGlueError, match=f"cannot read weight file {trunc}"):
-        LightGlueMatcher({"weights": str(trunc)})
+        LightGlueMatcher(weights=trunc)
     # the ALIKED LightGlue checkpoint does not fit LighterGlue's shapes
     with pytest.raises(LightGlueError, match="does not fit"):
-        LightGlueMatcher({"features": "xfeat", "weights": str(_shipped("aliked"))})
+        LightGlueMatcher("xfeat", weights=_shipped("aliked"))
     with pytest.raises(LightGlueError, match="weight file not found"):
-        AlikedExtractor({"weights_dir": str(tmp_path)})
+        AlikedExtractor(weights_dir=tmp_path)
 
 
 def _shipped(features: str) -> Path:
@@ -186,11 +185,9 @@ def _shipped(features: str) -> Path:
     return package_file(_FEATURES[features]["package"], *_FEATURES[features]["file"])
 
 
-def test_config_is_strict():
-    with pytest.raises(ConfigError, match="filter_treshold"):
-        LightGlueMatcher({"filter_treshold": 0.2})
+def test_unknown_features_are_refused():
     with pytest.raises(LightGlueError, match="unknown features 'sift'"):
-        LightGlueMatcher({"features": "sift"})
+        LightGlueMatcher("sift")
 
 
 def test_checkpoint_names_are_mapped():

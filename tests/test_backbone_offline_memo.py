@@ -9,7 +9,7 @@ import pytest
 
 from cerpe import geometry as G
 from cerpe.protocols import View
-from test_backbone_offline import K, Room, _blocks, pose
+from test_backbone_offline import K, Room, _blocks, grid_mask_image, pose
 
 
 def _frames(room: Room, robot: str, poses: list[np.ndarray], patch_seed: int = 11) -> list[View]:
@@ -52,9 +52,6 @@ def _assert_same(a, b) -> None:
 
 
 POSES = [pose((0.05 * k, 0, 0.02 * k), (0, 0.5 * k, 0)) for k in range(4)]
-# the remembered moving pixels also leave the dense refinement: a mask from another pass would move
-# the pose by a millimetre (the stateful backbone did, run after the backwards walk below)
-CONF = {"dense_mask_moving": True}
 
 
 @pytest.fixture(scope="module")
@@ -65,16 +62,15 @@ def room() -> Room:
 @pytest.fixture(scope="module")
 def walk_b(room):
     """Robot r0's frames walked by a backbone with a fresh encoder and nothing run before."""
+    from cerpe.backbones.config import OfflineConfig
     from cerpe.backbones.offline import OfflineGeometryBackbone
     from cerpe.backbones.xfeat import XFeatEncoder
 
     views = _frames(room, "r0", POSES)
-    return views, _walk(OfflineGeometryBackbone(CONF, encoder=XFeatEncoder()), views)
+    return views, _walk(OfflineGeometryBackbone(encoder=XFeatEncoder(OfflineConfig().keypoints)), views)
 
 
 def test_memo_carries_the_motion_chain_and_the_moving_pixels(walk_b):
-    from cerpe.backbones.offline.vote import grid_mask_image
-
     views, outs = walk_b
     assert all(o.valid.all() and o.metric_unit for o in outs), [o.reasons for o in outs]
     m1, m2, m3 = (o.memos[0] for o in outs)
@@ -95,28 +91,30 @@ def test_memo_carries_the_motion_chain_and_the_moving_pixels(walk_b):
     assert m3["moving"].flags.writeable is False
 
 
-def test_chain_reaches_views_no_longer_in_the_pass(walk_b):
+def test_chain_reaches_views_no_longer_in_the_pass(walk_b, monkeypatch):
     """Frame 1 is gone (not a keyframe): the chain of frame 2 still places frame 0 for the vote."""
-    from cerpe.backbones.offline import OfflineGeometryBackbone, Pass
+    from cerpe.backbones.config import OfflineConfig
+    from cerpe.backbones.offline import Pass, vote
     from cerpe.backbones.offline.vote import chained_views
 
     views, outs = walk_b
     m2 = outs[1].memos[0]
-    conf = OfflineGeometryBackbone.default_conf
     p = Pass(views=[views[3], dataclasses.replace(views[2], memo=m2), views[0]], feats=[], Ks=[], cams=[],
-             low_tex=[False] * 3, conf=conf, matcher=None, memos=[None, m2, None])
+             low_tex=[False] * 3, conf=OfflineConfig(), matcher=None, memos=[None, m2, None])
     (k, T_2_0), = chained_views(p, 1)
     assert k == 2
     assert np.array_equal(T_2_0, m2["chain"][0][1] @ m2["chain"][1][1])
     T_gt = G.se3_inverse(POSES[2]) @ POSES[0]
     assert np.linalg.norm(T_2_0[:3, 3] - T_gt[:3, 3]) < 0.01
-    assert chained_views(dataclasses.replace(p, conf={**conf, "vote_chain_hops": 1}), 1) == []
+    monkeypatch.setattr(vote, "VOTE_CHAIN_HOPS", 1)
+    assert chained_views(p, 1) == []
 
 
-def test_chain_length_is_bounded_by_vote_chain_hops(room):
-    from cerpe.backbones.offline import OfflineGeometryBackbone
+def test_chain_length_is_bounded_by_vote_chain_hops(room, monkeypatch):
+    from cerpe.backbones.offline import OfflineGeometryBackbone, context
 
-    outs = _walk(OfflineGeometryBackbone({"vote_chain_hops": 2}), _frames(room, "h", POSES))
+    monkeypatch.setattr(context, "VOTE_CHAIN_HOPS", 2)
+    outs = _walk(OfflineGeometryBackbone(), _frames(room, "h", POSES))
     assert [len(o.memos[0]["chain"]) for o in outs] == [1, 2, 2]
 
 
@@ -127,7 +125,7 @@ def test_a_pass_depends_on_its_views_alone(room, walk_b):
     from cerpe.backbones.offline import OfflineGeometryBackbone
 
     views, ref = walk_b
-    busy = OfflineGeometryBackbone(CONF)
+    busy = OfflineGeometryBackbone()
     other_poses = [pose((-0.04 * k, 0, 0.03 * k), (0, -1.0 * k, 0)) for k in range(4)]
     # the same keys with other pixels, walked backwards: ("r0", 0) placed on ("r0", 1) and so on
     _walk(busy, _frames(Room(3), "r0", other_poses, patch_seed=4)[::-1])
@@ -137,7 +135,7 @@ def test_a_pass_depends_on_its_views_alone(room, walk_b):
         _assert_same(a, b)
     # resumed: a new backbone gets frame 3's pass with the memos the robot kept
     older = [dataclasses.replace(views[k], memo=ref[k - 1].memos[0] if k else None) for k in (2, 1, 0)]
-    _assert_same(ref[-1], OfflineGeometryBackbone(CONF).infer([views[3]] + older))
+    _assert_same(ref[-1], OfflineGeometryBackbone().infer([views[3]] + older))
 
 
 def test_a_foreign_memo_is_refused(walk_b):
@@ -151,5 +149,5 @@ def test_a_foreign_memo_is_refused(walk_b):
         bb.infer([views[3], dataclasses.replace(views[2], memo={"motion": np.eye(4)})])
     # no prior placement (a single view, or an image-only pass): no memo
     assert bb.infer([views[0]]).memos == [None]
-    plain = OfflineGeometryBackbone({"depth_prior": False})
-    assert plain.infer([views[1], views[0]]).memos == [None, None]
+    no_depth = [dataclasses.replace(v, depth_m=None) for v in (views[1], views[0])]
+    assert bb.infer(no_depth).memos == [None, None]

@@ -1,6 +1,7 @@
 """XFeat encoder (weights, cache, errors) and the SALAD-style descriptor (size, invariances, gate safety)."""
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -27,14 +28,15 @@ def encoder():
 @pytest.fixture(scope="module")
 def descriptor(encoder, room, tmp_path_factory):
     """Descriptor with centres fitted on this test's own renders (independent of the shipped file)."""
+    from cerpe.backbones.config import DescriptorConfig
     from cerpe.backbones.descriptor import XFeatSaladDescriptor, fit_centres
 
     maps = [encoder.encode_image(room.render(pose((0.5 * i, 0, 0.3 * i), (0, 25 * i, 0)))[0]).descriptors.T
             for i in range(4)]
     path = tmp_path_factory.mktemp("centres") / "c.npz"
     np.savez(path, **fit_centres(maps, num_clusters=16, seed=0))
-    return XFeatSaladDescriptor({"centres": str(path), "centring": "none",
-                                 "thresholds": {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}}, encoder=encoder)
+    return XFeatSaladDescriptor(DescriptorConfig(centres=str(path), mean="none"), encoder=encoder,
+                                thresholds={"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2})
 
 
 def test_features_shapes_and_cache(encoder, room):
@@ -58,9 +60,9 @@ def test_truncated_or_missing_weights(tmp_path):
     bad = tmp_path / "xfeat.pt"
     bad.write_bytes(default_weights_path().read_bytes()[:5000])
     with pytest.raises(XFeatError, match="xfeat.pt"):
-        XFeatEncoder({"weights": str(bad)})
+        XFeatEncoder(weights=bad)
     with pytest.raises(XFeatError, match="not found"):
-        XFeatEncoder({"weights": str(tmp_path / "none.pt")})
+        XFeatEncoder(weights=tmp_path / "none.pt")
 
 
 def test_descriptor_protocol_size_and_unit_norm(descriptor, room):
@@ -151,7 +153,7 @@ def test_descriptor_mean_file_errors_name_file_and_field(tmp_path, descriptor, e
     and the field, raised when the descriptor is built, never at the first describe."""
     from cerpe.backbones.descriptor import DescriptorError, XFeatSaladDescriptor, load_descriptor_mean
 
-    with pytest.raises(DescriptorError, match="not found.*centring: none"):
+    with pytest.raises(DescriptorError, match="not found.*mean: none"):
         load_descriptor_mean(tmp_path / "missing.npz", 8)
     (tmp_path / "trunc.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(DescriptorError, match="trunc.npz"):
@@ -164,7 +166,7 @@ def test_descriptor_mean_file_errors_name_file_and_field(tmp_path, descriptor, e
         load_descriptor_mean(tmp_path / "nan.npz", 8)
     # the shipped mean (8192 values) with this fixture's 16 centres (5120): refused by name
     with pytest.raises(DescriptorError, match="xfeat_salad_mean.npz.*5120"):
-        XFeatSaladDescriptor({**descriptor.conf, "centring": "shipped"}, encoder=encoder)
+        XFeatSaladDescriptor(dataclasses.replace(descriptor.conf, mean="shipped"), encoder=encoder)
 
 
 def test_centring_subtracts_the_mean_and_renormalises(tmp_path, descriptor, encoder, room):
@@ -176,7 +178,7 @@ def test_centring_subtracts_the_mean_and_renormalises(tmp_path, descriptor, enco
     raw = [descriptor.describe(View(("m", i), im, K)) for i, im in enumerate(imgs)]
     mu = np.mean(raw, axis=0).astype(np.float32)
     np.savez(tmp_path / "mu.npz", mean=mu)
-    cen = XFeatSaladDescriptor({**descriptor.conf, "centring": str(tmp_path / "mu.npz")}, encoder=encoder)
+    cen = XFeatSaladDescriptor(dataclasses.replace(descriptor.conf, mean=str(tmp_path / "mu.npz")), encoder=encoder)
     got = [cen.describe(View(("m", i), im, K)) for i, im in enumerate(imgs)]
     for r, g in zip(raw, got):
         assert abs(np.linalg.norm(g) - 1) < 1e-5
@@ -197,26 +199,6 @@ def test_fit_centres_recovers_clusters():
     out = fit_centres([pts.T.reshape(64, 10, 100)], num_clusters=5, seed=1)
     best = np.max(out["centres"] @ true.T, axis=0)
     assert np.all(best > 0.99)
-
-
-def test_centred_aggregation_is_upstream_salad(descriptor, encoder, room):
-    """reduction='centred', power=1 is SALAD's aggregation exactly (salad_aggregate, known answer)."""
-    import torch
-
-    from cerpe.backbones.descriptor import XFeatSaladDescriptor
-    from cerpe.backbones.salad import salad_aggregate
-
-    img = room.render(pose((0.1, 0, 0.1), (0, 10, 0)))[0]
-    d = XFeatSaladDescriptor({**descriptor.conf, "reduction": "centred", "power": 1.0, "token": "mean",
-                              "token_weight2": 1.0 / descriptor.num_clusters}, encoder=encoder)
-    feats = encoder.encode_image(img)
-    F, _ = d.local_features(feats)
-    c = d.conf
-    ref = salad_aggregate(torch.from_numpy((F - d.mean).T.copy())[None],
-                          torch.from_numpy((c["beta"] * F @ d.centres.T).T.copy())[None],
-                          torch.from_numpy((F.mean(0) - d.mean)[None].copy()),
-                          float(c["beta"] * c["dustbin_cos"]), int(c["sinkhorn_iters"]))[0].numpy()
-    assert np.allclose(d.aggregate(feats, img), ref, atol=1e-5)
 
 
 def test_too_few_keypoints_is_low_texture(descriptor, room):
@@ -269,10 +251,12 @@ def test_fast_cpu_network_is_the_same_function(encoder, room):
     with torch.inference_mode():
         for a, b in zip(net(x), folded(x)):
             assert a.shape == b.shape and float((a - b).abs().max()) < 1e-4
-    assert encoder.conf["fast_cpu"] and encoder.net is not net
+    assert encoder.net is not net
     img = room.render(pose((0.2, 0, 0.1), (0, 10, 0)))[0]
     fast = encoder.encode_image(img)
-    slow = XFeatEncoder({"fast_cpu": False}).encode_image(img)
+    plain = XFeatEncoder()
+    plain.net = plain.model.net  # the network as kornia builds it (batch norms, its own layout)
+    slow = plain.encode_image(img)
     assert fast.n == slow.n and fast.dense.flags["C_CONTIGUOUS"]
     assert np.abs(fast.dense - slow.dense).max() < 1e-3
     # near-equal scores may swap places in the ranking: compare each keypoint with its nearest
@@ -292,7 +276,8 @@ def test_keep_freed_memory_on_glibc():
     from cerpe.backbones import xfeat
 
     glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
-    assert xfeat.XFeatEncoder.default_conf["keep_heap"]
+    xfeat.XFeatEncoder()
+    assert xfeat._HEAP_KEPT is glibc  # set by the encoder
     assert xfeat.keep_freed_memory() is glibc and xfeat.keep_freed_memory() is glibc
     assert xfeat._HEAP_KEPT is glibc
 

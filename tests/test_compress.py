@@ -307,10 +307,11 @@ def test_codec_config_is_checked(world, tmp_path):
 
 
 def test_shipped_projection_fits_the_offline_descriptor_in_one_kilobyte():
-    from cerpe.backbones.descriptor import XFeatSaladDescriptor
+    from cerpe.backbones.descriptor import COLOUR_BINS, load_centres
     from cerpe.compress import make_codec
 
-    dim = XFeatSaladDescriptor.default_conf and 64 * 64 + 32 * 16 * 8  # the offline descriptor's size
+    dim = load_centres()["centres"].size + int(np.prod(COLOUR_BINS))  # the offline descriptor's size
+    assert dim == 64 * 64 + 32 * 16 * 8
     for name in ("pca-int8", "pca-pq"):
         codec = make_codec(name)
         assert codec.projection.dim == dim and codec.tau is not None

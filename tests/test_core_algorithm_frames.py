@@ -165,13 +165,12 @@ def test_blank_frames_with_the_offline_backbone():
     from test_backbone_offline import K, Room, pose
 
     room = Room(0)
-    pl = build_plugins("offline", {"descriptor": {"thresholds": {"tau": 0.3, "tau_m": 0.9, "tau_k": 0.2}}},
-                       depth="dataset")
+    pl = build_plugins(depth="dataset")
     frames = [room.render(pose((0.06 * t, 0, 0.08 * t), (0, 1.5 * t, 0))) for t in range(9)]
     blank = {3: 0, 4: 255, 5: 128}
 
     def run(with_blank):
-        team = Team(["a"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"memory.delta_k": 2}))
+        team = Team(["a"], pl.descriptor, pl.backbone, pl.depth, AlgorithmConfig().override({"gate.tau": 0.3, "memory.tau_m": 0.9, "memory.tau_k": 0.2, "memory.delta_k": 2}))
         out = []
         for t, (img, depth) in enumerate(frames):
             if with_blank and t in blank:

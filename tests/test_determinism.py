@@ -46,8 +46,8 @@ def _run(plugins, enc):
 
 def test_encounter_after_another_equals_it_alone(encounters):
     a, b = encounters
-    alone = _records(_run(build_plugins("offline", depth="mono-sim"), b))
-    shared = build_plugins("offline", depth="mono-sim")
+    alone = _records(_run(build_plugins(depth="mono-sim"), b))
+    shared = build_plugins(depth="mono-sim")
     _run(shared, a)  # same plug-in objects, caches warm, same (robot, step) keys
     after = _records(_run(shared, b))
     assert len(alone) == len(after) > 0

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from cerpe.backbones import paper_profile as pp
+from cerpe.backbones.config import BackboneConfig, PaperModelsConfig
 from cerpe.backbones.paper_profile import build_paper, check_paper_requirements, require_paper
 from cerpe.backbones.weights import PaperModelError, load_checkpoint, select_device, weight_file_problem
 
@@ -23,14 +24,15 @@ def _save(path: Path, n: int = 10) -> Path:
 
 
 def test_everything_missing_is_listed_at_once(tmp_path: Path, no_env: None) -> None:
-    problems = check_paper_requirements({"weights_dir": str(tmp_path), "check_memory": False})
+    conf = PaperModelsConfig(weights_dir=str(tmp_path), check_memory=False)
+    problems = check_paper_requirements(conf)
     text = "\n".join(problems)
-    assert f"{tmp_path / 'dino_salad.ckpt'} not found" in text and "salad.checkpoint" in text
-    assert f"{tmp_path / 'model.pt'} not found" in text and "vggt.checkpoint" in text
+    assert f"{tmp_path / 'dino_salad.ckpt'} not found" in text and "backbone.paper.weights_dir" in text
+    assert f"{tmp_path / 'model.pt'} not found" in text and pp.WEIGHTS_ENV in text
     assert "metric_depth_vit_small_800k.pth not found" in text
     assert "git clone https://github.com/YvanYin/Metric3D" in text
     with pytest.raises(PaperModelError) as exc:
-        build_paper({"weights_dir": str(tmp_path), "check_memory": False})
+        build_paper(conf)
     msg = str(exc.value)
     assert f"{len(problems)} problem(s)" in msg and all(p in msg for p in problems)
 
@@ -41,25 +43,27 @@ def test_env_dir_found_but_implausible_and_truncated(tmp_path: Path, monkeypatch
     _save(tmp_path / "dino_salad.ckpt")
     vggt = _save(tmp_path / "model.pt", 1000)
     vggt.write_bytes(vggt.read_bytes()[:-200])  # interrupted download: zip directory gone
-    text = "\n".join(check_paper_requirements({"depth": "sensor", "check_memory": False}))
+    text = "\n".join(check_paper_requirements(PaperModelsConfig(check_memory=False), depth="sensor"))
     assert "dino_salad.ckpt: SALAD (DINOv2) checkpoint weight file has 0.0 MB" in text
     assert "model.pt: VGGT-1B weight file is truncated or corrupt" in text
     assert "Metric3D" not in text  # depth from the sensor: Metric3D not needed
 
 
-def test_metric3d_clone_checked(tmp_path: Path, no_env: None) -> None:
+def test_metric3d_clone_checked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_env: None) -> None:
     repo = tmp_path / "Metric3D"
     repo.mkdir()
-    text = "\n".join(check_paper_requirements({"metric3d": {"repo": str(repo)}, "check_memory": False}))
+    monkeypatch.setenv(pp.METRIC3D_REPO_ENV, str(repo))
+    conf = PaperModelsConfig(check_memory=False)
+    text = "\n".join(check_paper_requirements(conf))
     assert "has no hubconf.py" in text
     (repo / "hubconf.py").write_text("dependencies = []\n")
-    text = "\n".join(check_paper_requirements({"metric3d": {"repo": str(repo)}, "check_memory": False}))
+    text = "\n".join(check_paper_requirements(conf))
     assert "hubconf.py" not in text
 
 
 def test_memory_check(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, no_env: None) -> None:
     monkeypatch.setattr(pp, "available_memory_bytes", lambda device: 2 * 2**30)
-    text = "\n".join(check_paper_requirements({"weights_dir": str(tmp_path), "device": "cpu"}))
+    text = "\n".join(check_paper_requirements(PaperModelsConfig(weights_dir=str(tmp_path), device="cpu")))
     assert "device cpu: CPU RAM has 2.0 GiB available" in text and "VGGT-1B" in text
 
 
@@ -84,7 +88,8 @@ def test_require_passes_when_complete(tmp_path: Path, monkeypatch: pytest.Monkey
     repo = tmp_path / "Metric3D"
     repo.mkdir()
     (repo / "hubconf.py").write_text("")
-    conf = {"weights_dir": str(tmp_path), "metric3d": {"repo": str(repo)}, "check_memory": False}
+    monkeypatch.setenv(pp.METRIC3D_REPO_ENV, str(repo))
+    conf = PaperModelsConfig(weights_dir=str(tmp_path), check_memory=False)
     assert check_paper_requirements(conf) == []
     require_paper(conf)
 
@@ -101,4 +106,4 @@ def test_builder_reports_paper_problems(tmp_path: Path, no_env: None) -> None:
     from cerpe.backbones.build import build_plugins
 
     with pytest.raises(PaperModelError, match="the 'paper' profile cannot start"):
-        build_plugins("paper", {"weights_dir": str(tmp_path), "check_memory": False})
+        build_plugins(BackboneConfig(models="paper", paper={"weights_dir": str(tmp_path), "check_memory": False}))

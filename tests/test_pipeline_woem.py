@@ -25,7 +25,7 @@ def test_derived_wo_em_equals_real_run(fixture_encounter):
 
     from cerpe.backbones.build import build_plugins
 
-    plugins = build_plugins("offline", depth="mono-sim")
+    plugins = build_plugins(depth="mono-sim")
     cfg = AlgorithmConfig().override({"backend.propagate": False}).resolved(plugins.descriptor.thresholds)
     real = list(algorithm.run_encounter(fixture_encounter, plugins.descriptor, plugins.backbone, plugins.depth,
                                         config=cfg, seed=0))
@@ -68,7 +68,7 @@ def test_each_cerpe_row_is_a_view_of_one_pass(fixture_encounter, method, backend
 
     _, steps = run_mod.prepare_method(method, "offline", seed=0, metric_depth="mono-sim")
     derived = list(steps(fixture_encounter))
-    plugins = build_plugins("offline", depth="mono-sim")
+    plugins = build_plugins(depth="mono-sim")
     cfg = AlgorithmConfig().override({"backend.propagate": propagate, "backend.kind": backend}).resolved(plugins.descriptor.thresholds)
     real = list(algorithm.run_encounter(fixture_encounter, plugins.descriptor, plugins.backbone, plugins.depth,
                                         config=cfg, seed=0))

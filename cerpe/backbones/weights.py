@@ -56,7 +56,7 @@ def weight_file_problem(path: Path, what: str, config_key: str, approx_bytes: fl
     directory is gone (the usual sign of an interrupted download), and a file
     far smaller than the official one.
     """
-    fix = (f"put it there, or set {config_key} in the config, or {WEIGHTS_ENV} to the folder holding it "
+    fix = (f"put it there, or set {config_key} or {WEIGHTS_ENV} to the folder holding it "
            f"(see docs/PAPER_MODELS.md)")
     if not path.exists():
         return f"{what}: weight file {path} not found; {fix}"

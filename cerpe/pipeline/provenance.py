@@ -29,7 +29,7 @@ NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py"
                "atomicio.py"}
 # What the per-frame baselines run, besides their own package.
 BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py",
-                 "backbones/lightglue.py", "threads.py")
+                 "backbones/lightglue.py", "backbones/xfeat.py", "protocols.py", "threads.py")
 
 
 def git_revision(repo: Path | None = None) -> str:

@@ -5,7 +5,8 @@
 * :mod:`.vote` -- the dense motion vote (moving pixels, chained older views);
 * :mod:`.reconstruction` -- points on a depth prior, P3P placement, dense refinement;
 * :mod:`.two_view` -- essential matrices, the image-only fallback, the merge;
-* :mod:`.backbone` -- :class:`OfflineGeometryBackbone` (``default_conf``, ``infer``).
+* :mod:`.backbone` -- :class:`OfflineGeometryBackbone` (``infer``; its settings:
+  :class:`cerpe.backbones.config.OfflineConfig`).
 """
 from .backbone import OfflineGeometryBackbone
 from .context import OfflineBackboneError, Pass, Recon

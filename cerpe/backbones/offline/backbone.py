@@ -28,85 +28,33 @@ from typing import Any, Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
-from ...config import merge_conf
-from ...protocols import BackboneOutput, View
-from ..rgbd_align import default_conf as dense_default_conf
+from ...protocols import BLANK_STD, BackboneOutput, View
+from ..config import OfflineConfig
 from ..xfeat import ImageInputError, XFeatEncoder, check_image, shared_encoder
 from . import cross as cross_mod
 from . import framescale
 from .context import OfflineBackboneError, Pass, Recon, check_memo
-from .matching import PairMatcher, pinhole_camera, reprojection_error, splat_depth
-from .reconstruction import bootstrap_depth, place_pnp
-from .two_view import bootstrap, merge_image_only, two_view_with_scale
+from .matching import MIN_COSSIM, RATIO, PairMatcher, pinhole_camera, reprojection_error, splat_depth
+from .reconstruction import MIN_PNP_INLIERS, bootstrap_depth, place_pnp
+from .two_view import MIN_MATCHES, bootstrap, merge_image_only, two_view_with_scale
+
+
+MATCH_CACHE_SIZE = 256  # matched image pairs kept (LRU by both images' content)
 
 
 class OfflineGeometryBackbone:
     """XFeat + RANSAC + P3P on depth priors + dense refinement; see the module docstring.
 
-    ``default_conf`` (pixels, degrees, counts, metres):
-        xfeat: configuration of the shared :class:`XFeatEncoder`.
-        min_cossim, ratio: matching (:func:`.matching.match_mnn`).
-        match_cache_size: matched image pairs kept (LRU by content).
-        min_matches: fewer matches -> ``few-matches``.
-        epipolar_px, min_inliers, min_inlier_ratio: essential-matrix RANSAC threshold
-            (Sampson px) and what a pair needs (-> ``few-inliers``).
-        min_parallax_deg, parallax_quantile: that quantile of the reference pair's
-            triangulation angles below the minimum -> ``no-parallax``.
-        max_reproj_px, min_point_angle_deg: triangulated points kept.
-        pnp_px, min_pnp_inliers: absolute-pose RANSAC threshold and the inliers a view
-            needs (else the two-view fallback).
-        min_scale_points: shared points the two-view fallback needs for its scale.
-        min_texture_std: grey-level std below which an image is ``low-texture``.
-        ransac_min_iterations, ransac_max_iterations: poselib's RANSAC bounds (its
-            defaults cost a pair without overlap far more than the inlier ratios of
-            overlapping frames need).
-        depth_prior: anchor points on views' metric depth priors (False: image-only).
-        depth_edge_tol, min_depth_points: keypoint depths kept (see
-            :func:`.matching.keypoint_depths`) and how many a prior needs.
-        depth_pnp_px: P3P threshold of the current view on a prior; tighter than
-            ``pnp_px`` so that a compromise between the scene and a moving object loses.
-        motion_hypotheses: rigid motions RANSAC looks for on a prior.
-        vote_stride, vote_depth_tol, vote_grey_tol, vote_blur_sigma: the dense vote
-            between them (:mod:`.vote`).
-        vote_depth_scale_max, vote_depth_scale_search: the vote fits one depth scale per motion
-            and frame pair (a prior whose scale wanders per frame) on the pixels whose depths
-            agree within a factor ``1 + vote_depth_scale_search``, bounded to a factor
-            ``1 + vote_depth_scale_max`` (about the prior's per-frame scale noise; 0: off).
-        vote_moving_spread_k, vote_depth_tol_max: the moving mask's depth tolerance widens to
-            that many robust sigmas of the chosen motion's depth residuals, at most the max (0: off).
-        motion_prior: the prior view's own motion (from its memo) joins as a hypothesis.
-        vote_views, vote_chain_hops: older views that vote, reached through at most that
-            many hops of the memos' motion chains.
-        mask_moving: pixels a view's motion did not explain do not vote for the next one.
-        mask_moving_retest: ... unless a motion that lost the vote with at least this fraction
-            of the winner's votes explains them (:func:`.vote.moving_pixels`; 0: off, the
-            default: at 0.9 it left the co-moving first steps of the CAD dev sets as they were).
-        dense_refine, dense: dense RGB-D refinement of the current pose on the prior view
-            (``dense`` overrides :data:`cerpe.backbones.rgbd_align.default_conf`).
-        dense_mask_moving: leave the prior view's moving pixels out of that refinement.
-        frame_scale, frame_scale_min_rel_sigma, frame_scale_rate, frame_scale_max, frame_scale_min_pixels:
-            a running per-frame depth scale carried in the memos (:mod:`.framescale`): on when the
-            current view's ``depth_rel_sigma`` is at least the minimum (a monocular prior, not a
-            depth sensor's 0); the running mean's rate per frame, the widest ratio a frame's scale
-            is measured within (a factor ``1 + max``) and the grid pixels a measurement needs.
-        merge_max_rot_px, merge_max_dir_deg, merge_max_ratio_spread, merge_min_baseline_m:
-            agreement the image-only views need to join a metric pass
-            (:func:`.two_view.merge_image_only`).
-        cross: cross-robot registration of collaborator views (``View.role ==
-            "collaborator"``; :mod:`.cross`): ``enabled`` (False: collaborators join the
-            joint reconstruction as any other view; ``"without-depth"``, the default: on
-            for passes whose own views have no depth), ``fallback`` (where it is off, a
-            collaborator the joint pass left unplaced is registered apart when the robot asks:
-            ``View.try_hard``), ``matcher`` (the learned stage:
-            ``aliked``, ``xfeat`` or ``none``), ``min_inliers`` (learned stage; ``min_inliers_pnp``
-            where it places by P3P on depth),
-            ``min_inliers_mnn`` (mutual-NN stage), ``min_inlier_ratio``,
-            ``pnp_px``, ``epipolar_px``, ``max_views`` (own views the learned stage
-            tries), ``max_keypoints``, ``max_side_px``, ``filter_threshold``,
-            ``feature_cache_size``, ``scale_match_px``, and the appearance check of every
-            metric collaborator placement (joint or registered): ``appearance_check``,
-            ``appearance_min_ncc``, ``appearance_min_pixels``, ``appearance_highpass_px``,
-            ``appearance_min_ncc_highpass`` (:func:`.cross.check_appearance`).
+    Args:
+        conf: the user's settings (:class:`~cerpe.backbones.config.OfflineConfig`: keypoints, inlier
+            counts and thresholds, the moving mask, the per-frame depth scale, ``dense`` refinement,
+            ``cross`` registration); every other value is a constant of the module that uses it
+            (:mod:`.matching`, :mod:`.two_view`, :mod:`.reconstruction`, :mod:`.vote`,
+            :mod:`.framescale`, :mod:`.cross`).
+        encoder: the shared :class:`XFeatEncoder` (None: :func:`shared_encoder` with
+            ``conf.keypoints``).
+        learned: the cross-robot learned matcher to use (default: a :class:`.cross.LearnedMatcher`
+            of ``conf.cross``, built on first use).
 
     ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
     ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
@@ -117,73 +65,18 @@ class OfflineGeometryBackbone:
     ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``); statistics only, they change no result.
     """
 
-    default_conf: dict[str, Any] = {
-        "xfeat": {},
-        "min_cossim": 0.82,
-        "ratio": 0.95,
-        "match_cache_size": 256,
-        "min_matches": 30,
-        "epipolar_px": 1.0,
-        "min_inliers": 25,
-        "min_inlier_ratio": 0.2,
-        "min_parallax_deg": 0.5,
-        "parallax_quantile": 0.8,
-        "max_reproj_px": 3.0,
-        "min_point_angle_deg": 0.2,
-        "pnp_px": 3.0,
-        "min_pnp_inliers": 15,
-        "min_scale_points": 8,
-        "min_texture_std": 2.0,
-        "ransac_min_iterations": 100,
-        "ransac_max_iterations": 4000,
-        "depth_prior": True,
-        "depth_edge_tol": 0.2,
-        "min_depth_points": 50,
-        "depth_pnp_px": 2.0,
-        "motion_hypotheses": 3,
-        "vote_stride": 4,
-        "vote_depth_tol": 0.05,
-        "vote_depth_scale_max": 0.08,
-        "vote_depth_scale_search": 0.15,
-        "vote_moving_spread_k": 3.0,
-        "vote_depth_tol_max": 0.2,
-        "vote_grey_tol": 6.0,
-        "vote_blur_sigma": 1.0,
-        "motion_prior": True,
-        "vote_views": 2,
-        "vote_chain_hops": 12,
-        "mask_moving": True,
-        "mask_moving_retest": 0.0,
-        "dense_refine": True,
-        "dense": {**dense_default_conf, "stride": 8, "iterations": 12},
-        "dense_mask_moving": False,
-        "frame_scale": True,
-        "frame_scale_min_rel_sigma": 0.03,
-        "frame_scale_rate": 0.1,
-        "frame_scale_max": 0.35,
-        "frame_scale_min_pixels": 200,
-        "merge_max_rot_px": 3.0,
-        "merge_max_dir_deg": 10.0,
-        "merge_max_ratio_spread": 1.25,
-        "merge_min_baseline_m": 0.05,
-        "cross": cross_mod.default_conf,
-    }
-
-    def __init__(self, conf: dict[str, Any] | None = None, encoder: XFeatEncoder | None = None,
+    def __init__(self, conf: OfflineConfig | None = None, encoder: XFeatEncoder | None = None,
                  learned: Any = None) -> None:
-        """``learned``: the cross-robot learned matcher to use (default: a
-        :class:`.cross.LearnedMatcher` of ``conf["cross"]``, built on first use)."""
-        self.conf = merge_conf(self.default_conf, conf, "offline backbone conf")
-        cross_mod.check_conf(self.conf["cross"])
-        self.encoder = encoder or shared_encoder(self.conf["xfeat"])
-        self.matcher = PairMatcher(self.conf["min_cossim"], self.conf["ratio"], int(self.conf["match_cache_size"]))
+        self.conf = conf or OfflineConfig()
+        self.encoder = encoder or shared_encoder(self.conf.keypoints)
+        self.matcher = PairMatcher(MIN_COSSIM, RATIO, MATCH_CACHE_SIZE)
         self.counts: Counter[str] = Counter()
         self._learned = learned
 
     def learned(self) -> Any:
         """The cross-robot learned matcher (loaded on first use)."""
         if self._learned is None:
-            self._learned = cross_mod.LearnedMatcher(self.conf["cross"])
+            self._learned = cross_mod.LearnedMatcher(self.conf.cross)
         return self._learned
 
     def clear_caches(self) -> None:
@@ -216,7 +109,7 @@ class OfflineGeometryBackbone:
             if v.intrinsics is None and not is_collab[s]:
                 raise OfflineBackboneError(
                     f"offline backbone: view {s} (key {v.key!r}) has no intrinsics; this backbone needs them")
-            check_image(v.image, f"view {s} (key {v.key!r})", int(self.encoder.conf["min_size"]))
+            check_image(v.image, f"view {s} (key {v.key!r})")
         intr = [v.intrinsics for v in views]
         feats = [self.encoder.encode(v) for v in views]
         timings["encode"] = time.perf_counter() - t0
@@ -228,7 +121,7 @@ class OfflineGeometryBackbone:
             views = framescale.correct_views(views, memos, scale_ref)
         p = Pass(views=views, feats=feats, Ks=[None if i is None else i.K for i in intr],
                  cams=[None if i is None else pinhole_camera(i) for i in intr],
-                 low_tex=[f.grey_std < self.conf["min_texture_std"] for f in feats], conf=self.conf,
+                 low_tex=[f.grey_std < BLANK_STD for f in feats], conf=self.conf,
                  matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref)
         own = [s for s in range(S) if not is_collab[s]]
         rec, reasons = self._solve_own(p, own)
@@ -271,7 +164,7 @@ class OfflineGeometryBackbone:
     def _cross_on(self, views: Sequence[View]) -> bool:
         """Whether this pass registers collaborators apart (``cross.enabled``; ``"without-depth"``:
         when none of the robot's own views has depth)."""
-        on = self.conf["cross"]["enabled"]
+        on = self.conf.cross.enabled
         if on == "without-depth":
             return all(v.depth_m is None for v in views if v.role != "collaborator")
         return bool(on)
@@ -279,7 +172,7 @@ class OfflineGeometryBackbone:
     def _fallback(self, views: Sequence[View], valid: np.ndarray, cross_on: bool) -> list[int]:
         """Collaborators of a joint pass (``cross`` off) it left unplaced that the robot asks to try hard
         (``View.try_hard``): registered apart (``cross.fallback``)."""
-        if cross_on or not self.conf["cross"]["fallback"]:
+        if cross_on or not self.conf.cross.fallback:
             return []
         return [s for s, v in enumerate(views) if s > 0 and v.role == "collaborator" and v.try_hard
                 and not valid[s] and v.intrinsics is not None]
@@ -288,7 +181,7 @@ class OfflineGeometryBackbone:
         """Why a received view cannot be used at all (``""``: it can): an image this backbone
         refuses (``bad-image``) or one of another size than its intrinsics (``image-size-mismatch``)."""
         try:
-            check_image(v.image, f"view {v.key!r}", int(self.encoder.conf["min_size"]))
+            check_image(v.image, f"view {v.key!r}")
         except ImageInputError:
             return "bad-image"
         i = v.intrinsics
@@ -352,10 +245,8 @@ class OfflineGeometryBackbone:
         S = len(p.views)
         if S == 1:
             return None, [""]
-        if p.low_tex[0] or p.feats[0].n < self.conf["min_matches"]:
+        if p.low_tex[0] or p.feats[0].n < MIN_MATCHES:
             return None, [""] + ["low-texture" if p.low_tex[0] else "few-matches"] * (S - 1)
-        if not self.conf["depth_prior"]:
-            return _solve_once(p, metric=False)
         rec, reasons = _solve_once(p, metric=True)
         if rec is not None and not _retry_image_only(p, rec):
             return rec, reasons
@@ -364,16 +255,16 @@ class OfflineGeometryBackbone:
             # nothing placed either way: the image-only attempt's reasons say more (parallax, texture)
             return rec_i, reasons_i
         if rec_i is not None:
-            for s in merge_image_only(rec, rec_i, float(p.Ks[0][0, 0]), self.conf, p.counts):
+            for s in merge_image_only(rec, rec_i, float(p.Ks[0][0, 0]), p.counts):
                 reasons[s] = ""
         return rec, reasons
 
 
 def _retry_image_only(p: Pass, rec: Recon) -> bool:
     """Whether the image-only solve could place a view ``rec`` left out: one with at least
-    ``min_pnp_inliers`` matches with the current view. A collaborator image without
+    :data:`.reconstruction.MIN_PNP_INLIERS` matches with the current view. A collaborator image without
     overlap has fewer, and re-solving for it would only double the pass's cost."""
-    need = int(p.conf["min_pnp_inliers"])
+    need = MIN_PNP_INLIERS
     return any(s not in rec.T and not p.low_tex[s] and len(p.m(0, s)) >= need for s in range(1, len(p.views)))
 
 

@@ -11,7 +11,7 @@ previous frame leaves in its memo (``BackboneOutput.memos[0]``) and comes back a
   with other pixels is an error, not a silently wrong prior);
 * ``chain``: the motion that placed the view on its depth-prior view, then the one
   that placed that view on its own, ...: ``((anchor key, T_view_anchor), ...)``,
-  newest first, at most ``vote_chain_hops`` (at least one) hops. The first hop is
+  newest first, at most :data:`VOTE_CHAIN_HOPS` hops. The first hop is
   the constant-velocity prior; the chain reaches older keyframes that vote too;
 * ``moving``: ``[n_grid] bool`` vote-grid pixels of the view that its motion did not
   explain (a moving object), or None;
@@ -28,10 +28,16 @@ from typing import Any, Hashable, Mapping, Sequence
 import numpy as np
 
 from ...protocols import BackboneError, View
+from ..config import OfflineConfig
 from ..xfeat import XFeatFeatures
 from .matching import PairMatcher
 
 MEMO_FIELDS = ("image", "chain", "moving")
+# hops of a memo's motion chain: how far back older views can still vote (:func:`.vote.chained_views`)
+VOTE_CHAIN_HOPS = 12
+# poselib's least RANSAC iterations (its default costs a pair without overlap far more than the
+# inlier ratios of overlapping frames need); the most: OfflineConfig.ransac_max_iterations
+RANSAC_MIN_ITERATIONS = 100
 
 Chain = tuple[tuple[Hashable, np.ndarray], ...]
 
@@ -94,7 +100,7 @@ class Pass:
     Ks: list[np.ndarray | None]  # None: a collaborator view without intrinsics (never registered)
     cams: list[dict | None]
     low_tex: list[bool]
-    conf: dict[str, Any]
+    conf: OfflineConfig
     matcher: PairMatcher
     memos: list[Mapping[str, Any] | None] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
@@ -108,9 +114,6 @@ class Pass:
     # the current view's (a, m) once measured
     scale_ref: float | None = None
     log_scale_out: tuple[float, float] | None = None
-    # the motion hypotheses of view 0 on its prior view that lost the vote (T_cur_prior), set
-    # when the vote decided its placement (:func:`.reconstruction.place_pnp`)
-    rivals: list[np.ndarray] = field(default_factory=list)
 
     def subset(self, idx: Sequence[int]) -> "Pass":
         """A pass over views ``idx`` of this one (same matcher, timings and counters)."""
@@ -128,8 +131,7 @@ class Pass:
 
     def ransac(self, **extra: float) -> dict[str, float]:
         """poselib RANSAC options with this pass's iteration bounds."""
-        return {"min_iterations": int(self.conf["ransac_min_iterations"]),
-                "max_iterations": int(self.conf["ransac_max_iterations"]), **extra}
+        return {"min_iterations": RANSAC_MIN_ITERATIONS, "max_iterations": self.conf.ransac_max_iterations, **extra}
 
     def chain(self, k: int) -> Chain:
         """The motion chain of view ``k`` from its memo (empty without one)."""
@@ -149,7 +151,7 @@ class Pass:
         if moving is not None:
             moving = np.array(moving, bool)
             moving.setflags(write=False)
-        hops = max(int(self.conf["vote_chain_hops"]), 1)
+        hops = max(VOTE_CHAIN_HOPS, 1)
         chain = ((self.views[d].key, T),) + self.chain(d)[:hops - 1]
         self.memo_out = {"image": self.feats[0].fingerprint, "chain": chain, "moving": moving,
                          "log_scale": self.log_scale_out}

@@ -1,4 +1,4 @@
-"""Cross-robot registration: each collaborator view against the robot's own views (issue 18, item 1).
+"""Cross-robot registration: each collaborator view against the robot's own views.
 
 A collaborator view ``k`` (``View.role == "collaborator"``) is placed against single own
 views, never inside the own reconstruction:
@@ -15,19 +15,19 @@ first; the learned matcher (:class:`LearnedMatcher`) runs only when none of them
 ``min_inliers``, against the ``max_views`` own views with most mutual-NN matches. A
 registration needs ``min_inliers_mnn`` verified inliers from the mutual-NN stage (the
 evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from the
-learned one (and, for the essential matrix, an inlier ratio of ``min_inlier_ratio``); a
+learned one (and, for the essential matrix, an inlier ratio of :data:`MIN_INLIER_RATIO`); a
 learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
 
 The fallback (``fallback``): on passes where collaborators join the joint reconstruction (RGB-D),
 one the joint pass left unplaced is registered here when the robot asks (``View.try_hard``: no
 anchor of its sender yet), more strictly than above, since the joint pass's own evidence already
-failed: both stages need ``min_inliers_pnp`` inliers, the learned one tries ``fallback_max_views``
+failed: both stages need ``min_inliers_pnp`` inliers, the learned one tries :data:`FALLBACK_MAX_VIEWS`
 own views, and every placement, whatever its inliers, must pass the appearance check. On
 development runs the fallback without those rules carried half turns placed on 20-45 keypoints
 (streets whose two sides look alike, synthetic CAD) and a 96-inlier placement of a view that saw
 nothing the robot saw (indoor); with them, none.
 
-A metric placement of a collaborator on fewer than ``appearance_max_inliers`` inliers, in the
+A metric placement of a collaborator on fewer than :data:`APPEARANCE_MAX_INLIERS` inliers, in the
 joint pass or here, must also pass the **appearance check** (:func:`check_appearance`): the own
 view's depth pixels, moved into the collaborator's camera by the placement, must look like what
 the collaborator saw there (normalised cross-correlation of the grey levels at least
@@ -36,7 +36,7 @@ gives a handful of consistent keypoint inliers for a pose that no surface suppor
 collaborator put about where the robot stands, turned alike, while it is metres away or facing
 elsewhere); such a placement is dropped (reason :data:`cerpe.protocols.REASON_APPEARANCE`).
 
-Why also a high pass (``appearance_highpass_px``, ``appearance_min_ncc_highpass``): of plain grey
+Why also a high pass (:data:`APPEARANCE_HIGHPASS_PX`, ``appearance_min_ncc_highpass``): of plain grey
 levels, any two upright cameras share the layout (bright sky or ceiling above, dark road or floor
 below), so a placement turned half a turn, or moved metres along a street, still correlated 0.5-0.67
 on development scenes. Less their 12 px blur, only texture and edges count; but a half turn on a
@@ -58,78 +58,25 @@ import numpy as np
 from ...geometry import se3_inverse
 from ...protocols import REASON_APPEARANCE, Registration
 from ..cache import LRUCache
-from .context import OfflineBackboneError, Pass, Recon
+from ..config import CrossConfig
+from .context import Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T
-from .two_view import relative_pose, triangulate_pair
+from .two_view import MIN_SCALE_POINTS, relative_pose, triangulate_pair
 from .vote import photometric_agreements
 
-MATCHERS = ("aliked", "xfeat", "none")
-
-default_conf: dict[str, Any] = {
-    # True | False | "without-depth": on only for passes whose own views have no depth (RGB-only
-    # data, where the joint pass placed 0 of 14 views of dev-tum-fr3-office and this stage 6; on
-    # RGB-D it placed no more on development data and its learned stage cost several times the
-    # step: opt in with True)
-    "enabled": "without-depth",
-    # on passes where it is off (RGB-D): a collaborator the joint pass did not place is registered apart,
-    # both stages, when the robot asks (View.try_hard: it holds no anchor of the sender, tries that
-    # failed back off), so the costly stage runs for pairs not anchored yet, and ever more rarely while
-    # nothing places (synthetic RGB-D development pairs 30-170 deg apart: 84 -> 102 of 168 placed, none wrong)
-    "fallback": True,
-    # own views the fallback's learned stage tries (ALIKED at 640 px: ~0.7 s per image, LightGlue ~0.7 s per pair)
-    "fallback_max_views": 1,
-    "matcher": "aliked",  # aliked: ALIKED + LightGlue; xfeat: LighterGlue over XFeat; none: cheap stage only
-    # ALIKED at 640 px with 1024 keypoints, 65 essential-matrix inliers: on the wide-baseline
-    # development pairs (TUM fr3 office 30-75 deg, SUN3D across fragments) the most inliers a wrong
-    # registration reached were 55 and 38 (at 512 px: 36 and 41, with 50 asked); 2048 keypoints
-    # placed no more at a safe threshold and cost 4x per pair
-    "min_inliers": 65,
-    # the learned stage's P3P placements on the own views' metric depth (a wrong pose must also fit the
-    # depths): on synthetic CAD development scenes half turns on streets whose two sides look alike
-    # reached 34 and 45 inliers, right wide-baseline indoor ones mostly 57-155
-    "min_inliers_pnp": 50,
-    "min_inliers_mnn": 15,
-    "min_inlier_ratio": 0.2,
-    "pnp_px": 3.0,
-    "epipolar_px": 1.0,
-    "max_views": 3,
-    "max_keypoints": 1024,
-    "max_side_px": 640,
-    "filter_threshold": 0.1,
-    "feature_cache_size": 32,
-    "scale_match_px": 1.5,
-    # the appearance check of metric collaborator placements (False: off)
-    # (the placement of a collaborator on a handful of keypoints, as repeated structure gives one)
-    "appearance_check": True,
-    "appearance_max_inliers": 40,  # placements with at least this many inliers are not judged
-    "appearance_min_ncc": 0.5,
-    "appearance_min_pixels": 200,
-    # and the same correlation of texture only (both images less a blur of this sigma; 0: not asked)
-    "appearance_highpass_px": 12.0,
-    "appearance_min_ncc_highpass": 0.2,
-}
-
-
-def check_conf(c: Mapping[str, Any]) -> None:
-    """Refuse a ``cross`` sub-config that cannot work (one error naming the field)."""
-    if c["enabled"] not in (True, False, "without-depth"):
-        raise OfflineBackboneError(f"offline backbone conf: cross.enabled must be true, false or 'without-depth', "
-                                   f"got {c['enabled']!r}")
-    if c["matcher"] not in MATCHERS:
-        raise OfflineBackboneError(f"offline backbone conf: cross.matcher {c['matcher']!r}; valid: {', '.join(MATCHERS)}")
-    if not float(c["appearance_highpass_px"]) >= 0.0:
-        raise OfflineBackboneError(f"offline backbone conf: cross.appearance_highpass_px must be >= 0, "
-                                   f"got {c['appearance_highpass_px']}")
-    for name in ("appearance_min_ncc", "appearance_min_ncc_highpass"):
-        if not -1.0 <= float(c[name]) <= 1.0:
-            raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be in [-1, 1], got {c[name]}")
-    if not isinstance(c["fallback"], bool):
-        raise OfflineBackboneError(f"offline backbone conf: cross.fallback must be true or false, "
-                                   f"got {c['fallback']!r}")
-    for name in ("min_inliers", "min_inliers_pnp", "min_inliers_mnn", "max_views", "fallback_max_views",
-                 "max_keypoints"):
-        if int(c[name]) < 1:
-            raise OfflineBackboneError(f"offline backbone conf: cross.{name} must be >= 1, got {c[name]}")
+FALLBACK_MAX_VIEWS = 1  # own views the fallback's learned stage tries (ALIKED and LightGlue cost ~0.7 s each)
+MIN_INLIER_RATIO = 0.2  # an essential-matrix registration needs this fraction of its matches as inliers
+PNP_PX = 3.0  # P3P RANSAC threshold of a registration on an own view's depth, px
+EPIPOLAR_PX = 1.0  # essential-matrix RANSAC threshold (Sampson error), px
+FILTER_THRESHOLD = 0.1  # LightGlue's match confidence threshold
+FEATURE_CACHE_SIZE = 32  # ALIKED feature sets kept (LRU by content key)
+SCALE_MATCH_PX = 1.5  # a registration inlier takes the depth of a reconstructed keypoint this close, px
+# the appearance check (:func:`check_appearance`): placements on at least APPEARANCE_MAX_INLIERS
+# inliers are not judged; a judged one needs APPEARANCE_MIN_PIXELS moved pixels inside the
+# collaborator's image; the high pass subtracts a blur of APPEARANCE_HIGHPASS_PX (0: not asked)
+APPEARANCE_MAX_INLIERS = 40
+APPEARANCE_MIN_PIXELS = 200
+APPEARANCE_HIGHPASS_PX = 12.0
 
 
 class LearnedMatcher:
@@ -140,19 +87,17 @@ class LearnedMatcher:
     ``n_pairs`` / ``n_extracted`` count matched pairs and ALIKED extractions.
     """
 
-    def __init__(self, conf: Mapping[str, Any]) -> None:
+    def __init__(self, conf: CrossConfig) -> None:
         from ..lightglue import AlikedExtractor, shared_matcher
 
-        self.kind = conf["matcher"]
-        lg = {"filter_threshold": float(conf["filter_threshold"])}
+        self.kind = conf.matcher
         if self.kind == "aliked":
-            self.extractor = AlikedExtractor({"max_keypoints": int(conf["max_keypoints"]),
-                                              "max_side_px": int(conf["max_side_px"])})
-            self.lightglue = shared_matcher({**lg, "features": "aliked"})
+            self.extractor = AlikedExtractor(max_keypoints=conf.max_keypoints, max_side_px=conf.max_side_px)
+            self.lightglue = shared_matcher("aliked", FILTER_THRESHOLD)
         else:
             self.extractor = None
-            self.lightglue = shared_matcher({**lg, "features": "xfeat", "max_keypoints": int(conf["max_keypoints"])})
-        self.cache: LRUCache[dict] = LRUCache(int(conf["feature_cache_size"]))
+            self.lightglue = shared_matcher("xfeat", FILTER_THRESHOLD, conf.max_keypoints)
+        self.cache: LRUCache[dict] = LRUCache(FEATURE_CACHE_SIZE)
         self.n_pairs = 0
         self.n_extracted = 0
 
@@ -165,7 +110,7 @@ class LearnedMatcher:
 
         f = p.feats[s]
         if self.extractor is None:
-            return xfeat_inputs(f, float(p.conf["min_texture_std"]))
+            return xfeat_inputs(f)
         out = self.cache.get(f.fingerprint) if f.fingerprint else None
         if out is None:
             out = self.extractor(p.views[s].image)
@@ -189,7 +134,7 @@ def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], colla
     a callable returning the :class:`LearnedMatcher` (built on first use) or None. ``strict``:
     collaborators the joint pass already failed to place (the fallback, ``cross.fallback``): both
     stages need ``min_inliers_pnp`` inliers (``min_inliers`` without depth), the learned one tries
-    ``fallback_max_views`` own views, and every placement is judged by the appearance check.
+    :data:`FALLBACK_MAX_VIEWS` own views, and every placement is judged by the appearance check.
     Returns ``{k: registrations, most inliers first}`` (only views with at least one)
     and a reason per collaborator without one.
     """
@@ -210,8 +155,8 @@ def register_collaborators(p: Pass, rec: Recon | None, own: Sequence[int], colla
 
 def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
               learned: Any, strict: bool = False) -> tuple[list[Registration], str]:
-    c = p.conf["cross"]
-    need = int(c["min_inliers"])
+    c = p.conf.cross
+    need = c.min_inliers
     if p.Ks[k] is None:
         return [], "no-intrinsics"
     if p.low_tex[k]:
@@ -220,12 +165,11 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
     targets = [s for s in own if metric and p.views[s].depth_m is not None and not p.low_tex[s]]
     mode = "pnp" if targets else "essential"
     if mode == "pnp":
-        need = int(c["min_inliers_pnp"])
+        need = c.min_inliers_pnp
     if not targets:
         targets = [s for s in own if not p.low_tex[s]]
     # the essential matrix asks of the mutual-NN stage what the own image-only pass asks of a pair
-    need_mnn = int(c["min_inliers_mnn"]) if mode == "pnp" else max(int(c["min_inliers_mnn"]),
-                                                                    int(p.conf["min_inliers"]))
+    need_mnn = c.min_inliers_mnn if mode == "pnp" else max(c.min_inliers_mnn, p.conf.min_inliers)
     if strict:  # the joint pass failed: the mutual-NN stage must reach what the learned one does
         need_mnn = max(need_mnn, need)
     best: dict[int, tuple[np.ndarray | None, int, int]] = {}
@@ -235,11 +179,10 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
                           need_mnn)
         if best[s][1] < need_mnn:
             best[s] = (None, best[s][1], best[s][2])
-    if targets and max(n for _, n, _ in best.values()) < need and learned is not None \
-            and c["matcher"] != "none":
+    if targets and max(n for _, n, _ in best.values()) < need and learned is not None and c.matcher != "none":
         tl = time.perf_counter()
         lm = learned()
-        n_views = int(c["fallback_max_views" if strict else "max_views"])
+        n_views = FALLBACK_MAX_VIEWS if strict else c.max_views
         order = sorted(targets, key=lambda s: -len(p.m(s, k)))[:n_views]
         fk = lm.features(p, k)
         p.counts["cross-learned"] += 1
@@ -270,25 +213,23 @@ def _verify(p: Pass, mode: str, s: int, k: int, uv_s: np.ndarray, uv_k: np.ndarr
     (None below ``need`` inliers)."""
     import poselib
 
-    c = p.conf["cross"]
     n_match = len(uv_s)
     if mode == "essential":
-        conf = {"min_matches": need, "epipolar_px": float(c["epipolar_px"]), "min_inliers": need,
-                "min_inlier_ratio": float(c["min_inlier_ratio"])}
-        T_k_s, inl, _ = relative_pose(conf, p.ransac(), uv_s, uv_k, p.cams[s], p.cams[k])
+        T_k_s, inl, _ = relative_pose(p.ransac(), uv_s, uv_k, p.cams[s], p.cams[k], need, min_matches=need,
+                                      epipolar_px=EPIPOLAR_PX, min_inlier_ratio=MIN_INLIER_RATIO)
         n = int(inl.sum())
         if T_k_s is None:
             return None, n, n_match
         T_k_s = T_k_s.copy()
         T_k_s[:3, 3] *= pass_unit(p, rec, s, k, uv_s[inl], uv_k[inl], T_k_s)
         return se3_inverse(T_k_s), n, n_match
-    z = keypoint_depths(uv_s, p.views[s].depth_m, p.feats[s].image_hw, float(p.conf["depth_edge_tol"]))
+    z = keypoint_depths(uv_s, p.views[s].depth_m, p.feats[s].image_hw)
     ok = z > 0
     if ok.sum() < need:
         return None, 0, n_match
     X = pixels_to_rays(uv_s[ok], p.Ks[s]) * z[ok, None]
     pose, info = poselib.estimate_absolute_pose(uv_k[ok].astype(np.float64), X, p.cams[k],
-                                                p.ransac(max_reproj_error=float(c["pnp_px"])), {})
+                                                p.ransac(max_reproj_error=PNP_PX), {})
     n = int(np.sum(info["inliers"]))
     T_k_s = pose_to_T(pose.R, pose.t)
     if n < need or not np.all(np.isfinite(T_k_s)):
@@ -300,22 +241,21 @@ def pass_unit(p: Pass, rec: Recon | None, s: int, k: int, uv_s: np.ndarray, uv_k
               T_k_s: np.ndarray) -> float:
     """Length, in the pass's unit, of the unit translation ``T_k_s`` (view ``s`` placed in ``rec``).
 
-    The registration's inliers of view ``s`` that lie within ``scale_match_px`` of a
+    The registration's inliers of view ``s`` that lie within :data:`SCALE_MATCH_PX` of a
     keypoint with a point of ``rec`` are triangulated at unit baseline; the median ratio
     of their depths in camera ``s`` gives the unit (as :func:`.two_view.two_view_with_scale`
     does). 1 (counted ``cross-unscaled``) without a reconstruction or too few such points.
     """
-    c = p.conf
     if rec is not None and s in rec.obs and len(uv_s):
         ids, kp = rec.obs[s]
         T_s_f = se3_inverse(rec.T[s])
         z_pt = (rec.X[ids] @ T_s_f[:3, :3].T + T_s_f[:3, 3])[:, 2]
         d2 = np.sum((uv_s[:, None, :] - p.feats[s].keypoints[kp][None, :, :]) ** 2, axis=2)
         near = np.argmin(d2, axis=1)
-        close = d2[np.arange(len(uv_s)), near] <= float(c["cross"]["scale_match_px"]) ** 2
-        X_unit, keep, _, _ = triangulate_pair(c, uv_s, uv_k, p.Ks[s], p.Ks[k], T_k_s)
+        close = d2[np.arange(len(uv_s)), near] <= SCALE_MATCH_PX ** 2
+        X_unit, keep, _, _ = triangulate_pair(uv_s, uv_k, p.Ks[s], p.Ks[k], T_k_s)
         sel = keep & close & (z_pt[near] > 0)
-        if sel.sum() >= int(c["min_scale_points"]):
+        if sel.sum() >= MIN_SCALE_POINTS:
             unit = float(np.median(z_pt[near[sel]] / X_unit[sel, 2]))
             if np.isfinite(unit) and unit > 0:
                 return unit
@@ -328,30 +268,30 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, j
     on ``inliers`` keypoint inliers: ``""`` (agrees, or not judged) or
     :data:`~cerpe.protocols.REASON_APPEARANCE`.
 
-    A placement on at least ``appearance_max_inliers`` inliers is not judged: the keypoints alone
+    A placement on at least :data:`APPEARANCE_MAX_INLIERS` inliers is not judged: the keypoints alone
     support it (and an imprecise but right placement over a wide baseline can look unlike the
-    collaborator's image pixel by pixel). Below, view ``a``'s depth-prior pixels (every
-    ``vote_stride``-th) moved into camera ``k`` (:func:`.vote.photometric_agreement`): when at least
-    ``appearance_min_pixels`` land inside, the normalised cross-correlation of both images' grey levels
+    collaborator's image pixel by pixel). Below, view ``a``'s depth-prior pixels (the vote grid)
+    moved into camera ``k`` (:func:`.vote.photometric_agreement`): when at least
+    :data:`APPEARANCE_MIN_PIXELS` land inside, the normalised cross-correlation of both images' grey levels
     there must reach ``appearance_min_ncc``, and that of the same levels less their blur of
-    ``appearance_highpass_px`` (texture, not layout; 0: not asked) ``appearance_min_ncc_highpass``. Not
+    :data:`APPEARANCE_HIGHPASS_PX` (texture, not layout; 0: not asked) ``appearance_min_ncc_highpass``. Not
     judged (``""``) either: the check off, ``a`` without a depth prior, either view blank, too few
     pixels inside. Counted ``cross-appearance-<checked|rejected>``. ``judge_all``: whatever the inliers
     (a fallback placement, :func:`register_collaborators`).
     """
-    c = p.conf["cross"]
-    if (not c["appearance_check"] or (int(inliers) >= int(c["appearance_max_inliers"]) and not judge_all)
+    c = p.conf.cross
+    if (not c.appearance_check or (int(inliers) >= APPEARANCE_MAX_INLIERS and not judge_all)
             or p.views[a].depth_m is None or p.low_tex[a] or p.low_tex[k] or p.Ks[k] is None
             or not np.all(np.isfinite(T_a_k))):
         return ""
-    hp = float(c["appearance_highpass_px"])
+    hp = float(APPEARANCE_HIGHPASS_PX)
     n, nccs = photometric_agreements(p, a, k, se3_inverse(T_a_k), (0.0, hp) if hp > 0 else (0.0,))
-    if n < int(c["appearance_min_pixels"]) or not np.isfinite(nccs[0]):
+    if n < APPEARANCE_MIN_PIXELS or not np.isfinite(nccs[0]):
         return ""
     p.counts["cross-appearance-checked"] += 1
-    agrees = nccs[0] >= float(c["appearance_min_ncc"])
+    agrees = nccs[0] >= c.appearance_min_ncc
     if agrees and hp > 0:  # texture too; NaN (no texture there) passes
-        agrees = not nccs[1] < float(c["appearance_min_ncc_highpass"])
+        agrees = not nccs[1] < c.appearance_min_ncc_highpass
     if agrees:
         return ""
     p.counts["cross-appearance-rejected"] += 1

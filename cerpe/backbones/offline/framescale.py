@@ -11,7 +11,7 @@ common scale before the metric reconstruction:
 
 * a memo carries ``log_scale = (a, m)`` of its frame: ``a`` the frame's prior's log
   scale in the robot's running reference, ``m`` the running mean of ``a`` over its recent
-  frames (an exponential mean, rate ``frame_scale_rate``) when it was the current view;
+  frames (an exponential mean, rate :data:`FRAME_SCALE_RATE`) when it was the current view;
 * a pass takes ``m_ref`` from its previous frame's memo (else its newest keyframe's) and
   multiplies the prior of each own view ``k`` with a memo by ``exp(m_ref - a_k)``;
 * once the current view is placed on the (corrected) reference view ``d``, the median log
@@ -24,8 +24,9 @@ A ratio needs no translation to be measured (rotation alone moves ``d``'s points
 current camera), and with a pure scale error it is exact: P3P on points scaled by ``s_d``
 gives the translation scaled by ``s_d``, so ``d``'s moved depths are ``s_d z`` where the
 current prior reads ``s_0 z``. Applied only when the current view's depth source reports a
-scale sigma ``depth_rel_sigma >= frame_scale_min_rel_sigma`` (a depth sensor's 0 leaves
-every pass bit for bit as it was); the backbone never asks which source made the depth.
+scale sigma ``depth_rel_sigma >= FRAME_SCALE_MIN_REL_SIGMA`` (a depth sensor's 0 leaves
+every pass bit for bit as it was) and ``frame_scale`` is on; the backbone never asks which
+source made the depth.
 """
 from __future__ import annotations
 
@@ -35,20 +36,28 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ...protocols import View
+from ..config import OfflineConfig
 from .context import Pass
 from .matching import map_index
-from .vote import bilinear, blurred_greys, grid_points, project_points
+from .vote import VOTE_BLUR_SIGMA, VOTE_GREY_TOL, bilinear, blurred_greys, grid_points, project_points
 
 LogScale = tuple[float, float]  # (a, m): the frame's log scale and the running mean at the time
 
+# a prior is corrected when its source reports at least this relative scale sigma (a monocular
+# network's; a depth sensor's is 0)
+FRAME_SCALE_MIN_REL_SIGMA = 0.03
+FRAME_SCALE_RATE = 0.1  # rate per frame of the running mean of the log scale
+FRAME_SCALE_MAX = 0.35  # a frame's scale is measured on ratios within a factor 1 + FRAME_SCALE_MAX
+FRAME_SCALE_MIN_PIXELS = 200  # grid pixels a measurement needs (else r = 0)
 
-def enabled(views: Sequence[View], conf: Mapping[str, Any]) -> bool:
+
+def enabled(views: Sequence[View], conf: OfflineConfig) -> bool:
     """Whether this pass corrects per-frame scales: ``frame_scale`` on and the current view's
-    prior reports a scale sigma of at least ``frame_scale_min_rel_sigma``."""
+    prior reports a scale sigma of at least :data:`FRAME_SCALE_MIN_REL_SIGMA`."""
     v0 = views[0]
     r = v0.depth_rel_sigma
-    return (bool(conf["frame_scale"]) and v0.depth_m is not None and r is not None
-            and np.isfinite(r) and float(r) >= float(conf["frame_scale_min_rel_sigma"]))
+    return (conf.frame_scale and v0.depth_m is not None and r is not None
+            and np.isfinite(r) and float(r) >= FRAME_SCALE_MIN_REL_SIGMA)
 
 
 def memo_log_scale(memo: Mapping[str, Any] | None) -> LogScale | None:
@@ -93,13 +102,12 @@ def correct_views(views: list[View], memos: Sequence[Mapping[str, Any] | None], 
 def log_ratio(p: Pass, d: int, T_0_d: np.ndarray) -> tuple[float, int]:
     """Median log ratio of the current view's prior to view ``d``'s prior moved into the
     current camera by ``T_0_d`` (camera-``d`` points into the current camera), over the
-    ``vote_stride`` grid pixels of ``d`` (its moving ones left out) that land inside the
-    current view with a grey level within ``vote_grey_tol`` and a ratio within a factor
-    ``1 + frame_scale_max``: ``(r, n)``, ``r = 0`` when ``n < frame_scale_min_pixels``."""
-    c = p.conf
+    vote grid pixels of ``d`` (its moving ones left out) that land inside the current view
+    with a grey level within ``VOTE_GREY_TOL`` and a ratio within a factor
+    ``1 + FRAME_SCALE_MAX``: ``(r, n)``, ``r = 0`` when ``n < FRAME_SCALE_MIN_PIXELS``."""
     D0 = np.asarray(p.views[0].depth_m, np.float64)
     H0, W0 = p.feats[0].image_hw
-    grey = blurred_greys(p, (d, 0), float(c["vote_blur_sigma"]))
+    grey = blurred_greys(p, (d, 0), VOTE_BLUR_SIGMA)
     vv, uu, ok, X = grid_points(p, d, p.moving(d))
     X0, u0, v0, ins = project_points(p, 0, X, T_0_d)
     meas = D0[map_index(v0[ins], D0.shape[0], H0), map_index(u0[ins], D0.shape[1], W0)]
@@ -107,10 +115,9 @@ def log_ratio(p: Pass, d: int, T_0_d: np.ndarray) -> tuple[float, int]:
     g_0 = bilinear(grey[1], u0[ins], v0[ins]).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.log(meas / X0[ins, 2])
-    use = (np.abs(g_0 - g_d) <= float(c["vote_grey_tol"])) & np.isfinite(r) \
-        & (np.abs(r) <= np.log1p(float(c["frame_scale_max"])))
+    use = (np.abs(g_0 - g_d) <= VOTE_GREY_TOL) & np.isfinite(r) & (np.abs(r) <= np.log1p(FRAME_SCALE_MAX))
     n = int(use.sum())
-    if n < int(c["frame_scale_min_pixels"]):
+    if n < FRAME_SCALE_MIN_PIXELS:
         return 0.0, n
     return float(np.median(r[use])), n
 
@@ -119,9 +126,9 @@ def update_current(p: Pass, d: int, T_0_d: np.ndarray) -> None:
     """Measure the current view's scale against the placed reference ``d`` (see the module
     docstring), rescale its prior in ``p`` and keep ``p.log_scale_out`` for its memo."""
     r, n = log_ratio(p, d, T_0_d)
-    p.counts["frame-scale-measured" if n >= int(p.conf["frame_scale_min_pixels"]) else "frame-scale-few-pixels"] += 1
+    p.counts["frame-scale-measured" if n >= FRAME_SCALE_MIN_PIXELS else "frame-scale-few-pixels"] += 1
     m = p.scale_ref
-    p.log_scale_out = (m + r, m + float(p.conf["frame_scale_rate"]) * r)
+    p.log_scale_out = (m + r, m + FRAME_SCALE_RATE * r)
     if r != 0.0:
         v0 = p.views[0]
         p.views[0] = dataclasses.replace(v0, depth_m=np.asarray(v0.depth_m, np.float32) * np.float32(np.exp(-r)))

@@ -13,9 +13,17 @@ from ...scene import CameraIntrinsics
 from ..cache import LRUCache
 from ..xfeat import XFeatFeatures
 
+# mutual nearest-neighbour matching of XFeat descriptors: a match needs a cosine similarity above
+# MIN_COSSIM and Lowe's distance ratio below RATIO both ways
+MIN_COSSIM = 0.82
+RATIO = 0.95
+# a keypoint's depth is unknown when the known pixels of its 3x3 neighbourhood spread by more than
+# this fraction of their median (keypoints sit on corners and edges: one pixel off is the background)
+DEPTH_EDGE_TOL = 0.2
 
-def match_mnn(desc0: np.ndarray, desc1: np.ndarray, min_cossim: float = 0.82,
-              ratio: float = 0.95) -> np.ndarray:
+
+def match_mnn(desc0: np.ndarray, desc1: np.ndarray, min_cossim: float = MIN_COSSIM,
+              ratio: float = RATIO) -> np.ndarray:
     """Mutual nearest-neighbour matches of L2-normalised descriptors.
 
     Args:
@@ -175,7 +183,7 @@ def map_index(x: np.ndarray, n_map: int, n_img: int) -> np.ndarray:
 
 
 def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, int],
-                    edge_tol: float = 0.2, min_valid: int = 5) -> np.ndarray:
+                    edge_tol: float = DEPTH_EDGE_TOL, min_valid: int = 5) -> np.ndarray:
     """Metric depth at keypoints ``uv [N,2]`` (image pixels) from a depth map of any size.
 
     Each keypoint takes the median of the known pixels (> 0, finite) of its 3x3

@@ -1,7 +1,7 @@
 """Metric reconstruction: points from a view's depth prior, the current view placed on them.
 
 The view sharing most matches with the current one whose depth prior gives enough
-keypoint depths anchors the pass (the current view's own prior only when no other
+keypoint depths (:data:`MIN_DEPTH_POINTS`) anchors the pass (the current view's own prior only when no other
 view can). The current view is placed on its points by P3P RANSAC: up to
 ``motion_hypotheses`` rigid motions (each on the previous ones' outliers: the static
 scene, a moving object, a facade matched one window off) plus the memo's previous
@@ -23,7 +23,13 @@ from ..rgbd_align import align_rgbd
 from . import framescale
 from .context import Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
-from .vote import grid_mask_image, moving_pixels, total_votes
+from .vote import moving_pixels, total_votes
+
+MIN_DEPTH_POINTS = 50  # keypoint depths a view's prior needs to anchor the pass (else few-depth-points)
+# P3P threshold of the current view on a prior (px): tighter than OfflineConfig.pnp_px so that a
+# compromise between the scene and a moving object loses
+DEPTH_PNP_PX = 2.0
+MIN_PNP_INLIERS = 15  # 2D-3D inliers a view placed on the points needs (else the two-view fallback)
 
 
 def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
@@ -39,9 +45,9 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
         cands.append(0)  # the current view's own points: only when no other view can anchor
     for d in cands:
         kp_uv = p.feats[d].keypoints
-        z = keypoint_depths(kp_uv, p.views[d].depth_m, p.feats[d].image_hw, float(c["depth_edge_tol"]))
+        z = keypoint_depths(kp_uv, p.views[d].depth_m, p.feats[d].image_hw)
         kp = np.flatnonzero(z > 0)
-        if len(kp) < c["min_depth_points"]:
+        if len(kp) < MIN_DEPTH_POINTS:
             why[d] = "few-depth-points"
             continue
         X_d = pixels_to_rays(kp_uv[kp], p.Ks[d]) * z[kp, None]
@@ -51,11 +57,10 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
             return rec, why
         # constant velocity: the motion that placed d on its own prior, if d was placed so;
         # otherwise standing still (a sequence starts at rest: no velocity known yet)
-        chain = p.chain(d) if c["motion_prior"] else ()
+        chain = p.chain(d)
         prior = chain[0][1] if chain else np.eye(4)
-        p.rivals = []
-        if not place_pnp(p, 0, (d,), rec, min_inliers=int(c["min_inliers"]), hypotheses=int(c["motion_hypotheses"]),
-                         ref_depth=d, px=float(c["depth_pnp_px"]), priors=[prior]):
+        if not place_pnp(p, 0, (d,), rec, min_inliers=c.min_inliers, hypotheses=c.motion_hypotheses,
+                         ref_depth=d, px=DEPTH_PNP_PX, priors=[prior]):
             why[d] = "few-inliers"
             continue
         refine_dense(p, d, rec)
@@ -64,7 +69,7 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
             # the scale would absorb that pose's error along the optical axis, and the dense depth
             # term would then confirm it
             framescale.update_current(p, d, se3_inverse(rec.T[0]))
-        moving = moving_pixels(p, d, rec.T[0], [se3_inverse(T) for T in p.rivals])
+        moving = moving_pixels(p, d, rec.T[0])
         # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
         T_c0_d = se3_inverse(rec.T.pop(0))
         p.remember(d, T_c0_d, moving)
@@ -78,14 +83,13 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
 def refine_dense(p: Pass, d: int, rec: Recon) -> None:
     """Dense RGB-D refinement of the current view's pose (``rec.T[0]``, frame: camera ``d``)
     on view ``d``'s depth prior; kept only when the aligner accepts it (counted either way)."""
-    c = p.conf
-    if not c["dense_refine"] or p.views[d].depth_m is None:
+    c = p.conf.dense
+    if not c.refine or p.views[d].depth_m is None:
         return
     t0 = time.perf_counter()
-    moving = p.moving(d) if c["dense_mask_moving"] else None
-    mask = None if moving is None else grid_mask_image(moving, p.feats[d].image_hw, int(c["vote_stride"]))
     res = align_rgbd(p.views[d].image, p.views[d].depth_m, p.views[0].image, p.views[0].depth_m,
-                     p.Ks[d], p.Ks[0], se3_inverse(rec.T[0]), c["dense"], mask_ref=mask)
+                     p.Ks[d], p.Ks[0], se3_inverse(rec.T[0]), stride=c.stride, iterations=c.iterations,
+                     levels=c.levels, use_depth=c.use_depth)
     if res.ok:
         rec.T[0] = se3_inverse(res.T_cur_ref)
         p.counts["dense-refined"] += 1
@@ -100,7 +104,7 @@ def add_current_prior_points(p: Pass, rec: Recon) -> None:
     if p.views[0].depth_m is None:
         return
     kp_uv = p.feats[0].keypoints
-    z = keypoint_depths(kp_uv, p.views[0].depth_m, p.feats[0].image_hw, float(p.conf["depth_edge_tol"]))
+    z = keypoint_depths(kp_uv, p.views[0].depth_m, p.feats[0].image_hw)
     has = rec.kp_to_pt(0, p.feats[0].n) >= 0
     kp = np.flatnonzero((z > 0) & ~has)
     if len(kp) == 0:
@@ -116,7 +120,8 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
               priors: Sequence[np.ndarray] = ()) -> bool:
     """Absolute pose of view ``s`` from 2D-3D correspondences through its matches with the
     placed ``anchors``; writes ``rec.T[s]`` and ``rec.obs[s]`` on success (at least
-    ``min_inliers`` inliers, default ``min_pnp_inliers``).
+    ``min_inliers`` inliers, default :data:`MIN_PNP_INLIERS`; RANSAC threshold ``px``, default
+    ``pnp_px``).
 
     With ``hypotheses > 1`` RANSAC runs again on the previous runs' outliers. ``priors``
     (poses ``T_s_frame``) join as further hypotheses, refined on the correspondences
@@ -126,7 +131,6 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     between hypotheses; otherwise the first (most inliers) wins."""
     import poselib
 
-    c = p.conf
     cand_kp, cand_pt = [], []
     for a in anchors:
         if a == s or a not in rec.obs:
@@ -141,10 +145,10 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     pt = np.concatenate(cand_pt)
     _, first = np.unique(kp, return_index=True)  # one 3D point per keypoint of view s
     kp, pt = kp[first], pt[first]
-    need = int(c["min_pnp_inliers"] if min_inliers is None else min_inliers)
+    need = int(MIN_PNP_INLIERS if min_inliers is None else min_inliers)
     if len(kp) < need:
         return False
-    rpx = float(c["pnp_px"] if px is None else px)
+    rpx = float(p.conf.pnp_px if px is None else px)
     uv = p.feats[s].keypoints[kp].astype(np.float64)
     hyps: list[tuple[np.ndarray, np.ndarray]] = []
     left = np.ones(len(kp), bool)
@@ -172,11 +176,7 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
         # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
         votes = total_votes(p, ref_depth, [T_h for T_h, _ in hyps])
-        pick = int(np.argmax(votes))
-        T_s_f, inl = hyps[pick]
-        # the motions that lost a close vote (ref_depth's points into view 0), for the moving mask
-        close = float(c["mask_moving_retest"]) * float(votes[pick])
-        p.rivals = [T_h for h, (T_h, _) in enumerate(hyps) if h != pick and close > 0 and votes[h] >= close]
+        T_s_f, inl = hyps[int(np.argmax(votes))]
     rec.T[s] = se3_inverse(T_s_f)
     rec.obs[s] = (pt[inl], kp[inl])
     return True

@@ -11,7 +11,7 @@ the two agree on the views both placed.
 from __future__ import annotations
 
 from collections import Counter
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -20,20 +20,40 @@ from .context import Pass, Recon
 from .matching import (keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error, triangulate,
                        triangulation_angle_deg)
 
+MIN_MATCHES = 30  # fewer matches between two views: few-matches
+EPIPOLAR_PX = 1.0  # essential-matrix RANSAC threshold (Sampson error), px
+MIN_INLIER_RATIO = 0.2  # an essential matrix needs this fraction of the matches as inliers
+# the reference pair's parallax: that quantile of its triangulation angles below the minimum -> no-parallax
+MIN_PARALLAX_DEG = 0.5
+PARALLAX_QUANTILE = 0.8
+# triangulated points kept: reprojecting within MAX_REPROJ_PX in both views, rays at least MIN_POINT_ANGLE_DEG apart
+MAX_REPROJ_PX = 3.0
+MIN_POINT_ANGLE_DEG = 0.2
+MIN_SCALE_POINTS = 8  # shared points a two-view placement needs for its scale
+# agreement the image-only views need to join a metric pass (:func:`merge_image_only`)
+MERGE_MAX_ROT_PX = 3.0
+MERGE_MAX_DIR_DEG = 10.0
+MERGE_MAX_RATIO_SPREAD = 1.25
+MERGE_MIN_BASELINE_M = 0.05
 
-def relative_pose(c: dict[str, Any], ransac: dict[str, float], uv0: np.ndarray, uv1: np.ndarray, cam0: dict,
-                  cam1: dict) -> tuple[np.ndarray | None, np.ndarray, str]:
+
+def relative_pose(ransac: dict[str, float], uv0: np.ndarray, uv1: np.ndarray, cam0: dict, cam1: dict,
+                  min_inliers: int, min_matches: int = MIN_MATCHES, epipolar_px: float = EPIPOLAR_PX,
+                  min_inlier_ratio: float = MIN_INLIER_RATIO) -> tuple[np.ndarray | None, np.ndarray, str]:
     """Essential-matrix RANSAC (poselib, 5-point): ``T_1_0`` with unit translation, the
-    inlier mask and a reason (``""``, ``few-matches``, ``few-inliers``)."""
+    inlier mask and a reason (``""``, ``few-matches``, ``few-inliers``).
+
+    Needs ``min_matches`` matches, then ``min_inliers`` inliers within ``epipolar_px`` (Sampson)
+    that are at least ``min_inlier_ratio`` of them."""
     import poselib
 
-    if len(uv0) < c["min_matches"]:
+    if len(uv0) < min_matches:
         return None, np.zeros(len(uv0), bool), "few-matches"
-    ransac = {**ransac, "max_epipolar_error": float(c["epipolar_px"])}
+    ransac = {**ransac, "max_epipolar_error": float(epipolar_px)}
     pose, info = poselib.estimate_relative_pose(uv0.astype(np.float64), uv1.astype(np.float64), cam0, cam1,
                                                 ransac, {})
     inl = np.asarray(info["inliers"], bool)
-    if inl.sum() < c["min_inliers"] or inl.mean() < c["min_inlier_ratio"]:
+    if inl.sum() < min_inliers or inl.mean() < min_inlier_ratio:
         return None, inl, "few-inliers"
     T = pose_to_T(pose.R, pose.t)
     if not np.all(np.isfinite(T)) or np.linalg.norm(T[:3, 3]) < 1e-9:
@@ -46,31 +66,30 @@ def pair_pose(p: Pass, a: int, b: int) -> tuple[np.ndarray | None, np.ndarray, s
     """:func:`relative_pose` of views ``a`` and ``b`` over their matches, once per pass."""
     if (a, b) not in p.relative:
         m = p.m(a, b)
-        p.relative[(a, b)] = relative_pose(p.conf, p.ransac(), p.feats[a].keypoints[m[:, 0]],
-                                           p.feats[b].keypoints[m[:, 1]], p.cams[a], p.cams[b])
+        p.relative[(a, b)] = relative_pose(p.ransac(), p.feats[a].keypoints[m[:, 0]], p.feats[b].keypoints[m[:, 1]],
+                                           p.cams[a], p.cams[b], p.conf.min_inliers)
     return p.relative[(a, b)]
 
 
-def triangulate_pair(c: dict[str, Any], uv0: np.ndarray, uv1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
+def triangulate_pair(uv0: np.ndarray, uv1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
                      T_1_0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Points in camera 0, a keep mask (in front of both, reprojecting within ``max_reproj_px``,
-    angle at least ``min_point_angle_deg``), mean reprojection error (px), angle (deg)."""
+    """Points in camera 0, a keep mask (in front of both, reprojecting within :data:`MAX_REPROJ_PX`,
+    angle at least :data:`MIN_POINT_ANGLE_DEG`), mean reprojection error (px), angle (deg)."""
     X = triangulate(pixels_to_rays(uv0, K0), pixels_to_rays(uv1, K1), T_1_0)
     X1 = X @ T_1_0[:3, :3].T + T_1_0[:3, 3]
     e0 = reprojection_error(X, uv0, K0)
     e1 = reprojection_error(X1, uv1, K1)
     ang = triangulation_angle_deg(X, np.zeros(3), se3_inverse(T_1_0)[:3, 3])
     keep = (np.all(np.isfinite(X), axis=1) & (X[:, 2] > 0) & (X1[:, 2] > 0)
-            & (e0 < c["max_reproj_px"]) & (e1 < c["max_reproj_px"]))
-    return X, keep & (ang >= c["min_point_angle_deg"]), 0.5 * (e0 + e1), ang
+            & (e0 < MAX_REPROJ_PX) & (e1 < MAX_REPROJ_PX))
+    return X, keep & (ang >= MIN_POINT_ANGLE_DEG), 0.5 * (e0 + e1), ang
 
 
 def bootstrap(p: Pass, anchor: int, cands: Sequence[int]) -> tuple[Recon | None, dict[int, str]]:
     """Points from ``anchor`` and the first candidate with a good essential matrix and
-    parallax (the ``parallax_quantile`` of the triangulation angles: forward motion has
+    parallax (the :data:`PARALLAX_QUANTILE` of the triangulation angles: forward motion has
     none at the focus of expansion, pure rotation none anywhere). Returns the
     reconstruction (frame: ``anchor``'s camera) and a reason per candidate that failed."""
-    c = p.conf
     why: dict[int, str] = {}
     for s in cands:
         if p.low_tex[s]:
@@ -82,12 +101,12 @@ def bootstrap(p: Pass, anchor: int, cands: Sequence[int]) -> tuple[Recon | None,
         if T_s_a is None:
             why[s] = reason
             continue
-        X, keep, _, ang = triangulate_pair(c, uva[inl], uvs[inl], p.Ks[anchor], p.Ks[s], T_s_a)
-        parallax = float(np.quantile(ang, c["parallax_quantile"]))
-        if parallax < c["min_parallax_deg"]:
+        X, keep, _, ang = triangulate_pair(uva[inl], uvs[inl], p.Ks[anchor], p.Ks[s], T_s_a)
+        parallax = float(np.quantile(ang, PARALLAX_QUANTILE))
+        if parallax < MIN_PARALLAX_DEG:
             why[s] = "no-parallax"
             continue
-        if keep.sum() < c["min_inliers"]:
+        if keep.sum() < p.conf.min_inliers:
             why[s] = "few-3d-points"
             continue
         mi = m[inl][keep]
@@ -101,7 +120,6 @@ def two_view_with_scale(p: Pass, s: int, rec: Recon) -> str:
     """Place view ``s`` by its essential matrix with view 0 (placed), the translation scaled
     by the depths of the points both see. Writes ``rec.T[s]`` (and its observations);
     returns ``""`` or a reason."""
-    c = p.conf
     m0s = p.m(0, s)
     uv0 = p.feats[0].keypoints[m0s[:, 0]]
     uvs = p.feats[s].keypoints[m0s[:, 1]]
@@ -110,11 +128,11 @@ def two_view_with_scale(p: Pass, s: int, rec: Recon) -> str:
         return why
     cur_to_pt = rec.kp_to_pt(0, p.feats[0].n)
     shared = inl & (cur_to_pt[m0s[:, 0]] >= 0)
-    if shared.sum() < c["min_scale_points"]:
+    if shared.sum() < MIN_SCALE_POINTS:
         return two_view_prior_scale(p, s, rec, m0s, inl, T_s_0)
-    X_unit, keep, _, _ = triangulate_pair(c, uv0[shared], uvs[shared], p.Ks[0], p.Ks[s], T_s_0)
+    X_unit, keep, _, _ = triangulate_pair(uv0[shared], uvs[shared], p.Ks[0], p.Ks[s], T_s_0)
     pt = cur_to_pt[m0s[shared, 0]]
-    if keep.sum() < c["min_scale_points"]:
+    if keep.sum() < MIN_SCALE_POINTS:
         return "no-parallax"
     T_0_f = se3_inverse(rec.T[0])
     X0 = rec.X[pt[keep]] @ T_0_f[:3, :3].T + T_0_f[:3, 3]  # shared points in camera 0
@@ -132,15 +150,14 @@ def two_view_prior_scale(p: Pass, s: int, rec: Recon, m0s: np.ndarray, inl: np.n
                          T_s_0: np.ndarray) -> str:
     """Scale of a unit two-view pose with view 0 from view 0's own depth prior at the
     triangulated inliers (too few points shared with the reconstruction); metric passes only."""
-    c = p.conf
     if p.views[0].depth_m is None or not rec.metric:
         return "few-3d-points"
     uv0 = p.feats[0].keypoints[m0s[inl, 0]]
     uvs = p.feats[s].keypoints[m0s[inl, 1]]
-    X_unit, keep, _, _ = triangulate_pair(c, uv0, uvs, p.Ks[0], p.Ks[s], T_s_0)
-    z = keypoint_depths(uv0, p.views[0].depth_m, p.feats[0].image_hw, float(c["depth_edge_tol"]))
+    X_unit, keep, _, _ = triangulate_pair(uv0, uvs, p.Ks[0], p.Ks[s], T_s_0)
+    z = keypoint_depths(uv0, p.views[0].depth_m, p.feats[0].image_hw)
     keep &= z > 0
-    if keep.sum() < c["min_scale_points"]:
+    if keep.sum() < MIN_SCALE_POINTS:
         return "few-3d-points"
     scale = float(np.median(z[keep] / X_unit[keep, 2]))
     if not np.isfinite(scale) or scale <= 0:
@@ -151,15 +168,15 @@ def two_view_prior_scale(p: Pass, s: int, rec: Recon, m0s: np.ndarray, inl: np.n
     return ""
 
 
-def merge_image_only(rec: Recon, rec_i: Recon, focal_px: float, c: dict[str, Any], counts: Counter) -> list[int]:
+def merge_image_only(rec: Recon, rec_i: Recon, focal_px: float, counts: Counter) -> list[int]:
     """Add to the metric ``rec`` the views that only the image-only ``rec_i`` placed.
 
     Both frames are the current camera's. ``rec_i``'s unit is the median ratio of the
-    translations of the views both placed (those at least ``merge_min_baseline_m`` away);
+    translations of the views both placed (those at least :data:`MERGE_MIN_BASELINE_M` away);
     nothing is added unless the two agree on those views: rotations within
-    ``merge_max_rot_px`` pixels at the focal length ``focal_px`` (what two-view geometry
-    resolves depends on it), translation directions within ``merge_max_dir_deg``, ratios
-    within a factor ``merge_max_ratio_spread``. Each added view brings its points of
+    :data:`MERGE_MAX_ROT_PX` pixels at the focal length ``focal_px`` (what two-view geometry
+    resolves depends on it), translation directions within :data:`MERGE_MAX_DIR_DEG`, ratios
+    within a factor :data:`MERGE_MAX_RATIO_SPREAD`. Each added view brings its points of
     ``rec_i``, scaled. Refusals are counted in ``counts`` (``merge-refused:<why>``).
     Returns the added view indices."""
     extra = [s for s in rec_i.T if s not in rec.T]
@@ -168,20 +185,20 @@ def merge_image_only(rec: Recon, rec_i: Recon, focal_px: float, c: dict[str, Any
     for s in common:
         Tm, Ti = rec.T[s], rec_i.T[s]
         cos = (np.trace(Tm[:3, :3].T @ Ti[:3, :3]) - 1.0) / 2.0
-        if np.arccos(np.clip(cos, -1.0, 1.0)) * focal_px > c["merge_max_rot_px"]:
+        if np.arccos(np.clip(cos, -1.0, 1.0)) * focal_px > MERGE_MAX_ROT_PX:
             counts["merge-refused:rotation"] += 1
             return []
         tm, ti = Tm[:3, 3], Ti[:3, 3]
         nm, ni = float(np.linalg.norm(tm)), float(np.linalg.norm(ti))
-        if nm < c["merge_min_baseline_m"] or ni <= 0:
+        if nm < MERGE_MIN_BASELINE_M or ni <= 0:
             continue
-        if np.degrees(np.arccos(np.clip(tm @ ti / (nm * ni), -1.0, 1.0))) > c["merge_max_dir_deg"]:
+        if np.degrees(np.arccos(np.clip(tm @ ti / (nm * ni), -1.0, 1.0))) > MERGE_MAX_DIR_DEG:
             counts["merge-refused:direction"] += 1
             return []
         ratios.append(nm / ni)
     if not extra:
         return []
-    if not ratios or max(ratios) > c["merge_max_ratio_spread"] * min(ratios):
+    if not ratios or max(ratios) > MERGE_MAX_RATIO_SPREAD * min(ratios):
         counts["merge-refused:" + ("no-baseline" if not ratios else "scale")] += 1
         return []
     scale = float(np.median(ratios))

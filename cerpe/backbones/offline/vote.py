@@ -2,7 +2,7 @@
 
 RANSAC on keypoints can be won by whatever holds most keypoints: a textured object
 that moves, or a facade of repeated windows matched one period off. The vote counts
-surfaces instead: every ``vote_stride``-th pixel of the depth-prior view, moved by
+surfaces instead: every :data:`VOTE_STRIDE`-th pixel of the depth-prior view, moved by
 each candidate motion into the current view, counts for the motions under which it
 lands on a consistent depth *and* grey level (depth alone cannot tell forward motion
 over a flat floor from standing still; grey level alone cannot tell motions apart
@@ -18,26 +18,40 @@ from typing import Sequence
 import numpy as np
 
 from ..rgbd_align import grey_image
-from .context import Pass
+from .context import VOTE_CHAIN_HOPS, Pass
 from .matching import map_index, pixels_to_rays
+
+VOTE_STRIDE = 4  # every VOTE_STRIDE-th pixel (both directions) of a view's depth prior votes
+VOTE_DEPTH_TOL = 0.05  # a moved pixel's depth agrees within this fraction of the other prior's
+VOTE_GREY_TOL = 6.0  # ... and its grey level within this (0-255), both images blurred with VOTE_BLUR_SIGMA px
+VOTE_BLUR_SIGMA = 1.0
+# one depth scale per motion and frame pair (a prior whose scale wanders per frame): fitted on the
+# pixels whose depths agree within a factor 1 + VOTE_DEPTH_SCALE_SEARCH, bounded to a factor
+# 1 + VOTE_DEPTH_SCALE_MAX (about a monocular prior's per-frame scale noise; 0: off)
+VOTE_DEPTH_SCALE_MAX = 0.08
+VOTE_DEPTH_SCALE_SEARCH = 0.15
+# the moving mask's depth tolerance widens to VOTE_MOVING_SPREAD_K robust sigmas of the chosen
+# motion's depth residuals, at most VOTE_DEPTH_TOL_MAX (0: off)
+VOTE_MOVING_SPREAD_K = 3.0
+VOTE_DEPTH_TOL_MAX = 0.2
+VOTE_VIEWS = 2  # older views (reached through the memos' motion chains) that vote too
 
 
 def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
                 exclude: np.ndarray | None = None, spread_k: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """View ``a``'s prior depth pixels on the ``vote_stride`` grid, moved into view ``b``
+    """View ``a``'s prior depth pixels on the :data:`VOTE_STRIDE` grid, moved into view ``b``
     by each ``T_b_a[h]``: ``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool.
 
     ``inside``: in front of ``b`` and within its image; ``consistent``: also ``b``'s prior
-    depth there within ``vote_depth_tol`` (relative) of the moved depth times the motion's
+    depth there within :data:`VOTE_DEPTH_TOL` (relative) of the moved depth times the motion's
     depth scale (:func:`depth_scale`) and its grey level (both images blurred with
-    ``vote_blur_sigma``) within ``vote_grey_tol``. Grid pixels without a prior depth, or
+    :data:`VOTE_BLUR_SIGMA`) within :data:`VOTE_GREY_TOL`. Grid pixels without a prior depth, or
     set in ``exclude`` (``[n_grid]`` bool), are neither. ``spread_k`` > 0 widens the depth
     tolerance of each motion to ``spread_k`` robust sigmas of its log depth residuals
-    (:func:`depth_scale`), at most ``vote_depth_tol_max``: for one motion already chosen
+    (:func:`depth_scale`), at most :data:`VOTE_DEPTH_TOL_MAX`: for one motion already chosen
     (the moving mask), never between motions (a wrong one would widen its own)."""
-    c = p.conf
     Db = np.asarray(p.views[b].depth_m, np.float64)
-    grey = blurred_greys(p, (a, b), float(c["vote_blur_sigma"]))
+    grey = blurred_greys(p, (a, b), VOTE_BLUR_SIGMA)
     Hb, Wb = p.feats[b].image_hw
     hb, wb = Db.shape
     vv, uu, ok, X = grid_points(p, a, exclude)
@@ -51,12 +65,11 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
         meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
         g = bilinear(grey[1], ub, vb)
-        grey_ok = np.abs(g - gi) <= c["vote_grey_tol"]
-        s, spread = depth_scale(zi, meas, grey_ok, float(c["vote_depth_tol"]), float(c["vote_depth_scale_max"]),
-                                float(c["vote_depth_scale_search"]))
-        tol = float(c["vote_depth_tol"])
+        grey_ok = np.abs(g - gi) <= VOTE_GREY_TOL
+        s, spread = depth_scale(zi, meas, grey_ok, VOTE_DEPTH_TOL, VOTE_DEPTH_SCALE_MAX, VOTE_DEPTH_SCALE_SEARCH)
+        tol = VOTE_DEPTH_TOL
         if spread_k > 0:
-            tol = max(tol, min(spread_k * spread, float(c["vote_depth_tol_max"])))
+            tol = max(tol, min(spread_k * spread, VOTE_DEPTH_TOL_MAX))
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_ok = np.isfinite(meas) & (meas > 0) & (np.abs(s * zi - meas) <= tol * meas)
         consistent[h, sel[ins]] = depth_ok & grey_ok
@@ -104,16 +117,16 @@ def motion_votes(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
 
 def chained_views(p: Pass, d: int) -> list[tuple[int, np.ndarray]]:
     """Other views of the pass with a depth prior whose pose relative to view ``d`` the
-    motion chain of ``d``'s memo gives: ``[(k, T_d_k)]``, at most ``vote_views``, reached
-    within ``vote_chain_hops`` hops."""
-    want = int(p.conf["vote_views"])
+    motion chain of ``d``'s memo gives: ``[(k, T_d_k)]``, at most :data:`VOTE_VIEWS`, reached
+    within :data:`~.context.VOTE_CHAIN_HOPS` hops."""
+    want = VOTE_VIEWS
     if want <= 0:
         return []
     index = {p.views[k].key: k for k in range(1, len(p.views))
              if k != d and p.views[k].depth_m is not None and not p.low_tex[k]}
     out: list[tuple[int, np.ndarray]] = []
     T_d_key = np.eye(4)
-    for key, T_key_anchor in p.chain(d)[:int(p.conf["vote_chain_hops"])]:
+    for key, T_key_anchor in p.chain(d)[:VOTE_CHAIN_HOPS]:
         T_d_key = T_d_key @ T_key_anchor
         if key in index:
             out.append((index[key], T_d_key.copy()))
@@ -136,50 +149,15 @@ def total_votes(p: Pass, d: int, T_0_d: Sequence[np.ndarray]) -> np.ndarray:
     return votes
 
 
-def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray, rivals: Sequence[np.ndarray] = ()) -> np.ndarray | None:
+def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray) -> np.ndarray | None:
     """``[n_grid] bool``: the current view's grid pixels that the chosen motion ``T_d_0``
     (current-camera points into camera ``d``) does not explain against view ``d`` (a moving
     object, mostly); None when ``mask_moving`` is off or the current view has no prior.
-
-    Pixels that one of ``rivals`` explains (the motions that lost the vote with at least
-    ``mask_moving_retest`` times the winner's votes, same convention; strict tolerances) are
-    left out of the mask (counted ``moving-mask-retested``): after a close vote they may be
-    the static scene rather than an object, and a mask silences its pixels in every later
-    vote. When an object moving with the camera fills the view (a vehicle driving ahead) the
-    vote can pick its motion (standing still); the static scene is then what that motion does
-    not explain, and masking it locks the wrong motion in while the object stays in view.
-    What no candidate explains (an object that just entered the view) stays masked. The
-    retest is symmetric: after a close vote that the camera's motion won, an object's own
-    motion among the rivals keeps the object's pixels voting too (hence only close votes)."""
-    if not p.conf["mask_moving"] or p.views[0].depth_m is None:
+    The depth tolerance widens with the motion's own depth residuals (:data:`VOTE_MOVING_SPREAD_K`)."""
+    if not p.conf.mask_moving or p.views[0].depth_m is None:
         return None
-    spread_k = float(p.conf["vote_moving_spread_k"])
-    inside, consistent = consistency(p, 0, d, [T_d_0], spread_k=spread_k)
-    moving = inside[0] & ~consistent[0]
-    if len(rivals) and moving.any():
-        _, other = consistency(p, 0, d, list(rivals))
-        explained = moving & other.any(axis=0)
-        if explained.any():
-            p.counts["moving-mask-retested"] += 1
-            moving &= ~explained
-    return moving
-
-
-def grid_mask_image(grid: np.ndarray, image_hw: tuple[int, int], stride: int) -> np.ndarray:
-    """``[H,W]`` bool image of a ``[n_grid]`` mask on the ``stride`` grid of :func:`consistency`,
-    each grid pixel covering its cell. Lone grid pixels (a grey level off at a texture
-    edge, sensor noise) are dropped by an opening; what is left, an object, grows by one
-    cell (its outline falls between grid pixels)."""
-    import cv2
-
-    H, W = image_hw
-    st = max(int(stride), 1)
-    gh, gw = len(range(st // 2, H, st)), len(range(st // 2, W, st))
-    box = np.ones((3, 3), np.uint8)
-    cells = cv2.morphologyEx(np.asarray(grid, np.uint8).reshape(gh, gw), cv2.MORPH_OPEN, box)
-    cells = cv2.dilate(cells, box)
-    rows, cols = np.minimum(np.arange(H) // st, gh - 1), np.minimum(np.arange(W) // st, gw - 1)
-    return cells[rows[:, None], cols[None, :]].astype(bool)
+    inside, consistent = consistency(p, 0, d, [T_d_0], spread_k=VOTE_MOVING_SPREAD_K)
+    return inside[0] & ~consistent[0]
 
 
 def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
@@ -188,7 +166,7 @@ def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
     points into camera ``b``) on ``a``'s depth prior: ``(n, ncc)``, the grid pixels of ``a``
     that land inside ``b`` and the normalised cross-correlation of both blurred grey levels
     there (gain and offset of either camera do not matter). ``(n, nan)`` below 2 such pixels.
-    ``blur_px``: the Gaussian blur of both images (default ``vote_blur_sigma``); a wider one
+    ``blur_px``: the Gaussian blur of both images (default :data:`VOTE_BLUR_SIGMA`); a wider one
     forgives the few pixels a right but imprecise placement is off by. ``highpass_px`` > 0: both
     images less their Gaussian blur of that sigma first, so that only texture and edges count,
     not the layout (bright sky above, dark ground below) that any two cameras held alike share.
@@ -209,7 +187,7 @@ def photometric_agreements(p: Pass, a: int, b: int, T_b_a: np.ndarray, highpass_
     n = int(ins.sum())
     if n < 2:
         return n, [float("nan")] * len(highpass_px)
-    grey = blurred_greys(p, (a, b), float(p.conf["vote_blur_sigma"] if blur_px is None else blur_px))
+    grey = blurred_greys(p, (a, b), float(VOTE_BLUR_SIGMA if blur_px is None else blur_px))
     out = []
     for hp in highpass_px:
         g0, g1 = grey
@@ -234,10 +212,10 @@ def blurred_greys(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarra
 
 def grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """View ``a``'s ``vote_stride`` grid: rows ``vv``, columns ``uu`` ``[n_grid]``, the mask ``ok`` of
+    """View ``a``'s :data:`VOTE_STRIDE` grid: rows ``vv``, columns ``uu`` ``[n_grid]``, the mask ``ok`` of
     grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``."""
     Da = np.asarray(p.views[a].depth_m, np.float64)
-    st = max(int(p.conf["vote_stride"]), 1)
+    st = max(VOTE_STRIDE, 1)
     H, W = p.feats[a].image_hw
     vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
     vv, uu = vv.ravel(), uu.ravel()
