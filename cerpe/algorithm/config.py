@@ -17,21 +17,21 @@ from .policy import PolicyConfig
 
 PAPER_THRESHOLDS: dict[str, float] = {"tau": 0.2, "tau_m": 0.9, "tau_k": 0.2}
 BACKENDS: tuple[str, ...] = ("switch", "graph")
-# Smaller messages chosen on development data (issue 21; not the paper's protocol, which is CerpeConfig's
+# Smaller messages chosen on development data (not the paper's protocol, which is CerpeConfig's
 # default): the int8 descriptor codec (gate ROC AUC within 0.01 of the full descriptor,
-# scripts/dev_descriptor_codecs.py) and WebP-75 full-resolution replies (scripts/dev_codecs.py:
+# lab/descriptor_codec_auc.py) and WebP-75 full-resolution replies (lab/reply_codecs.py:
 # 36 % of JPEG-90's bytes, the same placements). CerpeConfig(**COMPRESSED_MESSAGES) selects them.
 COMPRESSED_MESSAGES: dict[str, object] = {"descriptor_codec": "pca-int8", "reply_codec": "webp",
                                           "reply_quality": 75, "reply_scale": 1.0}
-# Ours at its leanest (issue 21; chosen on development data by scripts/dev_policy.py, figures in the commits
+# Ours at its leanest (chosen on development data by lab/policy.py, figures in the commits
 # that set it): the request policy "pays" that also backs off from gates whose images do not place (after
 # 3 misses: every 3 steps, every 2 for a pair without an anchor, never while estimates wait to
 # verify) and asks once more when the estimate that set the anchor disagreed by more than 0.03 rad with what
-# verified it (scripts/dev_policy.py "lean-pe-u2-rc-l1"; dev, pooled: 0.095 of always-send's bytes, e_rot
+# verified it (lab/policy.py "lean-pe-u2-rc-l1"; dev, pooled: 0.095 of always-send's bytes, e_rot
 # 0.90 x and success 0.984 x the paper protocol's, where LEAN_V1 gave 0.084 / 1.08 x / 0.945 x; after 2
 # misses, "-b2": 0.089 / 0.97 x / 0.989 x, but cad-s1 e00's e_rot 1.03 x -> 1.66 x),
 # over COMPRESSED_MESSAGES with grey WebP-75 replies (the channels' mean: all the offline backbone reads of a
-# received image; scripts/dev_codecs.py: the same placements at 81 % of colour WebP-75's bytes).
+# received image; lab/reply_codecs.py: the same placements at 81 % of colour WebP-75's bytes).
 # CerpeConfig(**LEAN) selects it; the Pareto settings of `make paper` run it. LEAN_V1_POLICY: LEAN before.
 LEAN_V1_POLICY: dict[str, object] = {"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3}
 LEAN_POLICY: dict[str, object] = {"mode": "pays", "miss_limit": 3, "miss_backoff_steps": 3, "unanchored_backoff_steps": 2,

@@ -112,7 +112,7 @@ class PolicyConfig:
     """
 
     mode: str = "gate"
-    # thresholds checked on development data only (scripts/dev_policy.py; figures in the commit that says so)
+    # thresholds checked on development data only (lab/policy.py; figures in the commit that says so)
     max_sigma_rot_rad: float = 0.05
     max_sigma_pos_m: float = 0.3
     max_steps: int = 30
