@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """The gate's ROC AUC with compressed descriptors against the uncompressed one, on development data.
 
 Per development set (synthetic suites of --synth-seeds, rendered as `cerpe dev` renders

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Replay robots of a dev encounter alone and print their per-step ego-motion against ground truth.
 
 Each robot runs in a team of its own (its ego-motion never reads a collaborator's view in a

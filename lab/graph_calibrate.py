@@ -4,7 +4,7 @@ Usage::
 
     cerpe dev --methods cerpe cerpe-wo-em cerpe-graph      # development runs (real dev sets, seed >= 1)
     python -m lab.graph_calibrate [--runs build/dev/runs] [--stat median] [--grid] [--oracle]
-                                          [--out build/dev/graph_calibration.json]
+                                  [--out build/dev/graph_calibration.json]
 
 1. Direct estimates (every ``dir_*`` of the runs, accepted or rejected) against ground truth,
    per depth kind (the ``rel_sigma`` its depth source reports: 0 for a depth sensor, 0.094 for

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Cross-robot registration on development pairs: which matcher places the collaborator image.
 
 For every case of every set (``lab/sets.py``: real pairs from ``../shared/data``

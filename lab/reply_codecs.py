@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Image reply codecs: bytes against the direct estimate's accuracy, on development pairs.
 
 Each case is an ego robot's RGB-D frame and a co-visible collaborator frame (ground-truth

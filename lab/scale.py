@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Metric translation from depth + PnP on real RGB-D against ground truth.
 
 Between frames ``ref`` (its depth is the prior) and ``cur`` of one sequence: the pose

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Wide-baseline pairs from the development sets, end to end: how many collaborator views a method places.
 
 The held-out failure this watches: real pairs with a large viewpoint change, where the
