@@ -39,7 +39,9 @@ _register("export", "cerpe.pipeline.export", "export a run folder's estimates an
 _register("bench", "cerpe.pipeline.bench", "benchmark per-stage latency, memory and bytes")
 _register("paper", "cerpe.pipeline.paper", "build every table and figure (what `make paper` runs)")
 _register("dev", "cerpe.pipeline.dev", "development report: the five methods on the real development sets and "
-          "synthetic development seeds (never the paper-default suite), and the open issues' checks")
+          "synthetic development seeds (never the paper-default suite), and the development checks")
+_register("fit", "cerpe.fit.cli", "fit the files shipped in cerpe/data/ on development data: descriptor centres "
+          "and mean, the codecs' projection, the gate's thresholds")
 _register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over Zenoh")
 _register("data", "cerpe.datasets.data_cli", "list public datasets, download one (resumable, checked) and print its manifest")
 

@@ -2,7 +2,7 @@
 
 The global descriptor (8192 values for the offline descriptor, 8448 for SALAD) is
 projected onto ``k`` principal directions of development descriptors (:func:`fit_projection`,
-training-free: an eigen-decomposition, made once by ``scripts/fit_descriptor_projection.py``
+training-free: an eigen-decomposition, made once by ``cerpe fit projection``
 and shipped beside the k-means centres), and what those directions leave (the residual)
 onto ``random_dims`` random Gaussian directions (Johnson-Lindenstrauss: inner products
 preserved in expectation, whatever the scene); the concatenation is L2-normalised. A
@@ -168,7 +168,7 @@ def load_projection(path: str | Path | None = None) -> Projection:
     path = Path(path) if path else default_projection_path()
     if not path.is_file():
         raise CompressError(f"descriptor projection: file not found: {path} "
-                            f"(run scripts/fit_descriptor_projection.py to create it)")
+                            f"(run `cerpe fit projection` to create it)")
     try:
         with np.load(path) as z:
             data = {k: z[k] for k in z.files}

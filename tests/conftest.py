@@ -18,6 +18,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "cerpe"))
 TESTS_DIR = Path(__file__).resolve().parent
 if str(TESTS_DIR) not in sys.path:  # lets tests import the doubles in tests/gt_backbone.py
     sys.path.insert(0, str(TESTS_DIR))
+if str(TESTS_DIR.parent) not in sys.path:  # and the development studies, `lab` (not installed)
+    sys.path.append(str(TESTS_DIR.parent))
 
 SHARED_DATA = TESTS_DIR.parents[0].parent / "shared" / "data"
 

@@ -199,9 +199,10 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
         assert (out / name).is_file(), name
     # the checks of a synthetic set: no real-set comparison, the carried and graph checks from the table
     checks = res["checks"]
-    assert set(checks["check"]) == {"18 wrong carried", "20 graph e_pos", "20 graph e_pos, w/o EM's frames",
-                                    "20 graph e_rot / success"}
-    assert set(checks["result"]) <= {"pass", "FAIL", "n/a"} and "the open issues' development checks:" in lines[-3]
+    assert set(checks["check"]) == {"wrong estimate carried", "graph e_pos vs CERPE",
+                                    "graph e_pos vs CERPE, w/o EM's frames", "graph e_rot / success vs CERPE"}
+    assert set(checks["result"]) <= {"pass", "FAIL", "n/a"} and "development checks:" in lines[-3]
+    assert list(pd.read_csv(out / "report_checks.csv")["check"]) == list(checks["check"])
     assert pd.read_csv(out / "report-before.csv").shape[0] == len(dev.METHODS) == 5
     md = (out / "report.md").read_text()
     assert "succ>covis %" in md and json.loads(md.split("```json")[1].split("```")[0])["synthetic"]["seeds"] == [2]
@@ -230,7 +231,7 @@ def _method_row(set_name: str, method: str, **kw) -> dict:
 
 
 def test_checks_known_answers() -> None:
-    """The issues' checks on a hand-made table: a real set CERPE wins, one where the baseline's wrong poses
+    """The development checks on a hand-made table: a real set CERPE wins, one where the baseline's wrong poses
     "succeed" (CERPE places nothing: a failure, not n/a), the graph bound either side of 0.7 x min, and n/a
     for a missing method."""
     from cerpe.pipeline.devreport import checks
@@ -251,32 +252,32 @@ def test_checks_known_answers() -> None:
         _method_row("synth", "cerpe-graph", e_pos_m=0.5, e_rot_rad=0.011, success_pct=60.0),
     ])
     c = checks(t, real=["win", "room", "dark", "none"]).set_index(["check", "set"])["result"]
-    assert c[("18 real: CERPE vs ALIKED+LG", "win")] == "pass"
-    assert c[("18 real: CERPE vs ALIKED+LG", "room")] == "FAIL"
-    assert c[("18 real: CERPE vs ALIKED+LG", "dark")] == "pass"  # the baseline has no estimate to compare
-    assert c[("18 real: CERPE vs ALIKED+LG", "none")] == "n/a"  # neither has one
-    assert ("18 real: CERPE vs ALIKED+LG", "synth") not in c  # not a real set
-    assert c[("18 wrong carried", "win")] == "pass" and c[("18 wrong carried", "synth")] == "FAIL"
-    assert c[("20 graph e_pos", "win")] == "pass"  # 0.55 <= 0.7 x min(1.0, 0.8) = 0.56
-    assert c[("20 graph e_pos", "synth")] == "FAIL"  # 0.5 > 0.7 x 0.6 (no w/o EM row: CERPE alone)
-    assert c[("20 graph e_rot / success", "win")] == "pass" and c[("20 graph e_rot / success", "synth")] == "FAIL"
-    assert ("20 graph e_pos", "room") not in c  # no cerpe-graph row
-    # like for like on w/o EM's frames: 0.57 > 0.7 x 0.8 = 0.56 although the issue's check passes; no w/o EM row: none
-    assert c[("20 graph e_pos, w/o EM's frames", "win")] == "FAIL"
-    assert ("20 graph e_pos, w/o EM's frames", "synth") not in c
+    assert c[("real set: CERPE vs ALIKED+LG", "win")] == "pass"
+    assert c[("real set: CERPE vs ALIKED+LG", "room")] == "FAIL"
+    assert c[("real set: CERPE vs ALIKED+LG", "dark")] == "pass"  # the baseline has no estimate to compare
+    assert c[("real set: CERPE vs ALIKED+LG", "none")] == "n/a"  # neither has one
+    assert ("real set: CERPE vs ALIKED+LG", "synth") not in c  # not a real set
+    assert c[("wrong estimate carried", "win")] == "pass" and c[("wrong estimate carried", "synth")] == "FAIL"
+    assert c[("graph e_pos vs CERPE", "win")] == "pass"  # 0.55 <= 0.7 x min(1.0, 0.8) = 0.56
+    assert c[("graph e_pos vs CERPE", "synth")] == "FAIL"  # 0.5 > 0.7 x 0.6 (no w/o EM row: CERPE alone)
+    assert c[("graph e_rot / success vs CERPE", "win")] == "pass" and c[("graph e_rot / success vs CERPE", "synth")] == "FAIL"
+    assert ("graph e_pos vs CERPE", "room") not in c  # no cerpe-graph row
+    # like for like on w/o EM's frames: 0.57 > 0.7 x 0.8 = 0.56 although the plain e_pos check passes; no w/o EM row: none
+    assert c[("graph e_pos vs CERPE, w/o EM's frames", "win")] == "FAIL"
+    assert ("graph e_pos vs CERPE, w/o EM's frames", "synth") not in c
     t.loc[t["set"] == "win", "e_pos_m"] = float("nan")  # no predicted scale (RGB only): the GT-scale figures
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_m"] = 0.3
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe"), "e_pos_gt_scale_m"] = 0.4
     t.loc[t["set"] == "win", "e_pos_on_woem_frames_m"] = float("nan")  # no predicted scale on any frame
     c = checks(t, real=["win"]).set_index(["check", "set"])
-    assert c.loc[("20 graph e_pos", "win"), "result"] == "FAIL"
-    assert "(GT scale)" in c.loc[("20 graph e_pos", "win"), "figures"]
-    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "n/a"  # no GT-scale figures either
+    assert c.loc[("graph e_pos vs CERPE", "win"), "result"] == "FAIL"
+    assert "(GT scale)" in c.loc[("graph e_pos vs CERPE", "win"), "figures"]
+    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "result"] == "n/a"  # no GT-scale figures either
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_on_woem_frames_m"] = 0.2
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-wo-em"), "e_pos_gt_scale_on_woem_frames_m"] = 0.3
     c = checks(t, real=["win"]).set_index(["check", "set"])
-    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "result"] == "pass"  # 0.2 <= 0.7 x 0.3
-    assert c.loc[("20 graph e_pos, w/o EM's frames", "win"), "figures"] == "0.200 vs 0.7 x 0.300 (GT scale)"
+    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "result"] == "pass"  # 0.2 <= 0.7 x 0.3
+    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "figures"] == "0.200 vs 0.7 x 0.300 (GT scale)"
 
 
 def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_path):

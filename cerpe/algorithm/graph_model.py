@@ -66,7 +66,7 @@ class GraphModel:
     dataset's depth; :func:`sensor_like`) the noise part (not the failure terms) is scaled by
     ``odo_sensor_scale``: on the development runs the odometry's observed RMS error was about
     0.2-0.27 of the model's on sensor depth and 0.4-0.74 on the monocular prior (the odometry
-    table of ``scripts/dev_graph_calibrate.py``, ``shipped_*_ratio``, windows of 1-20 steps): one
+    table of ``lab/graph_calibrate.py``, ``shipped_*_ratio``, windows of 1-20 steps): one
     model for both was about 2.5 times too loose on a sensor (with the scale: 0.49-0.69 rotation,
     0.56-0.62 translation, as on the prior; TUM fr1's dataset depth, 60-112 steps, reads 1.4-2.3 in
     rotation: tight, its graph estimates unchanged).
@@ -122,7 +122,7 @@ class GraphModel:
     one; the next confirmed estimate off the same way (cosine, chi-square) is followed at once.
     """
 
-    # calibrated on development data only (scripts/dev_graph_calibrate.py: `cerpe dev` runs of the real
+    # calibrated on development data only (lab/graph_calibrate.py: `cerpe dev` runs of the real
     # dev-* sets and synthetic seed 1); the figures and the data are in the commit that set them
     odo_rot_per_step: float = 0.0035
     odo_rot_per_m: float = 0.0

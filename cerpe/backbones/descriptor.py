@@ -10,7 +10,7 @@ global token, L2 normalisation of the whole) and replaces the learned parts:
   matches, the best :data:`MAX_KEYPOINTS`);
 * scores: ``BETA * cos(f_i, c_k)`` with spherical k-means centres ``c_k`` fitted on
   synthetic renders of development seeds (``cerpe/data/xfeat_salad_centres.npz``,
-  made by ``scripts/fit_descriptor.py``); the dustbin scores ``BETA * DUSTBIN_COS``;
+  made by ``cerpe fit descriptor``); the dustbin scores ``BETA * DUSTBIN_COS``;
 * aggregation: the residuals ``f_i - c_k`` summed per cluster (NetVLAD's residuals
   with SALAD's transport plan as soft assignment), square-rooted (:data:`POWER`):
   without a learned projection a cluster's plain sum mostly re-describes the
@@ -20,10 +20,10 @@ global token, L2 normalisation of the whole) and replaces the learned parts:
   similarity: XFeat describes grey-level texture only, while places built from a
   few repeated textures differ in colour;
 * centring (``mean``): the mean descriptor of development renders (``cerpe/data/xfeat_salad_mean.npz``,
-  made by ``scripts/fit_descriptor.py --descriptor-mean``) is subtracted and the result
+  made by ``cerpe fit descriptor --descriptor-mean``) is subtracted and the result
   re-normalised, as NetVLAD's PCA whitening removes its training mean: what every view
   of these worlds shares (road, walls, sky) no longer counts as overlap
-  (``scripts/calibrate_thresholds.py`` measures the co-visibility ROC AUC). ``mean: none``
+  (``cerpe fit thresholds`` measures the co-visibility ROC AUC). ``mean: none``
   is the plain aggregate.
 
 Size ``m*64 + g`` (64 x 64 + 4096 = 8192), no more than the paper's 8448, so a
@@ -32,7 +32,7 @@ by :func:`cerpe.pipeline.evaluate.gate_quality` for every run.
 
 Thresholds ``tau``, ``tau_m``, ``tau_k`` come from
 ``cerpe/data/xfeat_salad_thresholds.json``, written by
-``scripts/calibrate_thresholds.py`` on encounters of a development seed: ``tau``
+``cerpe fit thresholds`` on encounters of a development seed: ``tau``
 maximises F1 of ``similarity >= tau`` against "overlap >= 0.2", ``tau_m`` and
 ``tau_k`` are low quantiles of the similarity of consecutive frames and of frames
 ``Delta_k`` apart.
@@ -102,7 +102,7 @@ def load_centres(path: str | Path | None = None) -> dict[str, np.ndarray]:
         DescriptorError: naming the file and the missing/bad field.
     """
     path = Path(path) if path else data_path(CENTRES_FILE)
-    data = _read_npz(path, "descriptor centres", ("centres", "mean"), "run scripts/fit_descriptor.py to create it")
+    data = _read_npz(path, "descriptor centres", ("centres", "mean"), "run `cerpe fit descriptor` to create it")
     c, mu = data["centres"].astype(np.float32), data["mean"].astype(np.float32).ravel()
     if c.ndim != 2 or c.shape[1] != 64 or mu.shape != (64,) or not np.all(np.isfinite(c)) or not np.all(np.isfinite(mu)):
         raise DescriptorError(
@@ -123,7 +123,7 @@ def load_descriptor_mean(path: str | Path | None, dim: int) -> np.ndarray:
     """
     path = Path(path) if path else data_path(MEAN_FILE)
     data = _read_npz(path, "descriptor mean", ("mean",),
-                     "run scripts/fit_descriptor.py --descriptor-mean, or set mean: none")
+                     "run cerpe fit descriptor --descriptor-mean, or set mean: none")
     mu = data["mean"].astype(np.float32).ravel()
     if mu.shape != (dim,) or not np.all(np.isfinite(mu)):
         got = f"{mu.shape[0]}" + ("" if np.all(np.isfinite(mu)) else " non-finite")

@@ -16,8 +16,8 @@ Runs the methods (``cerpe``, ``cerpe-wo-em``, ``cerpe-graph``: our extension, ``
 then prints per set and method the figures of :mod:`cerpe.pipeline.devreport` (e_pos at
 predicted / GT scale, e_rot mean and median, success, success after co-visibility,
 placed collaborator views / image requests, anchors rejected, wrong estimates carried,
-bytes per robot per step), the descriptor gate's quality per set, and the open issues'
-development checks (:func:`cerpe.pipeline.devreport.checks`: a verdict per check and set).
+bytes per robot per step), the descriptor gate's quality per set, and the development
+checks (:func:`cerpe.pipeline.devreport.checks`: a verdict per check and set).
 
 Everything is cached and resumable under ``--out`` (default ``build/dev/``):
 ``synth/<sizes>/<world>-seed<N>/`` (rendered suites), ``manifests/`` (their manifests),

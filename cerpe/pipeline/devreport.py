@@ -8,7 +8,7 @@ One row per (set, method) (:func:`method_row`):
 * ``e_pos_on_woem_frames_m`` / ``e_pos_gt_scale_on_woem_frames_m``: ``e_pos_m`` /
   ``e_pos_gt_scale_m`` over the frames where CERPE w/o EM of the same set reports (its
   accepted direct estimates): the methods on the same frames
-  (:func:`~cerpe.pipeline.evaluate.e_pos_on_reference_frames`; issue 20's ratio like for like);
+  (:func:`~cerpe.pipeline.evaluate.e_pos_on_reference_frames`: the graph's e_pos ratio like for like);
 * ``success_after_covis_pct``: success over the evaluated frames at or after the pair's
   first co-visible step (ground-truth overlap >= 0.2 both ways);
 * ``right_pct``: evaluated frames with an estimate within 0.3 rad of the true rotation
@@ -22,14 +22,14 @@ One row per (set, method) (:func:`method_row`):
 * ``carried_longest_steps``, ``carried_runs_over_3``: wrong estimates carried
   (:func:`wrong_runs`): the longest run of consecutive steps of one ordered pair whose
   estimate is more than 0.3 rad wrong and comes from the same anchor, and how many such
-  runs are longer than 3 steps (issue 18's target: none). Over every step with an
+  runs are longer than 3 steps (the target: none). Over every step with an
   estimate and ground truth, evaluated or not;
 * ``bytes_per_robot_step``: mean ``bytes_total`` of ``robots.csv`` (everything a robot
   put on the wire per step).
 
 :func:`gate_row` adds the descriptor gate's quality per set from CERPE's ``steps.csv``:
 the co-visibility label (``covis_*``) beside the old ordered label. :func:`checks` reads the
-table against the open issues' development checks (issues 18 and 20), one verdict per check and set.
+table against the development checks (:data:`CHECKS`), one verdict per check and set.
 """
 from __future__ import annotations
 
@@ -45,8 +45,8 @@ from .evaluate import (REFERENCE_METHOD, RIGHT_ROT_RAD, Run, e_pos_on_reference_
                        load_run, summarise)
 from .textfmt import md_table, text_table
 
-WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong" (issue 18)
-CARRIED_MAX_STEPS = 3  # issue 18's target: no wrong estimate carried for more than this many steps
+WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong"
+CARRIED_MAX_STEPS = 3  # the target: no wrong estimate carried for more than this many steps
 REJECTED = "anchor:inconsistent"
 REPLACED = "anchor:replaced"
 WEAK = "anchor:weak"
@@ -157,7 +157,7 @@ def report_runs(runs: Iterable[tuple[str, Run]]) -> tuple[pd.DataFrame, pd.DataF
     """``(table, gate)`` over ``(set name, loaded run)`` pairs: :func:`method_row` for every
     run (with ``e_pos_on_woem_frames_m`` over the set's CERPE w/o EM frames), :func:`gate_row`
     for every run of a method with a gate (``cerpe``). A run's ``steps`` may be a replay's
-    (``scripts/dev_graph_replay.py``)."""
+    (``lab/graph_replay.py``)."""
     rows, gates, frames = [], [], []
     for name, run in runs:
         f = frame_errors(run.steps, run.metric_scale, run.every)
@@ -175,9 +175,17 @@ def report_runs(runs: Iterable[tuple[str, Run]]) -> tuple[pd.DataFrame, pd.DataF
     return table, pd.DataFrame(gates, columns=list(GATE_COLS))
 
 
-# --------------------------------------------------------------------------- the issues' checks
-GRAPH_BOUND = 0.7  # issue 20: cerpe-graph e_pos (predicted scale) <= this x min(CERPE, CERPE w/o EM)
+# --------------------------------------------------------------------------- the development checks
+GRAPH_BOUND = 0.7  # cerpe-graph e_pos (predicted scale) <= this x min(CERPE, CERPE w/o EM)
 CHECK_COLS: tuple[str, ...] = ("check", "set", "result", "figures")
+# the checks' names, by what each compares (the ``check`` column of report_checks.csv)
+REAL_VS_BASELINE = "real set: CERPE vs ALIKED+LG"
+WRONG_CARRIED = "wrong estimate carried"
+GRAPH_E_POS = "graph e_pos vs CERPE"
+GRAPH_E_POS_WOEM_FRAMES = "graph e_pos vs CERPE, w/o EM's frames"
+GRAPH_E_ROT_SUCCESS = "graph e_rot / success vs CERPE"
+GRAPH_CHECKS: tuple[str, ...] = (GRAPH_E_POS, GRAPH_E_POS_WOEM_FRAMES, GRAPH_E_ROT_SUCCESS)
+CHECKS: tuple[str, ...] = (REAL_VS_BASELINE, WRONG_CARRIED, *GRAPH_CHECKS)
 
 
 def _verdict(ok: bool | None) -> str:
@@ -185,23 +193,22 @@ def _verdict(ok: bool | None) -> str:
 
 
 def checks(table: pd.DataFrame, real: Iterable[str] = ()) -> pd.DataFrame:
-    """The development checks of the open issues, one row per check and set (:data:`CHECK_COLS`),
+    """The development checks (:data:`CHECKS`), one row per check and set (:data:`CHECK_COLS`),
     from :func:`report`'s table: a verdict (``pass`` / ``FAIL``, ``n/a`` where a method's row or a
     figure is missing) and the figures it compares, so a stop's claims are one command's output.
 
-    * ``18 real: CERPE vs ALIKED+LG`` (sets in ``real``): CERPE's success >= ALIKED+LightGlue's and its
+    * :data:`REAL_VS_BASELINE` (sets in ``real``): CERPE's success >= ALIKED+LightGlue's and its
       mean and median e_rot <= theirs; the figures add both ``right %`` (estimates within
       :data:`RIGHT_ROT_RAD`), since success counts wrong poses too.
-    * ``18 wrong carried``: no CERPE estimate more than :data:`WRONG_RAD` rad wrong carried for more
+    * :data:`WRONG_CARRIED`: no CERPE estimate more than :data:`WRONG_RAD` rad wrong carried for more
       than :data:`CARRIED_MAX_STEPS` steps.
-    * ``20 graph e_pos``: cerpe-graph e_pos (predicted scale; GT scale where the set has none) <=
-      :data:`GRAPH_BOUND` x min(CERPE, CERPE w/o EM); ``20 graph e_rot / success``: <= CERPE's / >= CERPE's.
-    * ``20 graph e_pos, w/o EM's frames``: the same bound like for like, over the frames CERPE w/o EM
+    * :data:`GRAPH_E_POS`: cerpe-graph e_pos (predicted scale; GT scale where the set has none) <=
+      :data:`GRAPH_BOUND` x min(CERPE, CERPE w/o EM); :data:`GRAPH_E_ROT_SUCCESS`: <= CERPE's / >= CERPE's.
+    * :data:`GRAPH_E_POS_WOEM_FRAMES`: the same bound like for like, over the frames CERPE w/o EM
       reports (``e_pos_on_woem_frames_m``, GT scale where the set has none; there CERPE's estimate is
-      w/o EM's). The issue's own check
-      compares means over different frames: w/o EM answers only at accepted direct estimates, the graph
-      and CERPE also between them, where propagation adds odometry drift. Not the issue's check: beside
-      it, so that a reader sees which part of a miss is the frames and which the estimates.
+      w/o EM's). :data:`GRAPH_E_POS` compares means over different frames: w/o EM answers only at
+      accepted direct estimates, the graph and CERPE also between them, where propagation adds odometry
+      drift; this one beside it shows which part of a miss is the frames and which the estimates.
     """
     real = set(real)
     by = {(str(r["set"]), str(r["method"])): r for _, r in table.iterrows()}
@@ -223,34 +230,34 @@ def checks(table: pd.DataFrame, real: Iterable[str] = ()) -> pd.DataFrame:
                     ok = rot[0] <= rot[2] and rot[1] <= rot[3]
                 elif np.isfinite(rot[:2]).all():  # the baseline has no estimate to compare with
                     ok = True
-            rows.append({"check": "18 real: CERPE vs ALIKED+LG", "set": name, "result": _verdict(ok),
+            rows.append({"check": REAL_VS_BASELINE, "set": name, "result": _verdict(ok),
                          "figures": f"success {fig(ce, 'success_pct', 1)} vs {fig(al, 'success_pct', 1)}, e_rot mean "
                                     f"{fig(ce, 'e_rot_rad')} vs {fig(al, 'e_rot_rad')}, median {fig(ce, 'e_rot_median_rad')} "
                                     f"vs {fig(al, 'e_rot_median_rad')}; right % {fig(ce, 'right_pct', 1)} vs "
                                     f"{fig(al, 'right_pct', 1)}"})
         if ce is not None:
             longest = int(ce["carried_longest_steps"])
-            rows.append({"check": "18 wrong carried", "set": name, "result": _verdict(longest <= CARRIED_MAX_STEPS),
+            rows.append({"check": WRONG_CARRIED, "set": name, "result": _verdict(longest <= CARRIED_MAX_STEPS),
                          "figures": f"longest {longest} steps (bound {CARRIED_MAX_STEPS})"})
         if gr is not None and ce is not None:
             key = "e_pos_m" if np.isfinite(float(gr["e_pos_m"])) else "e_pos_gt_scale_m"
             ref = [float(r[key]) for r in (ce, wo) if r is not None and np.isfinite(float(r[key]))]
             g = float(gr[key])
             ok = None if not ref or not np.isfinite(g) else g <= GRAPH_BOUND * min(ref)
-            rows.append({"check": "20 graph e_pos", "set": name, "result": _verdict(ok),
+            rows.append({"check": GRAPH_E_POS, "set": name, "result": _verdict(ok),
                          "figures": f"{_f(g)} vs {GRAPH_BOUND:g} x {_f(min(ref) if ref else float('nan'))}"
                                     f"{' (GT scale)' if key != 'e_pos_m' else ''}"})
             if wo is not None:
                 k2 = "e_pos_on_woem_frames_m" if key == "e_pos_m" else "e_pos_gt_scale_on_woem_frames_m"
                 same = (float(gr[k2]), float(wo[k2]))
                 ok = None if not np.isfinite(same).all() else same[0] <= GRAPH_BOUND * same[1]
-                rows.append({"check": "20 graph e_pos, w/o EM's frames", "set": name, "result": _verdict(ok),
+                rows.append({"check": GRAPH_E_POS_WOEM_FRAMES, "set": name, "result": _verdict(ok),
                              "figures": f"{_f(same[0])} vs {GRAPH_BOUND:g} x {_f(same[1])}"
                                         f"{' (GT scale)' if key != 'e_pos_m' else ''}"})
             er = (float(gr["e_rot_rad"]), float(ce["e_rot_rad"]))
             su = (float(gr["success_pct"]), float(ce["success_pct"]))
             ok = None if not all(np.isfinite(er + su)) else er[0] <= er[1] and su[0] >= su[1]
-            rows.append({"check": "20 graph e_rot / success", "set": name, "result": _verdict(ok),
+            rows.append({"check": GRAPH_E_ROT_SUCCESS, "set": name, "result": _verdict(ok),
                          "figures": f"e_rot {_f(er[0])} vs {_f(er[1])}, success {_f(su[0], 1)} vs {_f(su[1], 1)}"})
     return pd.DataFrame(rows, columns=list(CHECK_COLS))
 
@@ -302,7 +309,7 @@ def format_text(table: pd.DataFrame, gate: pd.DataFrame, check: pd.DataFrame | N
         out += ["", "descriptor gate (CERPE's pairs and steps):",
                 text_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
     if check is not None and len(check):
-        out += ["", "the open issues' development checks:",
+        out += ["", "development checks:",
                 text_table(CHECK_HEADER, [list(map(str, r)) for r in check.itertuples(index=False)], left=4)]
     return "\n".join(out + ["", LEGEND])
 
@@ -315,7 +322,7 @@ def format_markdown(table: pd.DataFrame, gate: pd.DataFrame, provenance: dict | 
         out += ["", "Descriptor gate (CERPE's pairs and steps):", "",
                 md_table(GATE_HEADER, [_gate_cells(r) for _, r in gate.iterrows()])]
     if check is not None and len(check):
-        out += ["", "The open issues' development checks:", "",
+        out += ["", "Development checks:", "",
                 md_table(CHECK_HEADER, [list(map(str, r)) for r in check.itertuples(index=False)])]
     out += ["", LEGEND]
     if provenance:

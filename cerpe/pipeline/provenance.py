@@ -23,10 +23,13 @@ PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 # Code that never changes what a method computes: editing it keeps cached runs valid.
 NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py", "pipeline/bench.py",
                "pipeline/bench_walk.py", "pipeline/bench_graph.py", "pipeline/bench_report.py",
-               "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py", "pipeline/calibrate.py",
-               "pipeline/graphdev.py", "pipeline/message_loss.py", "pipeline/pareto.py", "pipeline/runcheck.py",
+               "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py",
+               "pipeline/message_loss.py", "pipeline/pareto.py", "pipeline/runcheck.py",
                "plotting.py", "cli.py",
                "atomicio.py"}
+# Packages the cerpe methods do not run: the baselines (hashed for theirs), `cerpe online`'s transport and
+# `cerpe fit` (the files it writes in data/ are hashed).
+NOT_CERPE_DIRS = ("baselines", "online", "fit", "__pycache__")
 # What the per-frame baselines run, besides their own package.
 BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py",
                  "backbones/lightglue.py", "backbones/xfeat.py", "protocols.py", "threads.py")
@@ -61,8 +64,8 @@ def package_versions() -> dict[str, str]:
 def code_hash(method: str) -> str:
     """Hash of the ``cerpe`` source files a method's results depend on.
 
-    Evaluation, plotting, CLI, paper-building and online-transport code are left
-    out (:data:`NOT_RESULTS`): changing them does not change what a method
+    Evaluation, plotting, CLI, paper-building, online-transport and fitting code are left
+    out (:data:`NOT_RESULTS`, :data:`NOT_CERPE_DIRS`): changing them does not change what a method
     computes, so cached runs stay valid. The data files shipped in ``cerpe/data``
     (descriptor centres and thresholds) are in: they change what CERPE computes.
     """
@@ -71,7 +74,7 @@ def code_hash(method: str) -> str:
         dirs = ["baselines", "datasets", "synth"]
         files = [root / f for f in BASELINE_CODE]
     else:
-        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in ("baselines", "online", "__pycache__")]
+        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in NOT_CERPE_DIRS]
         files = sorted(root.glob("*.py")) + sorted((root / "data").glob("*.*"))
     for d in dirs:
         files += sorted((root / d).rglob("*.py"))

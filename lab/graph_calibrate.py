@@ -3,12 +3,12 @@
 Usage::
 
     cerpe dev --methods cerpe cerpe-wo-em cerpe-graph      # development runs (real dev sets, seed >= 1)
-    python scripts/dev_graph_calibrate.py [--runs build/dev/runs] [--stat median] [--grid] [--oracle]
-                                          [--out build/dev/graph_calibration.json]
+    python -m lab.graph_calibrate [--runs build/dev/runs] [--stat median] [--grid] [--oracle]
+                                  [--out build/dev/graph_calibration.json]
 
 1. Direct estimates (every ``dir_*`` of the runs, accepted or rejected) against ground truth,
    per depth kind (the ``rel_sigma`` its depth source reports: 0 for a depth sensor, 0.094 for
-   the mono-sim prior; :func:`cerpe.pipeline.graphdev.fit_direct_kinds`): per-axis rotation
+   the mono-sim prior; :func:`lab.graphdev.fit_direct_kinds`): per-axis rotation
    sigma = median rotation error / 1.5382 (the median of a 3-D isotropic Gaussian's norm),
    across the line between the cameras median / 1.1774 (Rayleigh), along it median |error| /
    0.6745, relative to the distance; then floors and gains on ``rel`` in quadrature over the
@@ -23,12 +23,12 @@ Usage::
    ``odo_jump_rad`` per step left out: the graph models them apart), then the
    ratio of the observed to the modelled RMS error over longer windows (drift correlated
    over steps makes it > 1).
-3. With ``--grid``: replay the graph (:func:`cerpe.pipeline.graphdev.replay_run`), from the noise
+3. With ``--grid``: replay the graph (:func:`lab.graphdev.replay_run`), from the noise
    models fitted in 1 and 2 (not the defaults), on every
    ``cerpe-graph`` run with multipliers of both models and kernel widths, and print e_pos,
    e_rot, success and the calibration ratio per set against CERPE and CERPE w/o EM.
 4. With ``--oracle``: replay with the direct translations corrected from ground truth
-   (:data:`cerpe.pipeline.graphdev.ORACLES`: one distance scale per pair, no error along the line
+   (:data:`lab.graphdev.ORACLES`: one distance scale per pair, no error along the line
    between the cameras, exact translations): what a fix of the direct estimates' scale could give.
 
 Refuses run folders of the paper-default suite (seed 0: test data).
@@ -45,13 +45,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from cerpe.algorithm.graph import GraphConfig
+from cerpe.algorithm.graph_model import odometry_noise_var, sensor_like
+from cerpe.pipeline.evaluate import frame_errors, load_run, summarise
 
-from cerpe.algorithm.graph import GraphConfig  # noqa: E402
-from cerpe.algorithm.graph_model import odometry_noise_var, sensor_like  # noqa: E402
-from cerpe.pipeline.evaluate import frame_errors, load_run, summarise  # noqa: E402
-from cerpe.pipeline.graphdev import (  # noqa: E402
+from .graphdev import (
     MAXWELL_MEDIAN,
     ORACLES,
     GraphDevError,
@@ -63,6 +61,8 @@ from cerpe.pipeline.graphdev import (  # noqa: E402
     odometry_samples,
     replay_run,
 )
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _sets(runs: Path) -> list[Path]:

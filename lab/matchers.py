@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 """Cross-robot registration on development pairs: which matcher places the collaborator image.
 
-For every case of every set (``scripts/dev_sets.py``: real pairs from ``../shared/data``
+For every case of every set (``lab/sets.py``: real pairs from ``../shared/data``
 and synthetic suites rendered with seeds other than 0) and every matcher:
 
 * matches between the ego robot's current frame and the collaborator image;
@@ -26,7 +25,7 @@ best 1024 keypoints), ``xfeat-lg-2k`` (all 2048), ``aliked-lg`` (ALIKED n16 1024
 at 640 px + LightGlue), ``aliked-lg-512`` (the same at 512 px, the baseline's setting).
 ``--reuse rows.json`` prints the tables again from saved rows (e.g. at other inlier thresholds).
 
-    python scripts/dev_matchers.py --sets tum-fr3-office sun3d tum-fr1-xyz \\
+    python -m lab.matchers --sets tum-fr3-office sun3d tum-fr1-xyz \\
         --synth build/dev-synth/indoor-s7/manifest.yaml build/dev-synth/cad-s7/manifest.yaml
 """
 from __future__ import annotations
@@ -42,12 +41,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from dev_sets import Case, Frame, gt_T_b_a, load_sets  # noqa: E402
+from cerpe.backbones.lightglue import AlikedExtractor, LightGlueMatcher, xfeat_inputs
+from cerpe.backbones.offline import keypoint_depths, match_mnn
+from cerpe.backbones.xfeat import XFeatEncoder
 
-from cerpe.backbones.lightglue import AlikedExtractor, LightGlueMatcher, xfeat_inputs  # noqa: E402
-from cerpe.backbones.offline import keypoint_depths, match_mnn  # noqa: E402
-from cerpe.backbones.xfeat import XFeatEncoder  # noqa: E402
+from .sets import Case, Frame, gt_T_b_a, load_sets
 
 MATCHERS = ["xfeat-mnn", "xfeat-lg", "xfeat-lg-2k", "aliked-lg", "aliked-lg-512"]
 

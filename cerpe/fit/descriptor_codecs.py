@@ -1,9 +1,8 @@
 """Descriptors of development sets, cached, and the gate's ROC AUC per descriptor codec.
 
-Used by ``scripts/fit_descriptor_projection.py`` (the fitting descriptors) and
-``scripts/dev_descriptor_codecs.py`` (the check: the co-visibility ROC AUC of the
-compressed score against the uncompressed one, per set, and each codec's ``tau`` by
-the rule of ``scripts/calibrate_thresholds.py``).
+Used by ``cerpe fit projection`` (the fitting descriptors) and the development study
+``lab/descriptor_codec_auc.py`` (the co-visibility ROC AUC of the compressed score against the
+uncompressed one, per set, and each codec's ``tau`` by the rule of ``cerpe fit thresholds``).
 """
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ import pandas as pd
 from .. import knobs
 from ..atomicio import atomic_write_npz
 from .calibrate import cross_scene_negatives, largest_tau_with_recall, pair_samples
-from .evaluate import roc_auc
+from ..pipeline.evaluate import roc_auc
 
 
 def descriptor_fingerprint(desc: Any) -> str:
@@ -80,7 +79,7 @@ def wire_values(D: np.ndarray, codec: Any | None) -> np.ndarray:
 
 
 def labelled_pairs(enc: Any, D: np.ndarray, stride: int, cache: Path | None = None) -> pd.DataFrame:
-    """:func:`~cerpe.pipeline.calibrate.pair_samples` (any step), cached as CSV (overlaps are the cost)."""
+    """:func:`~cerpe.fit.calibrate.pair_samples` (any step), cached as CSV (overlaps are the cost)."""
     if cache is not None and cache.is_file():
         return pd.read_csv(cache)
     df = pair_samples(enc, unit(D), stride=stride, any_step=True, progress=False)

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Replay robots of a dev encounter alone and print their per-step ego-motion against ground truth.
 
 Each robot runs in a team of its own (its ego-motion never reads a collaborator's view in a
@@ -7,8 +6,8 @@ depth pass). Per robot: the sum and max of the per-step translation errors
 and true step lengths, the error, the keyframe count and the backbone's vote (the votes of the
 prior view and of each chained view per motion hypothesis, and the prior view's moving pixels).
 
-    python scripts/dev_ego_replay.py build/dev/manifests/dev-synthetic-cad-s2002.yaml cad-l2-s2002-e02 r1 --trace
-    python scripts/dev_ego_replay.py build/dev/manifests/dev-synthetic-cad-s2002.yaml   # every robot, first 15 steps
+    python -m lab.ego_replay build/dev/manifests/dev-synthetic-cad-s2002.yaml cad-l2-s2002-e02 r1 --trace
+    python -m lab.ego_replay build/dev/manifests/dev-synthetic-cad-s2002.yaml   # every robot, first 15 steps
 """
 from __future__ import annotations
 

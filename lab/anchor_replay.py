@@ -21,9 +21,9 @@ runs made with ``verify_anchors=False``) and prints:
 
 Usage (tolerances as ``CerpeConfig`` names)::
 
-    python scripts/dev_anchor_replay.py --record MANIFEST RUN   # cerpe run with verify_anchors=False
-    python scripts/dev_anchor_replay.py RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
-    python scripts/dev_anchor_replay.py build/dev/runs/*/cerpe --what report --set report_unverified=false
+    python -m lab.anchor_replay --record MANIFEST RUN   # cerpe run with verify_anchors=False
+    python -m lab.anchor_replay RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
+    python -m lab.anchor_replay build/dev/runs/*/cerpe --what report --set report_unverified=false
 
 Development data only (synthetic seeds other than 0, ``../shared/data``).
 """

@@ -4,7 +4,7 @@ Each row is one encounter at one step: robot r0's image and depth, then robot r1
 image and depth, titled with the ground-truth overlap ratio of (r0 -> r1) and the
 relative viewing angle. Depth is shown in metres (black = no surface, e.g. sky).
 
-    .venv/bin/python scripts/render_examples.py [--size 640x480] [--out figures/synth_examples.png]
+    python -m lab.render_examples [--size 640x480] [--out figures/synth_examples.png]
 """
 from __future__ import annotations
 

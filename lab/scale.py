@@ -1,5 +1,4 @@
-#!/usr/bin/env python
-"""Metric translation from depth + PnP on real RGB-D against ground truth (issue 18, item 5).
+"""Metric translation from depth + PnP on real RGB-D against ground truth.
 
 Between frames ``ref`` (its depth is the prior) and ``cur`` of one sequence: the pose
 ``T_cur_ref`` from (a) XFeat mutual-NN matches + P3P RANSAC on the reference frame's
@@ -19,7 +18,7 @@ TUM's published fr1 depth correction (x1.035). Depth at keypoints: ``keypoint_de
 used by its own SfM poses) and a synthetic suite (exact depth) are controls; the synthetic
 frames are also run through the fr1 lens and a barrel lens (k1 = -0.2) that nobody undoes.
 
-    python scripts/dev_scale.py --synth build/dev-synth/indoor-s7/manifest.yaml
+    python -m lab.scale --synth build/dev-synth/indoor-s7/manifest.yaml
 
 ``--runs DIR`` instead measures the odometry of finished CERPE runs (``cerpe dev``'s
 ``DIR/runs/<set>/cerpe/``): per set, the predicted / true length of every step of every
@@ -27,25 +26,23 @@ robot (``robots.csv``'s ``T_odom_cam`` against the manifest's ground truth): med
 and 90th percentile, the steps outside [0.5, 2], and the steps held by the odometry's
 step-length rule (``ego:step-held``)::
 
-    python scripts/dev_scale.py --runs build/dev
+    python -m lab.scale --runs build/dev
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from dev_sets import DATA, DIST_FR1, Frame, fr1_frames, gt_T_b_a, sun3d_fragment, transfer_depth  # noqa: E402
+from cerpe.backbones.config import OfflineConfig
+from cerpe.backbones.offline import OfflineGeometryBackbone, keypoint_depths, match_mnn
+from cerpe.backbones.xfeat import XFeatEncoder
+from cerpe.protocols import View
+from cerpe.scene import CameraIntrinsics
 
-from cerpe.backbones.config import OfflineConfig  # noqa: E402
-from cerpe.backbones.offline import OfflineGeometryBackbone, keypoint_depths, match_mnn  # noqa: E402
-from cerpe.backbones.xfeat import XFeatEncoder  # noqa: E402
-from cerpe.protocols import View  # noqa: E402
-from cerpe.scene import CameraIntrinsics  # noqa: E402
+from .sets import DATA, DIST_FR1, Frame, fr1_frames, gt_T_b_a, sun3d_fragment, transfer_depth
 
 
 def pnp_pose(enc: XFeatEncoder, ref: Frame, cur: Frame, sampling: str, px: float = 2.0) -> np.ndarray | None:

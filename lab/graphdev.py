@@ -5,7 +5,7 @@ methods, whose records carry what the graph consumes (``robots.csv``: every robo
 pose and degradations; ``steps.csv``: each step's direct estimate ``dir_*`` whatever its
 verdict, its inliers and verdict). So the graph can be re-run on recorded passes with other
 noise models in seconds (:func:`replay_run`), which is how its parameters are calibrated on
-development data (``scripts/dev_graph_calibrate.py``); replaying a ``cerpe-graph`` run with
+development data (``lab/graph_calibrate.py``); replaying a ``cerpe-graph`` run with
 its own configuration gives its estimates back (a test checks it).
 
 In process the channel is lossless, so robot j's broadcast pose at step t is its
@@ -20,10 +20,10 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
-from ..algorithm.graph import DirectEstimate, GraphConfig, PairGraph
-from ..errors import CerpeError
-from ..geometry import pose_cov_sigmas, se3_inverse, se3_to_tq_xyzw
-from .evaluate import POSE, load_run, poses_from_columns
+from cerpe.algorithm.graph import DirectEstimate, GraphConfig, PairGraph
+from cerpe.errors import CerpeError
+from cerpe.geometry import pose_cov_sigmas, se3_inverse, se3_to_tq_xyzw
+from cerpe.pipeline.evaluate import POSE, load_run, poses_from_columns
 
 
 class GraphDevError(CerpeError, ValueError):
@@ -51,13 +51,13 @@ def dev_sets(runs: Path) -> list[Path]:
 def depth_rel_sigma(run_meta: dict) -> float | None:
     """The ``rel_sigma`` the run's depth source reports (its manifest's ``metric_depth`` and options;
     None when it reports none), as the agent hands it to the graph with each direct estimate."""
-    from ..backbones.depth import build_depth_source
-    from ..datasets.manifest import read_yaml
+    from cerpe.backbones.depth import build_depth_source
+    from cerpe.datasets.manifest import read_yaml
 
     raw = read_yaml(Path(run_meta["manifest"]))
     name = raw.get("metric_depth", "dataset")
     if name == "metric3d":  # not built (weights); its class says what it would report
-        from ..backbones.metric3d import Metric3DDepth
+        from cerpe.backbones.metric3d import Metric3DDepth
 
         return float(Metric3DDepth.rel_sigma)
     r = getattr(build_depth_source(name, raw.get("metric_depth_options") or {}), "rel_sigma", None)
@@ -165,7 +165,7 @@ def direct_samples(steps: pd.DataFrame) -> pd.DataFrame:
     T_dir, T_gt = poses_from_columns(steps, "dir"), poses_from_columns(steps, "gt")
     ok = np.all(np.isfinite(T_dir.reshape(len(steps), -1)), axis=1) & np.all(np.isfinite(T_gt.reshape(len(steps), -1)), axis=1)
     D = se3_inverse(T_gt[ok]) @ T_dir[ok]
-    from ..geometry import rotation_angle
+    from cerpe.geometry import rotation_angle
 
     e = T_dir[ok][:, :3, 3] - T_gt[ok][:, :3, 3]
     dist = np.linalg.norm(T_gt[ok][:, :3, 3], axis=1)
@@ -190,7 +190,7 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
     failure within the window, or with ``jump_rad > 0`` a step turning more than that: a jump,
     which the graph models apart from the noise, ``GraphConfig.odo_jump_rad``).
     """
-    from ..geometry import rotation_angle
+    from cerpe.geometry import rotation_angle
 
     r = robot_rows.sort_values("step")
     X = poses_from_columns(r, "odom")

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Image reply codecs: bytes against the direct estimate's accuracy, on development pairs.
 
 Each case is an ego robot's RGB-D frame and a co-visible collaborator frame (ground-truth
@@ -13,8 +12,8 @@ ground truth. Prints per setting: mean reply frame bytes, placed %, median and m
 rotation error (deg) and translation error (m) over the cases every setting placed, and
 "correct" % (rotation < 5 deg and translation < 0.25 m) over all cases.
 
-    python scripts/dev_codecs.py                       # SUN3D + fr1/xyz + synthetic seed 2001, 12 cases each
-    python scripts/dev_codecs.py --settings jpeg:90:1 webp:60:0.5 --cases 30
+    python -m lab.reply_codecs                       # SUN3D + fr1/xyz + synthetic seed 2001, 12 cases each
+    python -m lab.reply_codecs --settings jpeg:90:1 webp:60:0.5 --cases 30
 """
 from __future__ import annotations
 
@@ -93,7 +92,7 @@ def main(argv=None) -> int:
     manifests = []
     for seed in a.synth_seeds:
         if seed == PAPER_SEED:
-            raise SystemExit("dev_codecs: seed 0 is the paper-default suite (test data)")
+            raise SystemExit("reply_codecs: seed 0 is the paper-default suite (test data)")
         manifests += [synthetic_set(st, seed, "dev", a.dev_out, progress=False).manifest for st in SUITES["paper-default"]]
     manifests += [ROOT / "datasets_manifest" / f"{n}.yaml" for n in a.real
                   if (ROOT / "datasets_manifest" / f"{n}.yaml").is_file()]
@@ -141,7 +140,7 @@ def main(argv=None) -> int:
         tab[["placed_pct", "correct_pct"]] *= 100
         print(f"\n{name}: {sub['case'].nunique()} cases (errors in deg / m over each setting's placed cases)")
         print(tab.to_string(float_format=lambda v: f"{v:.3f}"))
-    print(f"\ndev_codecs: {len(df)} registrations in {time.perf_counter() - t0:.0f} s")
+    print(f"\nreply_codecs: {len(df)} registrations in {time.perf_counter() - t0:.0f} s")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Development pairs for the matcher and scale studies (``scripts/dev_matchers.py``, ``dev_scale.py``).
+"""Development pairs for the matcher and scale studies (``lab/matchers.py``, ``lab/scale.py``).
 
 Each set becomes a list of :class:`Case`: an ego robot's current frame and a few of its
 earlier frames (standing in for memory keyframes), and one collaborator image to place
@@ -23,12 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from cerpe.geometry import se3_from_tq_xyzw
+from cerpe.scene import CameraIntrinsics, load_depth_m, load_rgb
 
-from cerpe.geometry import se3_from_tq_xyzw  # noqa: E402
-from cerpe.scene import CameraIntrinsics, load_depth_m, load_rgb  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 DATA = ROOT.parent / "shared" / "data"
 K_FR3 = CameraIntrinsics(535.4, 539.2, 320.1, 247.6, 640, 480)

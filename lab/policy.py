@@ -4,9 +4,10 @@ Runs CERPE with the paper's protocol, always-send and the request policy at a fe
 thresholds on the development sets of ``cerpe dev`` (synthetic suites of seed >= 1
 and the real ``datasets_manifest/dev-*.yaml`` sets whose data is present), every
 encounter, and prints the Pareto table (``cerpe.pipeline.pareto``) per set and over
-all, with the issue's check for each policy setting.
+all, with each policy setting's bytes, e_rot and success against the paper's protocol and
+always-send (:func:`cerpe.pipeline.pareto.check`).
 
-    python scripts/dev_policy.py [--seeds 1] [--out build/dev] [--sets PATTERN ...] [--encounters PATTERN ...]
+    python -m lab.policy [--seeds 1] [--out build/dev] [--sets PATTERN ...] [--encounters PATTERN ...]
 
 Runs are cached in ``<out>/runs/<set>/pareto-<name>/`` (resumed; a changed setting
 is a new run); the table goes to ``<out>/policy.{csv,md}``.
@@ -50,7 +51,7 @@ GRID: dict[str, dict] = {
     "lean-tight": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "max_sigma_rot_rad": 0.03, "max_sigma_pos_m": 0.15,
                                                "max_steps": 15}},  # spends the grey replies' bytes on fresher anchors
     "pi-backoff": {"request_policy": LEAN_V1_POLICY, "descriptor_codec": "pca-int8"},
-    # issue 21, success: only a pair with an anchor backs off (a pair without one loses the frames it does not ask
+    # success: only a pair with an anchor backs off (a pair without one loses the frames it does not ask
     # for), with a constant wait (ua) or one doubling per miss up to 12 steps (ua-grow: fewer bytes on anchored misses)
     "lean-ua": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_anchored_only": True}},
     "lean-ua-grow": {**LEAN_V1, "request_policy": {**LEAN_V1_POLICY, "backoff_anchored_only": True, "miss_backoff_growth": 2.0,

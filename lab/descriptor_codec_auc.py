@@ -1,9 +1,8 @@
-#!/usr/bin/env python
 """The gate's ROC AUC with compressed descriptors against the uncompressed one, on development data.
 
 Per development set (synthetic suites of --synth-seeds, rendered as `cerpe dev` renders
 them, and the real development sets with ground-truth co-visibility), the samples of
-scripts/calibrate_thresholds.py: pairs of views of two robots at any two steps, labelled
+`cerpe fit thresholds`: pairs of views of two robots at any two steps, labelled
 with the co-visibility label (overlap >= 0.2 both ways positive, < 0.05 both ways
 negative), real sets with cross-scene negatives. Prints, per set, the ROC AUC of the
 uncompressed message (`full`: fp16 values) and of each compressed codec of the projection
@@ -11,9 +10,9 @@ file, their difference, the frame sizes, and each codec's gate threshold by the
 calibration rule (largest tau with recall >= 0.8 on every set); --write-tau stores those
 thresholds in the projection file (the robots' gate reads them).
 
-    python scripts/dev_descriptor_codecs.py                     # seed 2001 + the real dev sets
-    python scripts/dev_descriptor_codecs.py --write-tau
-    python scripts/dev_descriptor_codecs.py --projection my.npz --synth-seeds 2002 --real my-dev.yaml
+    python -m lab.descriptor_codec_auc                     # seed 2001 + the real dev sets
+    python -m lab.descriptor_codec_auc --write-tau
+    python -m lab.descriptor_codec_auc --projection my.npz --synth-seeds 2002 --real my-dev.yaml
 """
 from __future__ import annotations
 
@@ -45,7 +44,7 @@ def main(argv=None) -> int:
     from cerpe.compress import DescriptorCodec, default_projection_path, load_projection, save_projection
     from cerpe.datasets import find_manifests, load_setting
     from cerpe.messages import DescriptorMessage
-    from cerpe.pipeline.descriptor_codecs import codec_figures, describe_setting, labelled_pairs
+    from cerpe.fit.descriptor_codecs import codec_figures, describe_setting, labelled_pairs
     from cerpe.pipeline.dev import PAPER_SEED, synthetic_set
     from cerpe.synth import SUITES
 
@@ -57,7 +56,7 @@ def main(argv=None) -> int:
     todo = []
     for seed in a.synth_seeds:
         if seed == PAPER_SEED:
-            raise SystemExit("dev_descriptor_codecs: seed 0 is the paper-default suite (test data)")
+            raise SystemExit("descriptor_codec_auc: seed 0 is the paper-default suite (test data)")
         for setting in SUITES["paper-default"]:
             s = synthetic_set(setting, seed, "dev", a.dev_out, progress=False)
             todo.append(("synthetic", s.manifest, a.stride_synth))

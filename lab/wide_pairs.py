@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Wide-baseline pairs from the development sets, end to end: how many collaborator views a method places.
 
 The held-out failure this watches: real pairs with a large viewpoint change, where the
@@ -22,9 +21,9 @@ wrong, and the median rotation error of the placed ones.
   ``--min-overlap`` of the other's surface (RGB-D: the wide-baseline case with depth, which the real
   development data lacks).
 
-    python scripts/dev_wide_pairs.py --set fr3 --methods cerpe aliked-lightglue
-    python scripts/dev_wide_pairs.py --set sun3d --stride 5
-    python scripts/dev_wide_pairs.py --set synth --suite build/dev/synth/dev/indoor-team-seed2001 --max-deg 170
+    python -m lab.wide_pairs --set fr3 --methods cerpe aliked-lightglue
+    python -m lab.wide_pairs --set sun3d --stride 5
+    python -m lab.wide_pairs --set synth --suite build/dev/synth/dev/indoor-team-seed2001 --max-deg 170
 """
 from __future__ import annotations
 
@@ -36,11 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from cerpe.geometry import rotation_angle, se3_from_tq_xyzw, se3_inverse
 
-from cerpe.geometry import rotation_angle, se3_from_tq_xyzw, se3_inverse  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 DATA = ROOT.parent / "shared" / "data"
 K_FR3 = "535.4 0 320.1 0 539.2 247.6 0 0 1"
@@ -163,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "build" / "dev" / "wide-pairs")
     args = ap.parse_args(argv)
     if args.set == "synth" and (args.suite is None or not (args.suite / "manifest.yaml").is_file()):
-        print(f"dev_wide_pairs: --set synth needs --suite, a `cerpe synth` folder (got {args.suite})")
+        print(f"wide_pairs: --set synth needs --suite, a `cerpe synth` folder (got {args.suite})")
         return 2
     if args.set == "synth":
         from cerpe.pipeline.dev import PAPER_SEED
@@ -171,15 +168,15 @@ def main(argv: list[str] | None = None) -> int:
         try:
             seed = json.loads((args.suite / "meta.json").read_text())["key"]["args"]["seed"]
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            print(f"dev_wide_pairs: {args.suite / 'meta.json'}: cannot read the suite's seed (key.args.seed): "
+            print(f"wide_pairs: {args.suite / 'meta.json'}: cannot read the suite's seed (key.args.seed): "
                   f"{type(exc).__name__}: {exc}")
             return 2
         if seed == PAPER_SEED:
-            print(f"dev_wide_pairs: {args.suite} was rendered with seed {PAPER_SEED}, the paper-default test suite: "
+            print(f"wide_pairs: {args.suite} was rendered with seed {PAPER_SEED}, the paper-default test suite: "
                   f"not for development")
             return 2
     if args.set != "synth" and not DATA.is_dir():
-        print(f"dev_wide_pairs: no development data at {DATA}: nothing to do")
+        print(f"wide_pairs: no development data at {DATA}: nothing to do")
         return 0
     if args.set == "fr3":
         root, pairs = fr3_pairs(args.min_deg, args.max_deg)
@@ -192,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                                      args.min_overlap)
         name, depth = f"dev-{args.suite.name}-wide-pairs", True
     if not pairs:
-        print(f"dev_wide_pairs: no {args.set} pair between {args.min_deg} and {args.max_deg} deg")
+        print(f"wide_pairs: no {args.set} pair between {args.min_deg} and {args.max_deg} deg")
         return 1
     man = write_set(name, root, pairs, K, args.out / name, depth,
                     "[[/rgb/, /depth/]]" if args.set == "synth" else "[[color, depth]]")

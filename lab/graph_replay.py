@@ -3,14 +3,14 @@
 Usage::
 
     cerpe dev --methods cerpe cerpe-wo-em cerpe-graph      # development runs (real dev sets, seed >= 1)
-    python scripts/dev_graph_replay.py [--runs build/dev/runs ...] [--set KEY=V1,V2 ...]
+    python -m lab.graph_replay [--runs build/dev/runs ...] [--set KEY=V1,V2 ...]
 
 Every combination of the ``--set`` values (``GraphConfig`` fields, :mod:`cerpe.algorithm.graph_model`;
 an unknown key lists the known ones) is replayed on every set's recorded ``cerpe-graph`` passes
-(:func:`cerpe.pipeline.graphdev.replay_run`: the same direct estimates, verdicts and odometry, only
-the back end re-run) and judged by ``cerpe dev``'s issue 20 checks against the set's recorded CERPE
+(:func:`lab.graphdev.replay_run`: the same direct estimates, verdicts and odometry, only
+the back end re-run) and judged by ``cerpe dev``'s graph checks against the set's recorded CERPE
 and CERPE w/o EM runs (:func:`cerpe.pipeline.devreport.checks`): e_pos against 0.7 x min(CERPE,
-w/o EM) as the issue states it and like for like over w/o EM's frames, e_rot and success. One line
+w/o EM) over all frames and like for like over w/o EM's frames, e_rot and success. One line
 per combination: the geometric mean of the graph's e_pos over min(CERPE, w/o EM) (GT scale where a
 set has no predicted scale), how many sets pass each check, and the ratio per set. Without ``--set``:
 the shipped defaults, which give the recorded runs back. Refuses paper-default runs (test data).
@@ -20,20 +20,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from cerpe.algorithm.graph import GraphConfig
+from cerpe.config import ConfigError, merge_conf
+from cerpe.pipeline.devreport import GRAPH_CHECKS, checks, report_runs
+from cerpe.pipeline.evaluate import load_run
+from cerpe.pipeline.run import RunError, parse_sets
 
-from cerpe.algorithm.graph import GraphConfig  # noqa: E402
-from cerpe.config import ConfigError, merge_conf  # noqa: E402
-from cerpe.pipeline.devreport import checks, report_runs  # noqa: E402
-from cerpe.pipeline.evaluate import load_run  # noqa: E402
-from cerpe.pipeline.graphdev import GraphDevError, dev_sets, replay_run  # noqa: E402
-from cerpe.pipeline.run import RunError, parse_sets  # noqa: E402
+from .graphdev import GraphDevError, dev_sets, replay_run
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def grid(pairs: list[str]) -> list[dict]:
@@ -52,7 +51,7 @@ def grid(pairs: list[str]) -> list[dict]:
 
 
 def judge(sets: list[Path], conf: GraphConfig) -> tuple[dict, list[str]]:
-    """The issue 20 checks of the graph replayed with ``conf`` on each set: counts and per-set ratios."""
+    """``cerpe dev``'s graph checks of the graph replayed with ``conf`` on each set: counts and per-set ratios."""
     counts, ratios, logs = {}, [], []
     for d in sets:
         runs = [(d.name, load_run(d / m)) for m in ("cerpe", "cerpe-wo-em") if (d / m / "run.json").is_file()]
@@ -66,7 +65,7 @@ def judge(sets: list[Path], conf: GraphConfig) -> tuple[dict, list[str]]:
         if np.isfinite(r) and r > 0:
             ratios.append(r)
         for c in checks(table).itertuples(index=False):
-            if c.check.startswith("20 "):
+            if c.check in GRAPH_CHECKS:
                 counts.setdefault(c.check, [0, 0])
                 counts[c.check][0] += c.result == "pass"
                 counts[c.check][1] += c.result != "n/a"
@@ -95,7 +94,7 @@ def main() -> int:
         except (ConfigError, ValueError) as exc:
             raise SystemExit(str(exc)) from None
         summary, per_set = judge(sets, conf)
-        passed = "; ".join(f"{k.removeprefix('20 graph ')} {v[0]}/{v[1]}" for k, v in summary.items() if k != "geo_ratio")
+        passed = "; ".join(f"{k.removeprefix('graph ')} {v[0]}/{v[1]}" for k, v in summary.items() if k != "geo_ratio")
         print(f"{over or 'defaults'}: graph / min(CERPE, w/o EM) geo-mean {summary['geo_ratio']:.3f}; pass: {passed}")
         print("    " + ", ".join(per_set), flush=True)
     return 0

@@ -1,12 +1,13 @@
-"""Threshold calibration on development data: the tau rule, recall at precision, pair samples (known answers)."""
+"""Threshold calibration on development data: the tau rule, recall at precision, pair samples (known answers),
+and `cerpe fit thresholds` end to end on fixture-sized development suites."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from cerpe.geometry import make_se3
-from cerpe.pipeline.calibrate import (consecutive_similarity, cross_scene_negatives, largest_tau_with_recall,
-                                      pair_samples, recall_at_precision, set_figures)
+from cerpe.fit.calibrate import (consecutive_similarity, cross_scene_negatives, largest_tau_with_recall,
+                                 pair_samples, recall_at_precision, set_figures)
 from cerpe.scene import CameraIntrinsics, Encounter, RobotStream
 
 
@@ -92,33 +93,35 @@ def test_pair_samples_label_same_and_any_step():
     assert len(pair_samples(enc, D, stride=2, any_step=True, progress=False)) == 4
 
 
-def test_calibration_script_on_the_fixture_suite(tmp_path):
-    """The script end to end on fixture-sized development suites (seed 2), without real data."""
+def test_fit_thresholds_on_the_fixture_suite(tmp_path, capsys):
+    """`cerpe fit thresholds` end to end on fixture-sized development suites (seed 2), without real data;
+    the paper seed is one error line."""
     import json
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "PYTHONPATH": str(root), "MPLBACKEND": "Agg"}
-    cmd = [sys.executable, str(root / "scripts" / "calibrate_thresholds.py"), "--synth-preset", "fixture",
-           "--dev-out", str(tmp_path / "dev"), "--real", "--out", str(tmp_path / "th.json"),
-           "--samples", str(tmp_path / "samples.csv")]
-    refused = subprocess.run(cmd + ["--synth-seeds", "0"], capture_output=True, text=True, env=env, timeout=600)
-    assert refused.returncode != 0 and "paper-default" in refused.stderr
-    done = subprocess.run(cmd + ["--synth-seeds", "2"], capture_output=True, text=True, env=env, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
+    from cerpe.cli import main
+
+    argv = ["fit", "thresholds", "--synth-preset", "fixture", "--dev-out", str(tmp_path / "dev"), "--real",
+            "--out", str(tmp_path / "th.json"), "--samples", str(tmp_path / "samples.csv")]
+    assert main(argv + ["--synth-seeds", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "paper-default" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert main(argv + ["--synth-seeds", "2"]) == 0
+    out = capsys.readouterr().out
     res = json.loads((tmp_path / "th.json").read_text())
     th = res["thresholds"]
     assert 0 < th["tau_k"] <= th["tau_m"] < 1 and -1 < th["tau"] < 1
     assert res["provenance"]["synthetic"]["seeds"] == [2] and res["provenance"]["real"] == {}
+    assert res["provenance"]["command"].startswith("cerpe ")
     names = set(res["figures"])
     assert names == {"dev-fixture-synthetic-cad-s2", "dev-fixture-synthetic-indoor-s2"}
     for f in res["figures"].values():  # the rule: recall >= 0.8 on every set with positives
         after = f["any_step"]["after"]
         assert after["n_positive"] == 0 or after["recall"] >= 0.8
-    assert "tau" in done.stdout and "R@P80" in done.stdout and (tmp_path / "samples.csv").is_file()
+    assert "tau" in out and "R@P80" in out and (tmp_path / "samples.csv").is_file()
+    # --dry-run prints and writes nothing
+    (tmp_path / "th.json").unlink()
+    assert main(argv + ["--synth-seeds", "2", "--dry-run"]) == 0
+    assert not (tmp_path / "th.json").exists()
 
 
 def test_descriptor_cache_is_reused_only_for_the_same_descriptor(tmp_path):
@@ -126,7 +129,7 @@ def test_descriptor_cache_is_reused_only_for_the_same_descriptor(tmp_path):
     subtracted mean describes anew (a stale cache would score the gate with old descriptors)."""
     from types import SimpleNamespace
 
-    from cerpe.pipeline.descriptor_codecs import describe_setting
+    from cerpe.fit.descriptor_codecs import describe_setting
 
     class Desc:
         def __init__(self, conf, mean):

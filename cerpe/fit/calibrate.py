@@ -1,4 +1,4 @@
-"""Calibration of the descriptor's thresholds on development data (``scripts/calibrate_thresholds.py``).
+"""Calibration of the descriptor's thresholds on development data (``cerpe fit thresholds``).
 
 The gate threshold ``tau`` is set against the co-visibility label of an unordered
 pair of views (:func:`cerpe.pipeline.evaluate.covisibility_label`: overlap >= 0.2
@@ -23,9 +23,9 @@ from typing import Any, Mapping
 import numpy as np
 import pandas as pd
 
-from .evaluate import covisibility_label, precision_recall, roc_auc
+from ..pipeline.evaluate import covisibility_label, precision_recall, roc_auc
 
-MIN_PRECISION = 0.8  # issue 18's targets: recall >= 0.8 at precision >= 0.8, ROC AUC >= 0.90
+MIN_PRECISION = 0.8  # the gate's targets: recall >= 0.8 at precision >= 0.8, ROC AUC >= 0.90
 MIN_RECALL = 0.8
 MIN_AUC = 0.90
 
@@ -147,7 +147,7 @@ def largest_tau_with_recall(sets: Mapping[str, tuple[np.ndarray, np.ndarray]], m
 
 def set_figures(scores: np.ndarray, labels: np.ndarray, tau: float) -> dict[str, float]:
     """A set's gate figures at ``tau``: counts, ROC AUC, precision and recall, the best recall at
-    precision >= 0.8, and whether issue 18's targets are met (NaN-safe: a missing class fails)."""
+    precision >= 0.8, and whether the gate's targets are met (NaN-safe: a missing class fails)."""
     s, y = np.asarray(scores, float), np.asarray(labels, bool)
     pr = precision_recall(s, y, tau)
     auc = roc_auc(s, y)
