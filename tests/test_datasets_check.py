@@ -12,7 +12,7 @@ import yaml
 from cerpe import cli
 from cerpe.datasets import ManifestError, find_manifests, load_manifest, load_setting
 from cerpe.datasets.cli import check_one
-from cerpe.datasets.summary import verify_setting
+from cerpe.datasets.verify import verify_setting
 from test_datasets_fixtures import write_mocap
 
 
