@@ -172,3 +172,84 @@ def test_run_set_parses_config_overrides_and_refuses_malformed_ones(capsys, tmp_
             continue
         rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", "--set", bad)
         assert rc == 2 and match in err, (bad, err)
+
+
+# /proc: a folder nobody may write into, not even root (the tests may run as root, which ignores a chmod)
+UNWRITABLE = Path("/proc")
+needs_proc = pytest.mark.skipif(not (UNWRITABLE / "self").is_dir(), reason="needs Linux /proc")
+
+
+@needs_proc
+def test_synth_and_online_out_where_nothing_can_be_written(capsys, tmp_path):
+    """What `cerpe run`, `export` and `eval --csv` already said: one line naming --out, exit 2."""
+    rc, err = _cli(capsys, "synth", "indoor-team", "--out", UNWRITABLE / "cerpe-s", "--no-progress")
+    assert rc == 2 and f"{UNWRITABLE / 'cerpe-s'}: cannot write into {UNWRITABLE}" in err
+    from test_datasets_fixtures import write_mocap
+
+    m = write_mocap(tmp_path / "data")
+    rc, err = _cli(capsys, "online", "--robot", "r0", "--manifest", m, "--out", UNWRITABLE / "cerpe-o",
+                   "--no-multicast", "--ros-keys", "off")
+    assert rc == 2 and f"--out {UNWRITABLE / 'cerpe-o'}: cannot create it" in err
+    rc, err = _cli(capsys, "run", m, "--method", "sift-ransac", "--out", UNWRITABLE / "cerpe-r", "--no-progress")
+    assert rc == 2 and f"--out {UNWRITABLE / 'cerpe-r'}: cannot create it" in err
+
+
+def test_online_refuses_unknown_ros_distros_and_lists_every_method(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["online", "--robot", "r0", "--manifest", "x.yaml", "--ros-distro", "foxy"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "'foxy'" in err and all(d in err for d in ("humble", "jazzy", "kilted", "rolling"))
+    from cerpe.online import ros
+
+    with pytest.raises(ros.RosError, match="supported: humble, jazzy"):
+        ros.type_hash("foxy")
+    with pytest.raises(SystemExit):
+        cli.main(["online", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "cerpe | cerpe-wo-em | cerpe-graph" in help_text and "4 when it finished without ever meeting" in help_text
+
+
+def _mocap(tmp_path: Path, **robot0) -> Path:
+    import yaml
+    from test_datasets_fixtures import write_mocap
+
+    m = write_mocap(tmp_path / "data")
+    doc = yaml.safe_load(m.read_text())
+    doc["encounters"][0]["robots"][0].update(robot0)
+    m.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return m
+
+
+def test_run_refuses_what_check_refuses(capsys, tmp_path):
+    """8-bit depth and depth_units_per_m 1000x off: `cerpe run` stops before any work, as `cerpe check` does."""
+    import cv2
+    import numpy as np
+
+    m = _mocap(tmp_path / "units", depth_units_per_m=1)
+    for cmd in (["check", m], ["run", m, "--method", "sift-ransac", "--out", tmp_path / "r1", "--no-progress"]):
+        rc, err = _cli(capsys, *cmd)
+        assert rc == 2 and "encounters[0].robots[0].depth_units_per_m" in err and "2000 m" in err, (cmd, err)
+    m = _mocap(tmp_path / "8bit")
+    for p in (m.parent / "enc0" / "r0" / "depth").iterdir():
+        cv2.imwrite(str(p), np.full((24, 32), 200, np.uint8))
+    for cmd in (["check", m], ["run", m, "--method", "sift-ransac", "--out", tmp_path / "r2", "--no-progress"]):
+        rc, err = _cli(capsys, *cmd)
+        assert rc == 2 and "8-bit depth image" in err, (cmd, err)
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_run_logs_what_loading_counted(capsys, caplog, tmp_path, monkeypatch):
+    """Ground-truth rows with NaN or inf: `cerpe check` counts them, `cerpe run` says so too (a warning)."""
+    from cerpe.pipeline import run as rp
+
+    from test_pipeline_run_eval import fake_prepare
+
+    m = _mocap(tmp_path)
+    gt = m.parent / "enc0" / "r0" / "gt.txt"
+    lines = gt.read_text().splitlines()
+    lines[5] = lines[5].split()[0] + " nan" * 7
+    lines[9] = lines[9].split()[0] + " inf 0 0 " + " ".join(lines[9].split()[4:])
+    gt.write_text("\n".join(lines) + "\n")
+    monkeypatch.setattr(rp, "prepare_method", fake_prepare())
+    rc, _ = _cli(capsys, "run", m, "--method", "sift-ransac", "--out", tmp_path / "r", "--no-progress")
+    assert rc == 0 and "r0: ground-truth trajectory rows with NaN or inf (skipped): 2" in caplog.text

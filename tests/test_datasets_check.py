@@ -12,7 +12,7 @@ import yaml
 from cerpe import cli
 from cerpe.datasets import ManifestError, find_manifests, load_manifest, load_setting
 from cerpe.datasets.cli import check_one
-from cerpe.datasets.summary import verify_setting
+from cerpe.datasets.verify import verify_setting
 from test_datasets_fixtures import write_mocap
 
 
@@ -102,3 +102,37 @@ def test_enabled_other_strings_are_refused(tmp_path: Path) -> None:
     path.write_text(path.read_text().replace("if-present", "maybe"))
     with pytest.raises(ManifestError, match="if-present"):
         load_manifest(path)
+
+
+def test_every_adapter_goes_through_the_same_checks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A third-party adapter whose data names a robot '../r0' (it would write outside the run folder) and
+    gives a principal point outside the image: loading for a run and `cerpe check` refuse both alike."""
+    import dataclasses
+
+    import cerpe.datasets.registry as registry
+
+    class Renaming:
+        name, top_level_fields = "renaming", ()
+
+        def validate(self, manifest):
+            return []
+
+        def load(self, manifest, report):
+            from cerpe.datasets.mocap import MocapAdapter
+
+            setting = MocapAdapter().load(manifest, report)
+            r0, r1 = setting.encounters[0].robots
+            r0.robot_id = "../r0"
+            r1.intrinsics = dataclasses.replace(r1.intrinsics, cx=900.0)
+            return setting
+
+    monkeypatch.setitem(registry._REGISTERED, "renaming", Renaming)
+    m = write_mocap(tmp_path)
+    m.write_text(m.read_text().replace("adapter: mocap", "adapter: renaming"))
+    with pytest.raises(ManifestError) as info:
+        load_setting(m)
+    probs = info.value.problems
+    assert len(probs) == 2 and all(p.file == str(m) for p in probs)
+    assert probs[0].field.endswith(".id") and "robot id '../r0'" in probs[0].message
+    assert probs[1].field == "encounters[0].robots[1].intrinsics" and "(cx, cy) = (900, 11.5)" in probs[1].message
+    assert sorted(check_one(str(m), None, True, False, out=io.StringIO())) == sorted(map(str, info.value.problems))

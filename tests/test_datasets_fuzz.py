@@ -1,13 +1,14 @@
-"""Malformed manifests and data files: each gives a clear error (file + field) or a counted skip.
+"""Malformed manifests and data files: each gives a clear error (file + field), a counted skip or a warning.
 
 Every case starts from a valid mocap dataset (``write_mocap``), breaks one thing,
-and checks through both the API (``load_setting``) and ``cerpe check``'s
-``check_one`` that the outcome is one of:
+and checks through both the API (``load_setting``, what ``cerpe run`` loads) and
+``cerpe check``'s ``check_one`` that the outcome is one of:
 
 * ``error``: a :class:`ManifestError` whose problems name the expected field and file;
 * ``count``: loading succeeds and the degradation is counted (no wrong pose);
-* ``verify``: loading succeeds (files are read lazily) and ``cerpe check`` reports
-  the broken file by name.
+* ``warn``: loading succeeds with a warning naming the field (a figure that is legal but suspicious);
+* ``verify``: a broken frame a run's sample need not decode: loading without decoding
+  succeeds (files are read lazily) and ``cerpe check`` (every frame) reports the file by name.
 
 No case may end in any other exception type.
 """
@@ -23,6 +24,8 @@ import yaml
 
 from cerpe.datasets import LoadReport, ManifestError, load_setting
 from cerpe.datasets.cli import check_one
+from cerpe.datasets.formats import NONFINITE_ROWS
+from cerpe.datasets.verify import NO_VALID_DEPTH
 from test_datasets_fixtures import write_mocap
 
 R0 = "encounters[0].robots[0]"
@@ -37,8 +40,15 @@ def _lines(path: Path, fn: Callable[[list[str]], list[str]]) -> None:
     path.write_text("\n".join(fn(path.read_text().splitlines())) + "\n")
 
 
-def _first_png(root: Path, r: int = 0, kind: str = "rgb") -> Path:
-    return sorted((root / "enc0" / f"r{r}" / kind).iterdir())[1]
+def _first_png(root: Path, r: int = 0, kind: str = "rgb", k: int = 1) -> Path:
+    return sorted((root / "enc0" / f"r{r}" / kind).iterdir())[k]
+
+
+def _depth_pngs(root: Path, fn: Callable[[np.ndarray], np.ndarray], frames: slice = slice(None)) -> None:
+    import cv2
+
+    for p in sorted((root / "enc0" / "r0" / "depth").iterdir())[frames]:
+        cv2.imwrite(str(p), fn(cv2.imread(str(p), cv2.IMREAD_UNCHANGED)))
 
 
 def _set_cam(root: Path, **kw) -> None:
@@ -117,22 +127,35 @@ CASES: list[tuple[str, Callable, str, str, str]] = [
     ("overlap-truncated", lambda r, d: (r / "enc0/overlap.npy").write_bytes((r / "enc0/overlap.npy").read_bytes()[:40]), "error", "encounters[0].overlap", "overlap.npy"),
     ("no-common-steps", lambda r, d: _rename_images(r, 1, 5.0), "error", "encounters[0].robots", "manifest.yaml"),
     ("window-excludes-all", lambda r, d: _robot(d).update(window_s=[100, 200]), "error", f"{R0}.window_s", "manifest.yaml"),
-    ("trajectory-nan-row", lambda r, d: _lines(r / "enc0/r0/gt.txt", lambda L: L[:6] + [" ".join(L[6].split()[:1] + ["nan"] * 7)] + L[7:]), "count", "r0: trajectory rows with NaN skipped", ""),
+    ("camera-2-distortion-coefficients", lambda r, d: _set_cam(r, distortion=[0.1, 0.01]), "error", f"{R0}.intrinsics.distortion", "camera.yaml"),
+    ("camera-principal-point-outside", lambda r, d: _set_cam(r, cx=30 * 15.5, cy=30 * 11.5), "error", f"{R0}.intrinsics", "camera.yaml"),
+    ("camera-duplicate-key", lambda r, d: (r / "enc0/r0/camera.yaml").write_text((r / "enc0/r0/camera.yaml").read_text() + "fx: 300\n"), "error", f"{R0}.intrinsics line 13", "camera.yaml"),
+    ("robot-id-with-slash", lambda r, d: _robot(d).update(id="r/0"), "error", f"{R0}.id", "manifest.yaml"),
+    ("robot-id-dot-dot", lambda r, d: _robot(d).update(id=".."), "error", f"{R0}.id", "manifest.yaml"),
+    ("encounter-name-hidden", lambda r, d: d["encounters"][0].update(name=".enc"), "error", "encounters[0].name", "manifest.yaml"),
+    ("sync-tol-1e308", lambda r, d: d.update(sync_tolerance_s=1e308), "error", "sync_tolerance_s", "manifest.yaml"),
+    ("depth-8bit-all", lambda r, d: _depth_pngs(r, lambda a: np.full(a.shape, 200, np.uint8)), "error", "enc0/r0/", "depth/1000.000000.png"),
+    ("depth-units-1000x", lambda r, d: _robot(d).update(depth_units_per_m=1), "error", f"{R0}.depth_units_per_m", "manifest.yaml"),
+    ("image-size-vs-intrinsics", lambda r, d: _set_cam(r, width=64, cx=31.5), "error", "enc0/r0/", "rgb/"),
+    ("trajectory-nan-row", lambda r, d: _lines(r / "enc0/r0/gt.txt", lambda L: L[:6] + [" ".join(L[6].split()[:1] + ["nan"] * 7)] + L[7:]), "count", f"r0: {NONFINITE_ROWS}", ""),
+    ("trajectory-inf-row", lambda r, d: _lines(r / "enc0/r0/gt.txt", lambda L: L[:6] + [" ".join(L[6].split()[:1] + ["inf"] * 3 + L[6].split()[4:])] + L[7:]), "count", f"r0: {NONFINITE_ROWS}", ""),
+    ("depth-all-zero-frame", lambda r, d: _depth_pngs(r, np.zeros_like, slice(0, 1)), "count", f"r0: {NO_VALID_DEPTH}", ""),
+    ("depth-units-5x-deep", lambda r, d: _robot(d).update(depth_units_per_m=200), "warn", f"{R0}.depth_units_per_m", "manifest.yaml"),
+    ("depth-units-5x-shallow", lambda r, d: _robot(d).update(depth_units_per_m=5000), "warn", f"{R0}.depth_units_per_m", "manifest.yaml"),
     ("trajectory-too-short", lambda r, d: _lines(r / "enc0/r0/gt.txt", lambda L: L[:12]), "count", "r0: frames without ground-truth pose", ""),
     ("depth-file-missing", lambda r, d: _first_png(r, 0, "depth").unlink(), "count", "r0: frames without a depth file", ""),
     ("corrupt-image-bytes", lambda r, d: _first_png(r).write_bytes(b"\x89PNG\r\n\x1a\n garbage"), "verify", "enc0/r0/", "rgb/1000.100000.png"),
     ("corrupt-depth-bytes", lambda r, d: _first_png(r, 0, "depth").write_bytes(b"not a png"), "verify", "enc0/r0/", "depth/1000.100000.png"),
     ("depth-size-mismatch", lambda r, d: __import__("cv2").imwrite(str(_first_png(r, 0, "depth")), np.ones((5, 7), np.uint16)), "verify", "enc0/r0/", "depth/1000.100000.png"),
-    ("image-size-vs-intrinsics", lambda r, d: _set_cam(r, width=64, cx=31.5), "verify", "enc0/r0/", "rgb/"),
 ]
 
 
-def test_there_are_at_least_30_cases() -> None:
-    assert len(CASES) >= 30 and len({c[0] for c in CASES}) == len(CASES)
+def test_there_are_at_least_65_cases() -> None:
+    assert len(CASES) >= 65 and len({c[0] for c in CASES}) == len(CASES)
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_malformed_input_gives_clear_outcome(tmp_path: Path, case) -> None:
+def test_malformed_input_gives_clear_outcome(tmp_path: Path, case, caplog) -> None:
     _, mutate, kind, field, file = case
     m = write_mocap(tmp_path)
     doc = yaml.safe_load(m.read_text())
@@ -146,18 +169,23 @@ def test_malformed_input_gives_clear_outcome(tmp_path: Path, case) -> None:
         assert probs, "a ManifestError must carry its problems"
         assert any(field in p.field and file in p.file for p in probs), "\n".join(map(str, probs))
         assert all(p.message for p in probs)
-    else:
-        setting = load_setting(m, report)  # files are read lazily: loading itself must succeed
+    else:  # what a run checks (a sample of frames); "verify": nothing decoded, files are read lazily
+        setting = load_setting(m, report, frames=0 if kind == "verify" else "sample")
         for enc in setting.encounters:
             for rob in enc.robots:
                 ok = np.array([rob.has_gt(t) for t in range(len(rob))])
                 assert np.all(np.isfinite(rob.T_world_cam[ok])) and np.all(np.isnan(rob.T_world_cam[~ok]))
         if kind == "count":
             assert report.counts[("enc0", field)] >= 1, report.counts
+        if kind == "warn":
+            assert [w for w in report.warnings if w.field == field and file in w.file], report.warnings
+            assert str(report.warnings[0]) in caplog.text  # a run logs it
     out = io.StringIO()
     lines = check_one(str(m), None, True, False, out=out)  # `cerpe check` lists the same problem, no traceback
     if kind == "count":
         assert lines == [] and f"counted: enc0: {field}" in out.getvalue(), (lines, out.getvalue())
+    elif kind == "warn":
+        assert lines == [] and f"warning: {tmp_path / file}: {field}" in out.getvalue(), (lines, out.getvalue())
     else:
         assert lines and any(field in ln and file in ln for ln in lines), lines
 
@@ -190,3 +218,15 @@ def test_invalid_yaml_manifest_names_the_line(tmp_path: Path) -> None:
         load_setting(p)
     (prob,) = info.value.problems
     assert prob.file == str(p) and prob.field.startswith("line ") and "YAML" in prob.message
+
+
+def test_duplicate_manifest_key_names_file_key_and_line(tmp_path: Path) -> None:
+    """YAML keeps the last of two equal keys without a word; a manifest that says a thing twice is refused."""
+    m = write_mocap(tmp_path)
+    m.write_text(m.read_text().replace("sync_tolerance_s: 0.02\n", "sync_tolerance_s: 0.02\nname: other\n"))
+    line = m.read_text().splitlines().index("name: other") + 1
+    with pytest.raises(ManifestError) as info:
+        load_setting(m)
+    (prob,) = info.value.problems
+    assert prob.file == str(m) and prob.field == f"line {line}" and "duplicate key 'name'" in prob.message
+    assert "line 1" in prob.message  # where the first one is

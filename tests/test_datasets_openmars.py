@@ -174,8 +174,11 @@ def test_truncated_lidar_file_is_a_clear_error(tmp_path: Path) -> None:
     build_fixture(tmp_path / "data", lidar_points={0: LIDAR_PTS})
     lid = next((tmp_path / "data" / "sweeps" / "LIDAR_FRONT_CENTER_A").iterdir())
     lid.write_bytes(lid.read_bytes()[:-4])
-    setting = load_setting(_manifest(tmp_path, "encounters:\n  - {scene: s3}\n"))
-    rob = setting.encounters[0].robots[0]
+    manifest = _manifest(tmp_path, "encounters:\n  - {scene: s3}\n")
+    with pytest.raises(ManifestError, match="not a multiple of 5") as info:  # the frames a run checks when loading
+        load_setting(manifest)
+    assert str(lid) in str(info.value)
+    rob = load_setting(manifest, frames=0).encounters[0].robots[0]  # not decoded: read lazily, refused when read
     with pytest.raises(SceneError, match="not a multiple of 5"):
         rob.depth_m(0)
 

@@ -345,8 +345,11 @@ def test_templates_load_once_their_root_is_filled(tmp_path: Path, monkeypatch: p
         for kind, arr in (("rgb", np.zeros((480, 640, 3), np.uint8)), ("depth", np.full((480, 640), 9000, np.uint16))):
             for p in (seq / kind).iterdir():
                 cv2.imwrite(str(p), arr)
-    write_frames(tmp_path / "7s" / "chess" / "seq-01", range(9))
-    write_frames(tmp_path / "7s" / "chess" / "seq-02", range(7))
+    for seq, n in (("seq-01", 9), ("seq-02", 7)):  # 7-Scenes' 640x480 (the template's intrinsics are for it)
+        write_frames(tmp_path / "7s" / "chess" / seq, range(n))
+        for p in (tmp_path / "7s" / "chess" / seq).glob("*.png"):
+            cv2.imwrite(str(p), np.zeros((480, 640, 3), np.uint8) if ".color." in p.name
+                        else np.full((480, 640), 2000, np.uint16))
     monkeypatch.setenv("TUM_ROOT", str(tmp_path / "tum"))
     monkeypatch.setenv("SEVEN_SCENES_ROOT", str(tmp_path / "7s"))
     (enc,) = load_setting(_enabled_copy("tum-rgbd-desk.yaml", tmp_path)).encounters

@@ -11,12 +11,15 @@ together, so the machine lock around loading the manifest is exercised too.
   columns but the stage timings), and the figures of the run are printed (steps,
   frames lost, bytes on the wire per robot per step, step latency median / p90 online
   against the robot's compute time in the in-process run). Timings are wall clock on a
-  shared machine: indicative only.
+  shared machine: indicative only. `cerpe eval` of the robots' folders together gives
+  the table of the `cerpe run` folder; of one robot's folder, that robot's rows with a
+  success after co-visibility.
 * A robot process killed mid-run (SIGKILL) is counted once (``net:peer-lost``) by the
   others, which finish without waiting for it.
 * Bad peers around a running robot: another protocol version, another team, a second
   session with its id, garbage on its keys, a query for an image it no longer holds:
-  counted or answered "not held", never a hang; bad options and a session that cannot
+  counted or answered "not held", never a hang; the robot, which never met a peer,
+  finishes with a warning and exit code 4; bad options and a session that cannot
   open: one line on stderr, exit code 2.
 """
 from __future__ import annotations
@@ -38,6 +41,8 @@ zenoh = pytest.importorskip("zenoh")
 
 from cerpe.messages import VERSION, ImageRequest, decode  # noqa: E402
 from cerpe.online import zenoh_wire as w  # noqa: E402
+from cerpe.online.cli import EXIT_NO_PEER  # noqa: E402
+from cerpe.pipeline import evaluate as ev  # noqa: E402
 from cerpe.pipeline import run as rp  # noqa: E402
 from test_online import _raw_conf  # noqa: E402
 from test_online_zenoh_link import endpoint, free_ports  # noqa: E402
@@ -144,6 +149,18 @@ def test_robot_processes_equal_cerpe_run(manifests, tmp_path, name):
         meta = json.loads((tmp_path / "online" / r / "run.json").read_text())
         assert meta["label"] == "CERPE (online)" and meta["config"]["online"]["team"] == f"eq{name}"
     assert (ref_steps["bytes_pair"] > 0).any()
+    # the team's folders together: the table of `cerpe run`; one robot's folder alone: its own rows, with
+    # success after co-visibility (from its peers' overlap ground truth about it)
+    team = [tmp_path / "online" / r for r in robots]
+    pd.testing.assert_frame_equal(ev.evaluate(team, by="encounter"), ev.evaluate([ref_dir], by="encounter"))
+    frames, _ = ev.evaluate_runs([ref_dir])
+    for r in robots:
+        alone = ev.evaluate([tmp_path / "online" / r]).iloc[0]
+        mine = ev.summarise(frames[frames["ego"] == r], ["setting", "method"]).iloc[0]
+        assert alone["n_frames"] == mine["n_frames"] and alone["n_frames_after_covis"] == mine["n_frames_after_covis"]
+        np.testing.assert_allclose(alone["success_after_covis_pct"], mine["success_after_covis_pct"])
+        assert json.loads((tmp_path / "online" / r / enc / "online.json").read_text())["peers_met"] == \
+            [p for p in robots if p != r]
     for line in figures(f"loopback {len(robots)} robots", tmp_path / "online", ref_dir, robots):
         print(line)
 
@@ -221,7 +238,8 @@ def test_bad_peers_around_a_running_robot_are_counted(manifests, tmp_path):
         sub.undeclare()
         raw.close()
     rc, log = res["r0"]
-    assert rc == 0, log
+    assert rc == EXIT_NO_PEER, log  # r1 never came (only its impostors): finished, but said so
+    assert "robot r0 never met any of its peers ['r1']" in log and "never met any peer" in log
     assert "speaks cerpe link protocol" in log and "is up in team 'elsewhere'" in log and "same id" in log
     assert [r.err.payload.to_bytes() for r in replies if r.err is not None] == [w.error_payload(w.NOT_HELD)]
     enc = next((tmp_path / "r0").glob("*/DONE.json")).parent
@@ -232,6 +250,7 @@ def test_bad_peers_around_a_running_robot_are_counted(manifests, tmp_path):
     assert degr.count("msg:garbled") >= 2
     # the stale request is refused by r0's engine (msg:stale-request, booked only when it comes during a step)
     rep = json.loads((enc / "online.json").read_text())
+    assert rep["peers_met"] == []
     assert rep["link"]["queries_refused_not-held"] == 1 and degr.count("msg:stale-request") <= 1
     assert len(rob) == 12  # every step ran, r1 never came: its frames counted lost, no hang
 

@@ -252,3 +252,90 @@ def test_code_hash_lists_name_existing_files():
         assert (pv.PACKAGE_ROOT / rel).is_file(), rel
     assert pv.code_hash("cerpe") != pv.code_hash("sift-ransac")
     assert pv.code_hash("cerpe") == pv.code_hash("cerpe-wo-em")
+
+
+def test_eval_counts_frames_without_gt_and_nonfinite_estimates(tmp_path, manifest, fake_method, caplog, capsys):
+    """24 frames, 16 with an estimate (steps 0-1 fail). Two lose their ground truth, two get a non-finite
+    estimate: 22 evaluated, 12 successes; n_no_gt and n_nonfinite say why, a warning names each."""
+    from cerpe.cli import main
+
+    out = rp.run_method(manifest, "sift-ransac", tmp_path / "run", setting=_setting(), progress=False)
+    for enc in ("enc0", "enc1"):
+        p = out / enc / "steps.csv"
+        df = pd.read_csv(p)
+        if enc == "enc0":
+            df.loc[df["step"] == 3, [f"gt_{c}" for c in ev.POSE]] = np.nan  # both pairs of step 3
+            df.loc[(df["step"] == 4) & (df["ego"] == "r0"), "est_tx"] = np.inf
+        else:
+            df.loc[(df["step"] == 5) & (df["ego"] == "r1"), "est_qw"] = np.nan
+        df.to_csv(p, index=False)
+    row = ev.evaluate([out]).iloc[0]
+    assert (row["n_frames"], row["n_success"], row["n_no_gt"], row["n_nonfinite"]) == (22, 12, 2, 2)
+    assert row["success_pct"] == pytest.approx(100 * 12 / 22)
+    assert "2 frame(s) with a non-finite estimate" in caplog.text and "2 frame(s) without ground truth" in caplog.text
+    assert main(["eval", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "n_no_gt" in table and "n_nonfinite" in table
+
+
+def _covis_setting() -> Setting:
+    """One encounter of 6 steps whose pair is co-visible both ways from step 3 (r0 sees r1 from step 2)."""
+    s = _setting(n_steps=6, n_enc=1)
+    ov = np.full((6, 2, 2), 0.1)
+    ov[2:, 0, 1] = 0.5
+    ov[3:, 1, 0] = 0.5
+    s.encounters[0].overlap = ov
+    return s
+
+
+def _as_online_robots(run: Path, root: Path, team: str = "lab") -> dict[str, Path]:
+    """The folders `cerpe online` writes for the team of ``run`` (one per robot: its own rows, its
+    run.json with config.online, its peers' overlap_gt rows about it)."""
+    meta = json.loads((run / "run.json").read_text())
+    robots = ["r0", "r1"]
+    out = {}
+    for k, rid in enumerate(robots):
+        d = root / rid
+        config = {**meta["config"], "online": {"robot": rid, "team": team, "robots": robots,
+                                               "link": {"listen": [f"tcp/127.0.0.1:{7447 + k}"]}}}
+        fp = f"{rid}-fingerprint"
+        (d / "enc0").mkdir(parents=True)
+        (d / "run.json").write_text(json.dumps({**meta, "config": config, "fingerprint": fp,
+                                                "label": "CERPE (online)"}))
+        steps = pd.read_csv(run / "enc0" / "steps.csv")
+        mine = steps[steps["ego"] == rid]
+        mine.to_csv(d / "enc0" / "steps.csv", index=False)
+        rob = pd.read_csv(run / "enc0" / "robots.csv")
+        rob[rob["robot"] == rid].to_csv(d / "enc0" / "robots.csv", index=False)
+        steps.loc[steps["other"] == rid, ["encounter", "step", "ego", "other", "overlap_gt"]].to_csv(
+            d / "enc0" / ev.PEER_OVERLAP_CSV, index=False)
+        (d / "enc0" / "DONE.json").write_text(json.dumps({"fingerprint": fp, "n_pair_rows": len(mine)}))
+        out[rid] = d
+    return out
+
+
+def test_online_team_folders_evaluate_as_the_team(tmp_path, manifest, fake_method, capsys):
+    """The robots' folders of one online team give the table `cerpe run` gives for the team; one robot's
+    folder alone has a success after co-visibility (from its peers' overlap rows), NaN without them."""
+    from cerpe.cli import main
+
+    ref = rp.run_method(manifest, "cerpe", tmp_path / "run", setting=_covis_setting(), progress=False)
+    robots = _as_online_robots(ref, tmp_path / "online")
+    team = ev.evaluate(list(robots.values()), by="encounter")
+    want = ev.evaluate([ref], by="encounter")
+    pd.testing.assert_frame_equal(team, want)
+    assert team["success_after_covis_pct"].iloc[0] == pytest.approx(100.0)  # steps 3-5, all with estimates
+    assert main(["eval", *map(str, robots.values())]) == 0 and "cerpe" in capsys.readouterr().out
+    frames, _ = ev.evaluate_runs([ref])
+    for rid, d in robots.items():
+        alone = ev.evaluate([d]).iloc[0]
+        mine = ev.summarise(frames[frames["ego"] == rid], ["setting", "method"]).iloc[0]
+        assert alone["success_after_covis_pct"] == pytest.approx(mine["success_after_covis_pct"])
+        assert alone["n_frames_after_covis"] == mine["n_frames_after_covis"] == 3
+    (robots["r0"] / "enc0" / ev.PEER_OVERLAP_CSV).unlink()  # what a robot's folder alone gave before
+    assert np.isnan(ev.evaluate([robots["r0"]]).iloc[0]["success_after_covis_pct"])
+    import shutil
+
+    shutil.copytree(robots["r1"], tmp_path / "r1-again")
+    with pytest.raises(ev.EvalError, match="robot 'r1' given twice"):
+        ev.evaluate([*robots.values(), tmp_path / "r1-again"])

@@ -3,7 +3,7 @@
 Public API::
 
     load_manifest(path) -> Manifest                 # validate a YAML manifest (all problems at once)
-    load_setting(path_or_manifest) -> Setting       # validate, then read the data with its adapter
+    load_setting(path_or_manifest) -> Setting       # validate, read the data with its adapter, check it
     find_manifests(folder) -> list[Manifest]        # every manifest in a folder, enabled or not
 
 Adapters: ``mocap`` (image folders + TUM/EuRoC/CSV trajectories; also what
@@ -23,6 +23,7 @@ from ..scene import Setting
 from .manifest import Manifest, ManifestError, Problem, checked_manifest, read_yaml
 from .registry import Adapter, get_adapter, known_adapters, register_adapter
 from .report import LoadReport
+from .verify import SAMPLE, check_setting
 
 __all__ = [
     "Adapter", "LoadReport", "Manifest", "ManifestError", "Problem", "disabled_reason", "find_manifests", "get_adapter",
@@ -50,14 +51,23 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
     return checked_manifest(raw, path, adapter, problems)
 
 
-def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None = None) -> Setting:
-    """Validate (when given a path) and load a setting with its adapter.
+def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None = None, *,
+                 frames: int | str | None = SAMPLE, progress: bool = False, log: bool = True) -> Setting:
+    """Validate (when given a path), load a setting with its adapter, then check what was loaded.
+
+    Every adapter's setting goes through the same checks (:func:`cerpe.datasets.verify.check_setting`),
+    so what ``cerpe check`` refuses a run refuses too.
 
     Args:
         source: a manifest path or an already loaded :class:`Manifest`.
         report: collects counted degradations (frames without ground truth,
-            unsynchronised frames...) and sync residuals; a fresh one by default.
+            unsynchronised frames...), warnings and sync residuals; a fresh one by default.
             Its summary is also stored in ``setting.meta["load_report"]``.
+        frames: frames decoded per robot and encounter by the checks: ``"sample"`` (a few,
+            evenly spaced: what a run checks), an integer, None (every frame: ``cerpe
+            check``), 0 (none; ids, intrinsics and depth file headers are checked all the same).
+        progress: a progress bar while frames are decoded.
+        log: log the report's warnings and counts (``cerpe check`` prints them itself).
 
     Raises:
         ManifestError: listing every problem found in the manifest and its data,
@@ -73,6 +83,10 @@ def load_setting(source: str | os.PathLike | Manifest, report: LoadReport | None
     setting.metric_depth_options = dict(manifest.metric_depth_options)
     setting.meta.setdefault("manifest", str(manifest.path))
     setting.meta.setdefault("adapter", manifest.adapter)
+    check_setting(setting, report, frames, progress)
+    report.raise_if_problems()
+    if log:
+        report.log(setting.name)
     setting.meta["evaluation_every"] = manifest.evaluation_every
     setting.meta["sync_tolerance_s"] = manifest.sync_tolerance_s
     setting.meta["load_report"] = report.as_dict()

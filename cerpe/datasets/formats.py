@@ -30,11 +30,13 @@ from .manifest import ManifestError, Problem, is_number, read_yaml, type_name
 
 TRAJECTORY_FORMATS: tuple[str, ...] = ("tum", "euroc", "csv")
 CSV_COLUMNS: tuple[str, ...] = ("stamp_s", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+NONFINITE_ROWS = "ground-truth trajectory rows with NaN or inf (skipped)"  # the counted reason
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".npy", ".exr", ".tif", ".tiff")
 STAMP_UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 MAX_LINE_PROBLEMS = 10
 QUAT_NORM_TOL = 0.05  # a quaternion further than this from unit norm is a format error, not noise
+DISTORTION_COUNTS: tuple[int, ...] = (0, 4, 5, 8, 12, 14)  # what OpenCV's distortion models take
 
 
 @dataclass
@@ -44,7 +46,7 @@ class Trajectory:
     Attributes:
         stamps_s: ``[N]`` strictly increasing seconds.
         T_world_body: ``[N,4,4]`` body-to-world poses.
-        n_nan_rows: rows skipped because they hold NaN (e.g. tracking lost).
+        n_nan_rows: rows skipped because they hold NaN or inf (e.g. tracking lost).
     """
 
     stamps_s: np.ndarray
@@ -69,7 +71,7 @@ def _rows_csv(text: str) -> list[tuple[int, list[str]]]:
 def read_trajectory(path: Path, fmt: str, field: str) -> Trajectory:
     """Read a trajectory file (see module doc for the formats).
 
-    Rows holding NaN are skipped and counted (``Trajectory.n_nan_rows``); a wrong
+    Rows holding NaN or inf are skipped and counted (``Trajectory.n_nan_rows``); a wrong
     column count, an unparsable number, a zero-norm or far-from-unit quaternion,
     non-increasing stamps or an empty file raise :class:`ManifestError`.
     """
@@ -140,7 +142,7 @@ def read_trajectory(path: Path, fmt: str, field: str) -> Trajectory:
     if probs:
         raise ManifestError(probs)
     if not stamps:
-        msg = "trajectory has no poses" + (f" ({n_nan} rows with NaN skipped)" if n_nan else "")
+        msg = "trajectory has no poses" + (f" ({n_nan} rows with NaN or inf skipped)" if n_nan else "")
         raise ManifestError([Problem(f, field, msg)])
     T = se3_from_tq_xyzw(np.array(ts), np.array(qs))
     return Trajectory(np.array([s for s, _ in stamps], dtype=np.float64), T, n_nan)
@@ -175,6 +177,10 @@ def read_camera(path: Path, field: str) -> tuple[CameraIntrinsics, list[float]]:
         dist = []
     if not isinstance(dist, list) or not all(is_number(d) for d in dist):
         probs.append(Problem(f, f"{field}.distortion", f"expected a list of numbers, got {dist!r}"))
+    elif len(dist) not in DISTORTION_COUNTS:
+        probs.append(Problem(f, f"{field}.distortion", f"{len(dist)} coefficients; OpenCV's models take "
+                                                       f"{', '.join(map(str, DISTORTION_COUNTS[1:]))} "
+                                                       "(k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])"))
     if probs:
         raise ManifestError(probs)
     try:
@@ -182,7 +188,20 @@ def read_camera(path: Path, field: str) -> tuple[CameraIntrinsics, list[float]]:
                              width=int(vals["width"]), height=int(vals["height"]))
     except SceneError as exc:
         raise ManifestError([Problem(f, field, str(exc))]) from None
+    why = intrinsics_problem(K)
+    if why:
+        raise ManifestError([Problem(f, field, why)])
     return K, [float(d) for d in dist]
+
+
+def intrinsics_problem(K: CameraIntrinsics) -> str:
+    """Why ``K`` cannot describe its image (``""`` when it can): the principal point must lie in the
+    image (``0 <= cx <= width``, ``0 <= cy <= height``); ``CameraIntrinsics`` itself refuses focal
+    lengths <= 0. A principal point far outside means a wrong unit, a swapped field or another camera."""
+    if 0 <= K.cx <= K.width and 0 <= K.cy <= K.height:
+        return ""
+    return (f"principal point (cx, cy) = ({K.cx:g}, {K.cy:g}) px lies outside the {K.width}x{K.height} image "
+            f"(expected 0 <= cx <= {K.width}, 0 <= cy <= {K.height})")
 
 
 def read_intrinsics(path: Path, field: str) -> CameraIntrinsics:

@@ -13,7 +13,7 @@ Common fields (adapter-specific ones are checked by the adapter)::
     data_root: ../build/x      # relative to the manifest file; ${VAR} expands from the environment
     metric_depth: sensor       # sensor | mono-sim | dataset | metric3d | none
     metric_depth_options: {max_m: 40}   # optional keyword options of that source (numbers, booleans, strings)
-    sync_tolerance_s: 0.02     # > 0, seconds
+    sync_tolerance_s: 0.02     # seconds, > 0 and <= 1 (frames farther apart are not one time step)
     evaluation: {every: 1}     # evaluate every n-th step (n >= 1)
     encounters: [...]          # adapter-specific
 
@@ -39,6 +39,9 @@ COMMON_FIELDS: tuple[str, ...] = (
     "evaluation", "encounters", "description",
 )
 _VAR_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+SYNC_TOLERANCE_MAX_S = 1.0  # robots' frames farther apart than this are not one time step
+# ids that name files or folders of a run (setting, encounter and robot ids): no '/', no leading '.'
+SAFE_ID_RE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 
 
 @dataclass(frozen=True)
@@ -165,12 +168,50 @@ def not_a_mapping(obj: Any, f: Path, field: str) -> Problem:
     return Problem(f, field, f"expected a mapping, got {type_name(obj)}")
 
 
+def unsafe_id(value: Any, what: str) -> str:
+    """Why ``value`` cannot be an id that names files (``""`` when it can): letters, digits, ``_ . -``,
+    not starting with a dot (``r/0`` or ``..`` would write outside the run folder)."""
+    if isinstance(value, str) and SAFE_ID_RE.fullmatch(value):
+        return ""
+    return (f"{what} {value!r}: use letters, digits, '_', '.', '-' and do not start with '.' "
+            "(it names files and folders of a run)")
+
+
 def is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
 
 
+class _DuplicateKey(yaml.YAMLError):
+    def __init__(self, key: Any, line: int, first_line: int) -> None:
+        super().__init__(f"duplicate key {key!r} (first at line {first_line}; YAML keeps only the last)")
+        self.key, self.line = key, line
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a mapping with the same key twice (PyYAML keeps the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` may be overridden on purpose
+                continue
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                if key in seen:
+                    raise _DuplicateKey(key, line, seen[key])
+                seen[key] = line
+            except TypeError:  # an unhashable key: the base class says so
+                continue
+        return super().construct_mapping(node, deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping)
+
+
 def read_yaml(path: Path, what: str = "manifest", field: str = "") -> Any:
-    """``yaml.safe_load`` a file, turning every failure into a :class:`ManifestError` (naming ``field``)."""
+    """Parse a YAML file safely, turning every failure into a :class:`ManifestError` (naming ``field``
+    and the line); a key given twice in one mapping is an error (YAML would keep the last silently)."""
     if not path.is_file():
         raise ManifestError(f"{what} file not found", file=str(path), field=field)
     try:
@@ -178,7 +219,10 @@ def read_yaml(path: Path, what: str = "manifest", field: str = "") -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise ManifestError(f"cannot read {what}: {exc}", file=str(path), field=field) from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader subclass)
+    except _DuplicateKey as exc:
+        where = f"{field} line {exc.line}".strip()
+        raise ManifestError(str(exc), file=str(path), field=where) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{field} line {mark.line + 1}".strip() if mark is not None else field
@@ -227,8 +271,10 @@ def validate(raw: Any, path: Path, adapter_fields: Iterable[str] | None = ()) ->
                 probs.append(Problem(f, f"metric_depth_options.{k}",
                                      f"expected a number, boolean or string, got {type_name(v)}"))
     tol = raw.get("sync_tolerance_s", 0.02)
-    if not is_number(tol) or float(tol) <= 0:
-        probs.append(Problem(f, "sync_tolerance_s", f"expected a positive number of seconds, got {tol!r}"))
+    if not is_number(tol) or not 0 < float(tol) <= SYNC_TOLERANCE_MAX_S:
+        probs.append(Problem(f, "sync_tolerance_s", f"expected a number of seconds > 0 and <= "
+                                                    f"{SYNC_TOLERANCE_MAX_S:g} (frames farther apart are not one "
+                                                    f"time step), got {tol!r}"))
     ev = raw.get("evaluation", {"every": 1})
     if not isinstance(ev, dict):
         probs.append(Problem(f, "evaluation", f"expected a mapping like {{every: 1}}, got {type_name(ev)}"))
@@ -278,7 +324,7 @@ def build_manifest(raw: dict, path: Path) -> Manifest:
         data_root=data_root,
         metric_depth=str(raw.get("metric_depth", "dataset")),
         # invalid values were reported by validate(); defaults keep adapter checks running
-        sync_tolerance_s=float(tol) if is_number(tol) and float(tol) > 0 else 0.02,
+        sync_tolerance_s=float(tol) if is_number(tol) and 0 < float(tol) <= SYNC_TOLERANCE_MAX_S else 0.02,
         evaluation_every=int(every) if isinstance(every, int) and not isinstance(every, bool) and every >= 1 else 1,
         encounters=raw.get("encounters"),
         raw=raw,

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
 from . import covisibility
-from .formats import (STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
+from .formats import (NONFINITE_ROWS, STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
                       parse_transform, read_camera, read_trajectory)
 from .imageref import DepthFile, ImageFile, Undistortion, undistortion
 from .manifest import Manifest, ManifestError, Problem, type_name
@@ -148,8 +148,8 @@ def _read_robot(m: Manifest, rob: dict, fr: str, enc_name: str, report: LoadRepo
         return None
     stamps, orig = stamps[keep], orig[keep]
     images = [images[k] for k in orig]
-    if traj is not None and traj.n_nan_rows:
-        report.count(enc_name, f"{rid}: trajectory rows with NaN skipped", traj.n_nan_rows)
+    if traj is not None:
+        report.count(enc_name, f"{rid}: {NONFINITE_ROWS}", traj.n_nan_rows)
     depth = None
     if depth_dir is not None:
         depth = find_depth_files(depth_dir, [p.stem for p in images])

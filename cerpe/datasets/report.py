@@ -1,9 +1,11 @@
-"""What an adapter found while loading: fatal problems and counted degradations.
+"""What an adapter found while loading: fatal problems, counted degradations and warnings.
 
 Adapters never print and never silently drop data: every frame they cannot use
 (no ground-truth pose within tolerance, no partner frame within the sync
 tolerance, no depth) is counted here under a named reason, and every fatal
-problem is collected so that ``cerpe check`` lists them all at once.
+problem is collected so that ``cerpe check`` lists them all at once. Warnings are
+what is legal but probably wrong (a median depth a camera rarely sees). ``cerpe
+check`` prints counts and warnings; a run logs them (:meth:`LoadReport.log`).
 """
 from __future__ import annotations
 
@@ -27,14 +29,19 @@ class LoadReport:
             ``("cad-l0-s0", "r1: frames without ground-truth pose") -> 3``.
         sync: ``encounter -> {robot: residuals}`` summaries, filled by adapters:
             ``{"max_abs_s", "mean_abs_s", "dropped"}`` per robot.
+        warnings: legal but suspicious findings (file, field, message with the figure).
     """
 
     problems: list[Problem] = field(default_factory=list)
     counts: Counter = field(default_factory=Counter)
     sync: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+    warnings: list[Problem] = field(default_factory=list)
 
     def add(self, problem: Problem) -> None:
         self.problems.append(problem)
+
+    def warn(self, problem: Problem) -> None:
+        self.warnings.append(problem)
 
     def extend(self, problems: list[Problem]) -> None:
         self.problems.extend(problems)
@@ -49,9 +56,18 @@ class LoadReport:
         if self.problems:
             raise ManifestError(self.problems)
 
+    def log(self, setting: str) -> None:
+        """Log every warning, and the counted degradations in one line (what ``cerpe check`` prints)."""
+        for w in self.warnings:
+            log.warning("%s: %s", setting, w)
+        if self.counts:
+            log.warning("%s: counted while loading: %s", setting,
+                        "; ".join(f"{e}: {r}: {n}" for (e, r), n in sorted(self.counts.items())))
+
     def as_dict(self) -> dict:
         return {
             "problems": [str(p) for p in self.problems],
             "counts": {f"{e}: {r}": n for (e, r), n in sorted(self.counts.items())},
+            "warnings": [str(w) for w in self.warnings],
             "sync": self.sync,
         }

@@ -27,7 +27,8 @@ import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError
 from . import covisibility
-from .manifest import Manifest, ManifestError, Problem, is_number, mapping_problems, not_a_mapping, type_name
+from .manifest import (Manifest, ManifestError, Problem, is_number, mapping_problems, not_a_mapping, type_name,
+                       unsafe_id)
 from .report import LoadReport
 from .sync import check_window, synchronise, window_mask
 
@@ -93,8 +94,12 @@ def apply_slice(frames: Frames, rob: dict, f: str, fr: str) -> Frames:
 
 
 def _unique(value: Any, seen: set[str], f: str, field: str, what: str) -> list[Problem]:
+    """A required, unique id that names files (:func:`~cerpe.datasets.manifest.unsafe_id`)."""
     if not isinstance(value, str) or not value:
         return [Problem(f, field, f"required: a non-empty string, got {type_name(value)}")]
+    why = unsafe_id(value, what)
+    if why:
+        return [Problem(f, field, why)]
     if value in seen:
         return [Problem(f, field, f"duplicate {what} {value!r}")]
     seen.add(value)

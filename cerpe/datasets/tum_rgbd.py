@@ -44,7 +44,7 @@ import numpy as np
 
 from ..scene import CameraIntrinsics, Setting
 from . import covisibility
-from .formats import file_problems, read_camera, read_list_file, read_trajectory
+from .formats import NONFINITE_ROWS, file_problems, read_camera, read_list_file, read_trajectory
 from .imageref import DepthFile, ImageFile, Undistortion, undistortion
 from .manifest import Manifest, ManifestError, Problem
 from .report import LoadReport
@@ -162,6 +162,7 @@ class TumRgbdAdapter:
         gt = seq / "groundtruth.txt"
         if gt.is_file():
             traj = read_trajectory(gt, "tum", f"{fr}.sequence groundtruth.txt")
+            report.count(enc, f"{rid}: {NONFINITE_ROWS}", traj.n_nan_rows)
             T = poses_at(stamps, traj.stamps_s, traj.T_world_body, float(rob.get("gt_tolerance_s", 0.02)),
                          bool(rob.get("interpolate", True)), float(rob.get("interpolate_max_gap_s", 0.05)))
         images = [ImageFile(p, und) if und is not None else p for p in rgb]

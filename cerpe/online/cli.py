@@ -45,10 +45,18 @@ off publishes nothing. --team and robot ids must then be ROS name tokens
 Output: the run folder of `cerpe run` with only this robot as ego (run.json,
 <encounter>/steps.csv, robots.csv, poses/, odometry/, DONE.json) plus
 <encounter>/online.json (link counters: frames and bytes sent per kind, losses,
-late frames, waits; per-step wall times; estimates published). `cerpe eval`
-reads it. A bad option, an unknown robot or encounter, or a Zenoh session that
-cannot open (bad endpoint, router not reachable, address not on this machine) is
-one line on stderr and exit code 2.
+late frames, waits; per-step wall times; estimates published; the peers met) and
+<encounter>/peers_overlap.csv (the overlap ground truth of the peers' side of
+each pair, for success after co-visibility). `cerpe eval` reads it: give it the
+folders of every robot of the team to evaluate the team (the table `cerpe run`
+gives), or one robot's folder for that robot.
+
+Exit status: 0 when the run finished having met at least one peer; 4 when it
+finished without ever meeting any peer (a warning says so: its folder holds no
+inter-robot estimate; check --team, the endpoints and that the peers were
+started); 2 for a bad option, an unknown robot or encounter, an --out that
+cannot be written, or a Zenoh session that cannot open (bad endpoint, router
+not reachable, address not on this machine): one line on stderr.
 """
 from __future__ import annotations
 
@@ -57,22 +65,35 @@ import contextlib
 import hashlib
 import json
 import logging
+import math
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, NamedTuple
 
 from .. import knobs
+from ..atomicio import atomic_write_text, ensure_dir
 from ..config import merge_conf
 from ..pipeline import run as rp
-from . import zenoh_session, zenoh_wire
+from ..pipeline.evaluate import PEER_OVERLAP_CSV
+from . import ros, zenoh_session, zenoh_wire
 from .node import ROS_KEYS, OnlineError, RobotNode
 from .node import default_conf as node_defaults
 from .zenoh_link import ZenohLink
 from .zenoh_link import default_conf as link_defaults
 
 log = logging.getLogger(__name__)
+
+EXIT_NO_PEER = 4  # the run finished without ever meeting any peer (see the module doc)
+
+
+class OnlineRun(NamedTuple):
+    """What :func:`run_online` did: the run folder, the encounter, the peers this robot met."""
+
+    out: Path
+    encounter: str
+    peers_met: list[str]
 
 
 def _encounter(setting: Any, name: str | None, manifest: Path) -> Any:
@@ -113,7 +134,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
                link_conf: Mapping[str, Any] | None = None, node_conf: Mapping[str, Any] | None = None,
                method: str = "cerpe", preset: str = "paper", seed: int = 0, overwrite: bool = False,
                progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None,
-               sets: Mapping[str, Any] | None = None) -> Path:
+               sets: Mapping[str, Any] | None = None) -> OnlineRun:
     """Run robot ``robot`` of ``encounter`` online and write its run folder ``out``.
 
     ``link_conf``: options of :class:`~cerpe.online.zenoh_link.ZenohLink` (team,
@@ -124,6 +145,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     (tests, embedding in a robot's own process); ``preset``, ``sets``: the loaded configuration
     (``--preset``, ``--set``; every robot of a team should pass the same). Raises a
     :class:`~cerpe.errors.CerpeError` naming the argument, file or endpoint at fault.
+    A robot that never met any peer is logged as a warning (``OnlineRun.peers_met`` empty).
     """
     from ..algorithm import AlgorithmConfig, RobotAgent
     from ..protocols import FrameContext
@@ -133,6 +155,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     lconf, nconf = merge_conf(link_defaults, link_conf, "zenoh link conf"), dict(node_conf or {})
     zenoh_wire.check_chunk(lconf["team"], "--team")
     zenoh_session.zenoh_config({k: lconf[k] for k in zenoh_session.default_conf})  # bad options fail now
+    ros.check_distro((nconf.get("ros") or {}).get("distro", ros.default_conf["distro"]))
     manifest = Path(manifest).resolve()
     if setting is None:
         with _machine_lock(manifest):
@@ -145,6 +168,7 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     if done.exists() and not overwrite:
         raise rp.RunError(f"{done}: this robot already finished encounter {enc.name}; "
                           f"use --overwrite to run it again (with its peers)")
+    ensure_dir(out, "--out")  # before the link opens: an --out that cannot be written fails now
     link = ZenohLink(robot, enc.robot_ids, lconf)  # opens now: a bad endpoint fails before models load
     try:
         if plugins is None:
@@ -167,7 +191,6 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
                     "online": {"robot": robot, "team": link.team, "robots": list(enc.robot_ids),
                                "link": rp.config_dict(link.conf), "node": rp.config_dict(node.conf)}}
         fp = rp.fingerprint(run_conf)
-        out.mkdir(parents=True, exist_ok=True)
         rp.atomic_write_json(out / "run.json", {
             "method": method, "label": rp.METHOD_LABELS[method] + " (online)", "fingerprint": fp,
             "config": run_conf, "metric_scale": getattr(setting, "metric_depth", None) != "none",
@@ -181,13 +204,32 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
                 yield stream.image(t), FrameContext(robot, t, stream.intrinsics, stream.depth_m(t), seed), \
                     float(stream.stamps_s[t])
 
+        atomic_write_text(out / enc.name / PEER_OVERLAP_CSV, peers_overlap_csv(enc, robot))
         t0 = time.perf_counter()
         rp.run_encounter_to_folder(enc, lambda _enc: node.run(frames()), out / enc.name, fp, progress=progress)
         report = {**node.report(), "wall_time_s": time.perf_counter() - t0}
         rp.atomic_write_json(out / enc.name / "online.json", report)
         lost = {k: v for k, v in node.stats.items() if ":" in k}
         log.info("robot %s: %d steps, degradations %s", robot, report["n_steps"], lost or "none")
-    return out
+        if not node.met:
+            log.warning("robot %s never met any of its peers %s (team %r): its run holds no inter-robot estimate; "
+                        "check --team, the endpoints (--connect / --listen) and that the peers were started",
+                        robot, list(node.peers), link.team)
+    return OnlineRun(out, enc.name, sorted(node.met))
+
+
+def peers_overlap_csv(enc: Any, robot: str) -> str:
+    """``encounter, step, ego, other, overlap_gt`` of the pairs (peer, ``robot``): the overlap ground truth
+    of the rows this robot's peers write about it, which its own success after co-visibility needs."""
+    k = enc.robot_ids.index(robot)
+    lines = ["encounter,step,ego,other,overlap_gt"]
+    for j, peer in enumerate(enc.robot_ids):
+        if j == k:
+            continue
+        for t in range(enc.n_steps):
+            ov = float(enc.overlap[t, j, k]) if enc.overlap is not None else math.nan
+            lines.append(f"{enc.name},{t},{peer},{robot},{'' if math.isnan(ov) else f'{ov:.9g}'}")
+    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------- CLI
@@ -198,7 +240,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--encounter", default=None,
                    help="encounter name in the manifest (may be left out when it has only one)")
     g.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS,
-                   help="cerpe | cerpe-wo-em (no propagation) | cerpe-graph (ours: pose graph)")
+                   help=" | ".join(rp.CERPE_METHODS) + " (default %(default)s; the same on every robot)")
     g.add_argument("--preset", default="paper", metavar="P",
                    help="a named configuration (default: paper); `cerpe config show --presets` lists them")
     g.add_argument("--seed", type=int, default=0, help="random seed (the same on every robot)")
@@ -239,8 +281,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "zenoh-bridge-ros2dds (a DDS graph through the bridge); off (default %(default)s)")
     r.add_argument("--ros-domain", type=int, default=node_defaults["ros"]["domain_id"],
                    help="ROS_DOMAIN_ID of the graph (rmw_zenoh keys; default %(default)s)")
-    r.add_argument("--ros-distro", default=node_defaults["ros"]["distro"],
-                   help="humble (no type hash) or jazzy and later (default %(default)s)")
+    r.add_argument("--ros-distro", default=node_defaults["ros"]["distro"], choices=ros.DISTROS,
+                   help="ROS 2 distribution of the graph that reads the estimates: humble (no type hash in the "
+                        "key) or a later one (default %(default)s)")
 
 
 def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict]:
@@ -271,8 +314,12 @@ def main(args: argparse.Namespace) -> int:
     out = args.out
     if out is None:
         out = Path("build") / "online" / Path(args.manifest).stem / args.method / args.robot
-    run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node, method=args.method,
-               preset=args.preset, seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress,
-               sets=rp.parse_sets(args.sets) or None)
+    done = run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node,
+                      method=args.method, preset=args.preset, seed=args.seed, overwrite=args.overwrite,
+                      progress=not args.no_progress, sets=rp.parse_sets(args.sets) or None)
     print(f"run folder: {out}")
+    if not done.peers_met:
+        print(f"cerpe online: warning: robot {args.robot} never met any peer of its team {args.team!r}; "
+              f"exit code {EXIT_NO_PEER}", file=sys.stderr)
+        return EXIT_NO_PEER
     return 0

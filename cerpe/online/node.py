@@ -67,6 +67,7 @@ class RobotNode:
         rconf = self.conf["ros"]
         if rconf["key_format"] not in ROS_KEYS:
             raise OnlineError(f"--ros-keys {rconf['key_format']!r}: expected one of {list(ROS_KEYS)}")
+        ros.check_distro(rconf["distro"])
         self.agent, self.link = agent, link
         try:
             self.engine = StepEngine(agent, link, robot_ids, peers, float(self.conf["step_timeout_s"]))
@@ -77,6 +78,7 @@ class RobotNode:
         self.peers = self.engine.peers
         self.step_s: list[float] = []   # wall time of each step (after pacing): compute + waits
         self.missing_at_start: list[str] = []
+        self.met: set[str] = set()  # peers whose link was up at the start or after some step
         self.n_published = 0
         self._t0: float | None = None
 
@@ -88,6 +90,7 @@ class RobotNode:
     def start(self) -> list[str]:
         """Announce this robot and wait (``connect_timeout_s``) for every peer; returns those not up."""
         self.missing_at_start = self.link.wait_peers(self.peers, float(self.conf["connect_timeout_s"]))
+        self.met |= set(self.peers) - set(self.missing_at_start)
         if self.missing_at_start:
             log.warning("robot %s: starting without %s; they may join later", self.agent.robot_id,
                         self.missing_at_start)
@@ -108,6 +111,7 @@ class RobotNode:
         t0 = time.perf_counter()
         res = drive([self.engine.step(image, context, stamp_s)])[0]
         self.step_s.append(time.perf_counter() - t0)
+        self.met |= self.link.present & set(self.peers)
         if self.estimates is not None:
             self.n_published += sum(p.T_cj_ci is not None for p in res.pairs)
             self.estimates.publish_pairs(res.pairs)
@@ -123,6 +127,7 @@ class RobotNode:
         """What ``online.json`` keeps: link counters, step times, estimates published."""
         return {"link": dict(self.link.stats), "step_s": list(self.step_s), "n_steps": len(self.step_s),
                 "peers": list(self.peers), "missing_at_start": list(self.missing_at_start),
+                "peers_met": sorted(self.met),
                 "estimates_published": self.n_published,
                 "ros_keys": {p: self.estimates.key(p) for p in self.peers} if self.estimates else {}}
 

@@ -29,9 +29,11 @@ DDS_TYPE = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
 HUMBLE_HASH = "TypeHashNotSupported"
 KEY_FORMATS = ("rmw_zenoh", "ros2dds")
 
+DISTROS = ("humble", "jazzy", "kilted", "rolling")  # the ROS 2 distributions rmw_zenoh is released for
+
 default_conf: dict[str, Any] = {
     "domain_id": 0,            # ROS_DOMAIN_ID of the graph that reads the estimates
-    "distro": "jazzy",         # "humble" (no type hashes) or a later one ("jazzy", "kilted", "rolling")
+    "distro": "jazzy",         # one of DISTROS: "humble" (no type hashes) or a later one
     "key_format": "rmw_zenoh",  # or "ros2dds" (through zenoh-bridge-ros2dds)
 }
 
@@ -50,9 +52,17 @@ def _typestore() -> Any:
     return get_typestore(Stores.ROS2_JAZZY)  # PoseWithCovarianceStamped is the same in every ROS 2 distro
 
 
+def check_distro(distro: Any) -> str:
+    """``distro`` when it is one of :data:`DISTROS`; a :class:`RosError` listing them otherwise (an
+    older distribution would silently get a later one's keys)."""
+    if str(distro).lower() not in DISTROS:
+        raise RosError(f"--ros-distro {distro!r}: not supported; supported: {', '.join(DISTROS)}")
+    return str(distro).lower()
+
+
 def type_hash(distro: str) -> str:
-    """rmw_zenoh's type-hash key chunk for :data:`ROS_TYPE` under ``distro``."""
-    return HUMBLE_HASH if str(distro).lower() == "humble" else _typestore().hash_rihs01(ROS_TYPE)
+    """rmw_zenoh's type-hash key chunk for :data:`ROS_TYPE` under ``distro`` (one of :data:`DISTROS`)."""
+    return HUMBLE_HASH if check_distro(distro) == "humble" else _typestore().hash_rihs01(ROS_TYPE)
 
 
 def ros_token(name: str, what: str) -> str:
@@ -159,6 +169,7 @@ class EstimatePublisher:
         domain = self.conf["domain_id"]
         if not (isinstance(domain, int) and 0 <= domain <= 232):
             raise RosError(f"ros domain_id {domain!r}: expected an integer in 0..232 (ROS_DOMAIN_ID)")
+        check_distro(self.conf["distro"])
         self.session, self.team, self.robot_id = session, ros_token(team, "--team"), ros_token(robot_id, "robot id")
         self.gid = os.urandom(16)
         self._pubs: dict[str, Any] = {}

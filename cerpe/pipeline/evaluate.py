@@ -24,8 +24,13 @@ the ground truth:
   cubicle off) from one that says nothing.
 
 Frames without ground truth cannot be evaluated and are left out (counted in
-``n_no_gt``). Run folders of one (setting, method) with different configuration
-fingerprints are never aggregated together.
+``n_no_gt``); a frame whose estimate in ``steps.csv`` is not finite (NaN or inf in a
+pose column) is a failure, counted in ``n_nonfinite`` and warned about. Run folders
+of one (setting, method) with different configuration fingerprints are never
+aggregated together, except the run folders of the robots of one ``cerpe online``
+team: given together they are evaluated as the team (one run, the table ``cerpe
+run`` gives for the same team); a robot's folder alone is evaluated on its own
+rows, co-visibility from the overlap ground truth it keeps of its peers' side.
 """
 from __future__ import annotations
 
@@ -41,6 +46,9 @@ import pandas as pd
 from ..atomicio import AtomicIOError, atomic_write_text, read_json
 from ..errors import CerpeError
 from ..geometry import e_pos, e_rot_quat, gt_scale_translation, se3_from_tq_xyzw
+from .gatequality import (COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP, best_f1, covis_gate_quality,  # noqa: F401
+                          covisibility_label, covisibility_pairs, gate_quality, precision_recall, reverse_overlap,
+                          roc_auc, roc_curve, symmetric_bound)
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +70,8 @@ def poses_from_columns(df: pd.DataFrame, prefix: str) -> np.ndarray:
     return out
 
 
+FRAME_KEY = ("encounter", "step", "ego", "other")
+PEER_OVERLAP_CSV = "peers_overlap.csv"  # an online robot's folder: its peers' overlap_gt rows about it (FRAME_KEY)
 SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct",
                 "right_pct")
 
@@ -85,6 +95,8 @@ class Run:
     meta: dict
     steps: pd.DataFrame
     robots: pd.DataFrame
+    peer_overlap: pd.DataFrame | None = None  # online robot: ``overlap_gt`` of its peers' rows about it
+    paths: tuple[Path, ...] = ()  # an online team: every robot's folder
 
     @property
     def method(self) -> str:
@@ -143,7 +155,7 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
             raise EvalError(f"{path / 'run.json'}: missing field {k!r}")
     if not isinstance(meta["config"], dict):
         raise EvalError(f"{path / 'run.json'}: field 'config' is not a mapping")
-    steps, robots = [], []
+    steps, robots, peers = [], [], []
     for enc in meta["config"].get("encounters", []):
         done = path / enc / "DONE.json"
         if not done.exists():
@@ -163,210 +175,28 @@ def load_run(path: Path | str, allow_partial: bool = False) -> Run:
             raise EvalError(f"{path / enc / 'steps.csv'}: {len(s)} rows, DONE.json says {d['n_pair_rows']}")
         steps.append(s)
         robots.append(_read_csv(path / enc / "robots.csv", ("encounter", "step", "robot")))
+        if (path / enc / PEER_OVERLAP_CSV).is_file():
+            peers.append(_read_csv(path / enc / PEER_OVERLAP_CSV, (*FRAME_KEY, "overlap_gt")))
     if not steps:
         raise EvalError(f"{path}: no finished encounter")
     sdf = pd.concat(steps, ignore_index=True)
     sdf["encounter"] = sdf["encounter"].astype(str)
     rdf = pd.concat(robots, ignore_index=True)
     rdf["encounter"] = rdf["encounter"].astype(str)
-    return Run(path, meta, sdf, rdf)
+    pdf = pd.concat(peers, ignore_index=True).astype({"encounter": str}) if peers else None
+    return Run(path, meta, sdf, rdf, pdf, (path,))
 
 
-GATE_OVERLAP = 0.2  # issue 4 / calibration: a pair "overlaps" when the GT overlap ratio is at least this
-# The co-visibility label of an unordered pair (issue 18): positive when the overlap ratio is at least
-# COVIS_POSITIVE both ways, negative when it is below COVIS_NEGATIVE both ways, left out in between
-# (as place-recognition benchmarks leave out the ambiguous band).
-COVIS_POSITIVE = GATE_OVERLAP
-COVIS_NEGATIVE = 0.05
-
-
-def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
-    """Area under the ROC curve of ``scores`` for boolean ``labels`` (Mann-Whitney U, ties averaged).
-
-    NaN when either class is empty.
-    """
-    from scipy.stats import rankdata
-
-    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
-    pos, neg = int(labels.sum()), int((~labels).sum())
-    if pos == 0 or neg == 0:
-        return float("nan")
-    r = rankdata(scores)
-    return float((r[labels].sum() - pos * (pos + 1) / 2) / (pos * neg))
-
-
-def roc_curve(scores: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(false positive rate, true positive rate, threshold)`` of ``score >= threshold``, thresholds descending."""
-    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
-    order = np.argsort(-scores, kind="stable")
-    s, y = scores[order], labels[order]
-    last = np.r_[np.diff(s) != 0, True]  # one point per distinct score
-    tp, fp = np.cumsum(y)[last], np.cumsum(~y)[last]
-    P, N = max(int(y.sum()), 1), max(int((~y).sum()), 1)
-    return np.r_[0.0, fp / N], np.r_[0.0, tp / P], np.r_[np.inf, s[last]]
-
-
-def best_f1(scores: np.ndarray, labels: np.ndarray) -> dict[str, float]:
-    """Threshold maximising F1 of ``score >= tau`` (midpoint between neighbouring scores), with P and R at it."""
-    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
-    order = np.argsort(-scores)
-    s, y = scores[order], labels[order]
-    tp, fp = np.cumsum(y), np.cumsum(~y)
-    prec, rec = tp / (tp + fp), tp / max(y.sum(), 1)
-    f1 = np.where(prec + rec > 0, 2 * prec * rec / np.maximum(prec + rec, 1e-12), 0)
-    k = int(np.argmax(f1))
-    tau = float(0.5 * (s[k] + s[k + 1])) if k + 1 < len(s) else float(s[k])
-    return {"tau": tau, "f1": float(f1[k]), **precision_recall(scores, labels, tau)}
-
-
-def precision_recall(scores: np.ndarray, labels: np.ndarray, tau: float) -> dict[str, float]:
-    """Precision and recall of ``score >= tau`` (NaN where undefined)."""
-    pred, labels = np.asarray(scores, float) >= tau, np.asarray(labels, bool)
-    tp, fp, fn = int((pred & labels).sum()), int((pred & ~labels).sum()), int((~pred & labels).sum())
-    return {"precision": tp / (tp + fp) if tp + fp else float("nan"),
-            "recall": tp / (tp + fn) if tp + fn else float("nan")}
-
-
-def symmetric_bound(scores: np.ndarray, labels: np.ndarray, labels_rev: np.ndarray) -> dict[str, float]:
-    """What a symmetric score (the gate's cosine) can reach against direction-dependent labels.
-
-    The overlap ratio of an ordered pair ``(i, j)`` is the fraction of *i's* pixels
-    that j sees, so ``(i, j)`` and ``(j, i)`` can carry different labels, while
-    ``cos(d_i, d_j)`` scores both the same: one of the two is always ranked wrong.
-
-    Args:
-        scores: ``[n]`` score of each ordered pair.
-        labels: ``[n]`` bool label of each ordered pair.
-        labels_rev: ``[n]`` bool label of the same pair in the other direction.
-
-    Returns:
-        ``roc_auc_ceiling``: the ROC AUC of the best possible symmetric score (pairs that
-        overlap both ways first, mixed pairs next, the rest last; no symmetric score can
-        do better); ``mixed_share``: fraction of ordered pairs whose reverse has the
-        other label; ``roc_auc_consistent``: AUC of ``scores`` on the pairs whose two
-        directions agree (NaN where a class is empty).
-    """
-    scores = np.asarray(scores, float)
-    labels, labels_rev = np.asarray(labels, bool), np.asarray(labels_rev, bool)
-    both = labels.astype(float) + labels_rev.astype(float)  # 2: both ways, 1: one way, 0: neither
-    consistent = labels == labels_rev
-    return {"roc_auc_ceiling": roc_auc(both, labels),
-            "mixed_share": float(np.mean(~consistent)) if len(labels) else float("nan"),
-            "roc_auc_consistent": roc_auc(scores[consistent], labels[consistent])}
-
-
-def _reverse_overlap(rows: pd.DataFrame) -> np.ndarray:
-    """``overlap_gt`` of each row's reverse pair (same encounter and step, ego and other swapped); NaN if absent."""
-    key = ["encounter", "step", "ego", "other"]
-    if not all(c in rows.columns for c in key):
-        return np.full(len(rows), np.nan)
-    rev = rows[key + ["overlap_gt"]].rename(columns={"ego": "other", "other": "ego", "overlap_gt": "_rev"})
-    rev = rev.drop_duplicates(key)
-    return rows[key].merge(rev, on=key, how="left")["_rev"].to_numpy(float)
-
-
-def covisibility_label(o_ij: np.ndarray, o_ji: np.ndarray, positive: float = COVIS_POSITIVE,
-                       negative: float = COVIS_NEGATIVE) -> np.ndarray:
-    """Label of the unordered pair with overlap ratios ``o_ij`` (i's pixels j sees) and ``o_ji``.
-
-    Returns ``[n]`` float: 1 where both are ``>= positive``, 0 where both are
-    ``< negative``, NaN otherwise (the ambiguous band, or an unknown overlap).
-    """
-    a, b = np.asarray(o_ij, float), np.asarray(o_ji, float)
-    out = np.full(np.broadcast(a, b).shape, np.nan)
-    out[(a >= positive) & (b >= positive)] = 1.0
-    out[(a < negative) & (b < negative)] = 0.0
-    return out
-
-
-def covisibility_pairs(steps: pd.DataFrame) -> pd.DataFrame:
-    """One row per unordered pair and step of ``steps.csv`` rows, with its co-visibility label.
-
-    Columns ``encounter, step, a, b`` (``a < b``), ``gate_score`` (mean of the two
-    directions' finite scores: the cosine is the same both ways, one may be missing),
-    ``o_ab``, ``o_ba`` (the two directions' ``overlap_gt``, NaN where a row is missing)
-    and ``label`` (:func:`covisibility_label`). Empty without the pair columns.
-    """
-    key = ["encounter", "step", "ego", "other"]
-    cols = ["encounter", "step", "a", "b", "gate_score", "o_ab", "o_ba", "label"]
-    if not all(c in steps.columns for c in key + ["gate_score", "overlap_gt"]) or steps.empty:
-        return pd.DataFrame(columns=cols)
-    df = steps[key].copy()
-    ego, other = df["ego"].astype(str), df["other"].astype(str)
-    df["a"], df["b"] = np.where(ego < other, ego, other), np.where(ego < other, other, ego)
-    ov = pd.to_numeric(steps["overlap_gt"], errors="coerce")
-    df["gate_score"] = pd.to_numeric(steps["gate_score"], errors="coerce")
-    df["o_ab"] = ov.where(ego == df["a"])
-    df["o_ba"] = ov.where(ego == df["b"])
-    g = df.groupby(["encounter", "step", "a", "b"], sort=True).agg(
-        gate_score=("gate_score", "mean"), o_ab=("o_ab", "max"), o_ba=("o_ba", "max")).reset_index()
-    g["label"] = covisibility_label(g["o_ab"].to_numpy(float), g["o_ba"].to_numpy(float))
-    return g[cols]
-
-
-def covis_gate_quality(pairs: pd.DataFrame, tau: float | None) -> dict[str, float]:
-    """The gate against the co-visibility label over :func:`covisibility_pairs` rows.
-
-    Returns ``covis_n_pairs`` (labelled unordered pairs with a score), ``covis_n_positive``,
-    ``covis_n_left_out`` (ambiguous or unknown overlap), ``covis_roc_auc``, and
-    ``covis_precision``, ``covis_recall``, ``covis_open_rate`` of ``score >= tau``.
-    """
-    score = pairs["gate_score"].to_numpy(float)
-    label = pairs["label"].to_numpy(float)
-    scored = np.isfinite(score)
-    ok = scored & np.isfinite(label)
-    s, y = score[ok], label[ok] > 0.5
-    out = {"covis_n_pairs": int(ok.sum()), "covis_n_positive": int(y.sum()),
-           "covis_n_left_out": int((scored & ~np.isfinite(label)).sum()), "covis_roc_auc": roc_auc(s, y)}
-    pr = (precision_recall(s, y, tau) if tau is not None and len(s) else
-          {"precision": float("nan"), "recall": float("nan")})
-    out.update({"covis_precision": pr["precision"], "covis_recall": pr["recall"],
-                "covis_open_rate": float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")})
-    return out
-
-
-def gate_quality(steps: pd.DataFrame, tau: float | None, overlap: float = GATE_OVERLAP) -> dict[str, float]:
-    """How well the descriptor gate predicts overlap, over all ordered pairs and steps of ``steps``.
-
-    Uses the ``gate_score`` (cosine of the wire descriptors) and ``overlap_gt``
-    columns of CERPE's ``steps.csv``; rows without either are left out.
-
-    Returns:
-        ``n_pairs``, ``n_overlapping`` (``overlap_gt >= overlap``), ``roc_auc``, ``tau``
-        (the run's threshold), ``precision`` and ``recall`` at it, ``open_rate``, and
-        :func:`symmetric_bound`'s ``roc_auc_ceiling``, ``mixed_share`` and
-        ``roc_auc_consistent`` over the pairs whose reverse is present (NaN when
-        ``encounter, step, ego, other`` are missing). These use the old, ordered label
-        (``overlap_gt >= overlap`` of each direction); the ``covis_*`` fields of
-        :func:`covis_gate_quality` use the symmetric co-visibility label of the
-        unordered pair (both ways >= 0.2 positive, both < 0.05 negative, the rest left out).
-    """
-    ok = np.isfinite(pd.to_numeric(steps.get("gate_score"), errors="coerce")) & np.isfinite(
-        pd.to_numeric(steps.get("overlap_gt"), errors="coerce"))
-    s = steps.loc[ok, "gate_score"].to_numpy(float)
-    y = steps.loc[ok, "overlap_gt"].to_numpy(float) >= overlap
-    out = {"n_pairs": int(len(s)), "n_overlapping": int(y.sum()), "roc_auc": roc_auc(s, y),
-           "tau": float("nan") if tau is None else float(tau)}
-    rev = _reverse_overlap(steps.loc[ok])
-    has_rev = np.isfinite(rev)
-    out.update(symmetric_bound(s[has_rev], y[has_rev], rev[has_rev] >= overlap) if has_rev.any() else
-               {"roc_auc_ceiling": float("nan"), "mixed_share": float("nan"), "roc_auc_consistent": float("nan")})
-    out.update(precision_recall(s, y, out["tau"]) if tau is not None and len(s) else
-               {"precision": float("nan"), "recall": float("nan")})
-    out["open_rate"] = float(np.mean(s >= tau)) if tau is not None and len(s) else float("nan")
-    out.update(covis_gate_quality(covisibility_pairs(steps), tau))
-    return out
-
-
-def first_covisible_step(steps: pd.DataFrame, overlap: float = COVIS_POSITIVE) -> np.ndarray:
+def first_covisible_step(steps: pd.DataFrame, overlap: float = COVIS_POSITIVE,
+                         peer_overlap: pd.DataFrame | None = None) -> np.ndarray:
     """``[n]`` per row of ``steps.csv``: the first step at which the row's pair (encounter,
     unordered robot pair) overlaps at least ``overlap`` both ways; ``inf`` where it never
-    does or the overlap ground truth is missing."""
+    does or the overlap ground truth is missing (``peer_overlap``: see :func:`~cerpe.pipeline.gatequality.reverse_overlap`)."""
     n = len(steps)
     if n == 0 or "overlap_gt" not in steps.columns:
         return np.full(n, np.inf)
     ov = pd.to_numeric(steps["overlap_gt"], errors="coerce").to_numpy(float)
-    covis = (ov >= overlap) & (_reverse_overlap(steps) >= overlap)
+    covis = (ov >= overlap) & (reverse_overlap(steps, peer_overlap) >= overlap)
     ego, other = steps["ego"].astype(str), steps["other"].astype(str)
     pair = pd.DataFrame({"encounter": steps["encounter"].astype(str).to_numpy(),
                          "a": np.where(ego < other, ego, other), "b": np.where(ego < other, other, ego),
@@ -374,21 +204,24 @@ def first_covisible_step(steps: pd.DataFrame, overlap: float = COVIS_POSITIVE) -
     return pair.groupby(["encounter", "a", "b"])["t"].transform("min").to_numpy(float)
 
 
-def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.DataFrame:
+def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1,
+                 peer_overlap: pd.DataFrame | None = None) -> pd.DataFrame:
     """Per-(pair, step) errors of the evaluated frames.
 
     Args:
         steps: rows of ``steps.csv`` (est_* and gt_* pose columns, NaN when absent).
         metric_scale: whether the method's translation is metric (else ``e_pos_m`` is NaN).
         every: evaluate every ``every``-th step (``step % every == 0``).
+        peer_overlap: an online robot's peers' ``overlap_gt`` rows (see :func:`first_covisible_step`).
 
     Returns:
         The evaluated rows (with ground truth) plus columns ``success`` (bool),
-        ``e_pos_m``, ``e_pos_gt_scale_m``, ``e_rot_rad`` (NaN where no estimate) and
+        ``e_pos_m``, ``e_pos_gt_scale_m``, ``e_rot_rad`` (NaN where no estimate),
+        ``nonfinite`` (bool: an estimate with NaN or inf in it, a failure) and
         ``after_covis`` (bool: at or after the pair's first co-visible step,
         :func:`first_covisible_step`, found over all steps, evaluated or not).
     """
-    first = first_covisible_step(steps)
+    first = first_covisible_step(steps, peer_overlap=peer_overlap)
     steps = steps.assign(after_covis=steps["step"].astype(float).to_numpy() >= first)
     df = steps[steps["step"].astype(int) % int(every) == 0].copy()
     gt = df[[f"gt_{c}" for c in POSE]].to_numpy(float)
@@ -396,8 +229,11 @@ def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.
     df = df[has_gt].copy()
     gt = gt[has_gt]
     est = df[[f"est_{c}" for c in POSE]].to_numpy(float)
-    ok = np.all(np.isfinite(est), axis=1) & (df["source"].astype(str) != "none").to_numpy()
+    claimed = (df["source"].astype(str) != "none").to_numpy()
+    finite = np.all(np.isfinite(est), axis=1)
+    ok = finite & claimed
     df["success"] = ok
+    df["nonfinite"] = ~finite & (claimed | ~np.all(np.isnan(est), axis=1))
     n = len(df)
     e_p = np.full(n, np.nan)
     e_pg = np.full(n, np.nan)
@@ -415,12 +251,20 @@ def frame_errors(steps: pd.DataFrame, metric_scale: bool, every: int = 1) -> pd.
     return df
 
 
-def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
+def no_gt_frames(steps: pd.DataFrame, every: int = 1) -> pd.DataFrame:
+    """The rows of ``steps.csv`` at evaluated steps without (finite) ground truth: left out of every metric."""
+    df = steps[steps["step"].astype(int) % int(every) == 0]
+    return df[~np.all(np.isfinite(df[[f"gt_{c}" for c in POSE]].to_numpy(float)), axis=1)]
+
+
+def summarise(frames: pd.DataFrame, by: Sequence[str], no_gt: pd.DataFrame | None = None) -> pd.DataFrame:
     """Means of the errors over successful frames and the success rate, grouped by ``by``.
 
     ``success_after_covis_pct`` is the success rate over the frames with ``after_covis``
     (NaN where there are none), ``n_frames_after_covis`` their number; ``right_pct`` the rate
-    of frames with an estimate within :data:`RIGHT_ROT_RAD` of the true rotation.
+    of frames with an estimate within :data:`RIGHT_ROT_RAD` of the true rotation; ``n_nonfinite``
+    the frames whose estimate is not finite (failures). With ``no_gt`` (:func:`no_gt_frames` rows
+    with the ``by`` columns), ``n_no_gt`` counts the frames left out for want of ground truth.
     """
     after = frames["after_covis"].astype(bool) if "after_covis" in frames else pd.Series(False, frames.index)
     right = frames["success"].astype(bool) & (frames["e_rot_rad"].to_numpy(float) <= RIGHT_ROT_RAD)
@@ -439,11 +283,17 @@ def summarise(frames: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
         "n_frames_after_covis": g["_after"].sum(),
         "right_pct": 100.0 * g["_right"].mean(),
     })
-    return out.reset_index()
+    if "nonfinite" in frames:
+        out["n_nonfinite"] = g["nonfinite"].sum().astype(int)
+    out = out.reset_index()
+    if no_gt is not None:
+        n = no_gt.groupby(list(by), sort=True, dropna=False).size().rename("n_no_gt").reset_index()
+        out = out.merge(n, on=list(by), how="left")
+        out["n_no_gt"] = out["n_no_gt"].fillna(0).astype(int)
+    return out
 
 
 REFERENCE_METHOD = "cerpe-wo-em"  # reports only its accepted direct estimates
-FRAME_KEY = ("encounter", "step", "ego", "other")
 
 
 def e_pos_on_reference_frames(frames: pd.DataFrame, reference: str = REFERENCE_METHOD,
@@ -553,38 +403,61 @@ def check_consistent(runs: Iterable[Run]) -> None:
 def evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Load run folders, check they may be aggregated, compute frame errors.
 
+    The folders of one ``cerpe online`` team are evaluated as one run (:mod:`cerpe.pipeline.teamruns`).
+
     Returns:
         ``(frames, runs_table)``: all evaluated frames of all runs with ``setting``
-        and ``method`` columns; one row per run folder (path, fingerprint, label).
+        and ``method`` columns; one row per run (path(s), fingerprint, label).
     """
+    frames, _, table = _evaluate_runs(paths, allow_partial)
+    return frames, table
+
+
+def _evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False
+                   ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """:func:`evaluate_runs`, and the rows left out for want of ground truth (:func:`no_gt_frames`)."""
+    from .teamruns import merge_teams
+
     runs = [load_run(p, allow_partial=allow_partial) for p in paths]
     # the same folder twice would double-count frames
     uniq = {r.path.resolve(): r for r in runs}
-    runs = list(uniq.values())
+    runs = merge_teams(list(uniq.values()))
     check_consistent(runs)
-    frames = []
+    frames, no_gt = [], []
     for r in runs:
-        f = frame_errors(r.steps, r.metric_scale, r.every)
-        f.insert(0, "method", r.method)
-        f.insert(0, "setting", r.setting)
+        f, n = frame_errors(r.steps, r.metric_scale, r.every, r.peer_overlap), no_gt_frames(r.steps, r.every).copy()
+        for df in (f, n):
+            df.insert(0, "method", r.method)
+            df.insert(0, "setting", r.setting)
         f["metric_scale"] = r.metric_scale
         frames.append(f)
-    table = pd.DataFrame([{"setting": r.setting, "method": r.method, "path": str(r.path),
+        no_gt.append(n)
+    table = pd.DataFrame([{"setting": r.setting, "method": r.method, "path": ", ".join(map(str, r.paths or (r.path,))),
                            "fingerprint": r.fingerprint, "label": r.meta.get("label", r.method),
                            "metric_scale": r.metric_scale} for r in runs])
-    return pd.concat(frames, ignore_index=True), table
+    return pd.concat(frames, ignore_index=True), pd.concat(no_gt, ignore_index=True), table
 
 
 def evaluate(paths: Sequence[Path | str], by: str = "setting") -> pd.DataFrame:
-    """Summary table per setting (``by='setting'``) or per encounter (``by='encounter'``)."""
-    frames, _ = evaluate_runs(paths)
+    """Summary table per setting (``by='setting'``) or per encounter (``by='encounter'``), with ``n_no_gt``;
+    logs a warning for frames with a non-finite estimate and for frames left out without ground truth."""
+    frames, no_gt, _ = _evaluate_runs(paths)
     keys = ["setting", "method"] + (["encounter"] if by == "encounter" else [])
-    return summarise(frames, keys)
+    table = summarise(frames, keys, no_gt)
+    for row in table[(table["n_nonfinite"] > 0) | (table["n_no_gt"] > 0)].itertuples():
+        where = "/".join(str(getattr(row, k)) for k in keys)
+        if row.n_nonfinite:
+            log.warning("%s: %d frame(s) with a non-finite estimate (NaN or inf) in steps.csv, counted as "
+                        "failures (n_nonfinite)", where, row.n_nonfinite)
+        if row.n_no_gt:
+            log.warning("%s: %d frame(s) without ground truth, left out of every metric (n_no_gt)", where, row.n_no_gt)
+    return table
 
 
 # --------------------------------------------------------------------------- CLI
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rundirs", nargs="+", type=Path, help="run folders written by `cerpe run`")
+    p.add_argument("rundirs", nargs="+", type=Path,
+                   help="run folders written by `cerpe run` (or by `cerpe online`: the robots of one team together)")
     p.add_argument("--by", choices=("setting", "encounter"), default="setting",
                    help="aggregate per setting (Table I) or per encounter")
     p.add_argument("--csv", type=Path, default=None, help="also write the summary to this CSV file")
@@ -599,6 +472,8 @@ def main(args: argparse.Namespace) -> int:
           f"success over the frames at or after the pair's first step with GT overlap >= {COVIS_POSITIVE:g} "
           f"both ways (NaN without overlap ground truth or such a step). right_pct: frames with an estimate "
           f"within {RIGHT_ROT_RAD:g} rad of the true rotation (not the paper's metric).")
+    print("n_no_gt: evaluated frames without ground truth, left out. n_nonfinite: frames whose estimate in "
+          "steps.csv is not finite, counted as failures.")
     if args.csv:
         atomic_write_text(args.csv, table.to_csv(index=False))
         print(f"written: {args.csv}")

@@ -353,7 +353,11 @@ def suite_lock(out: Path):
     import fcntl
 
     lock_path = out.with_name(f".{out.name}.lock")
-    with open(lock_path, "a+") as fh:
+    try:
+        fh = open(lock_path, "a+")
+    except OSError as exc:  # a folder this user may not write into (read-only, /proc ...)
+        raise SynthError(f"synth output folder {out}: cannot write into {out.parent}: {exc.strerror or exc}") from None
+    with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -416,7 +420,7 @@ def _generate_locked(world: str, c: dict, out: Path, force: bool, progress: bool
             same = False
         if not same:
             shutil.rmtree(tmp)
-    tmp.mkdir(parents=True, exist_ok=True)
+    ensure_dir(tmp, "synth work folder")
     _atomic_write(tmp / "key.json", json.dumps(key))
     jobs = [(world, c, i, str(tmp)) for i in range(c["n_encounters"])]
     total = sum((max(c["n_robots"], 3) if world == "cad-intersection" and i >= c["n_encounters"] - c["n_three"]
