@@ -13,7 +13,7 @@ their own override on top (``cerpe-wo-em``: no propagation; ``cerpe-graph``: the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from . import knobs
 from .algorithm.config import AlgorithmConfig
@@ -21,7 +21,8 @@ from .backbones.config import BackboneConfig
 from .errors import CerpeError
 from .knobs import KnobError, group
 
-__all__ = ["CerpeConfig", "PRESETS", "PRESET_NOTES", "METHOD_OVERRIDES", "ConfigError", "build", "preset_overrides"]
+__all__ = ["CerpeConfig", "PRESETS", "PRESET_NOTES", "METHOD_OVERRIDES", "ConfigError", "build", "parse_sets",
+           "preset_overrides"]
 
 
 class ConfigError(CerpeError, ValueError):
@@ -92,3 +93,24 @@ def build(preset: str = "paper", method: str = "cerpe", sets: Mapping[str, Any] 
     except KnobError as exc:
         raise ConfigError(str(exc)) from None
     return tree
+
+
+def parse_sets(items: Sequence[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` arguments -> ``{"dotted.key": value}`` (values parsed as YAML; the last of a key wins).
+
+    The keys are checked against the tree by :func:`build`.
+    """
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = str(item).partition("=")
+        parts = [k.strip() for k in key.split(".")]
+        if not sep or not all(parts):
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with a dotted key, e.g. policy.mode=pays")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})") from None
+        out[".".join(parts)] = value
+    return out

@@ -57,3 +57,16 @@ def build_plugins(conf: BackboneConfig | None = None, depth: str | None = None,
     descriptor = XFeatSaladDescriptor(off.descriptor, encoder=encoder)
     backbone = OfflineGeometryBackbone(off, encoder=encoder)
     return Plugins(descriptor, backbone, build_depth_source(depth or OFFLINE_DEPTH, depth_options), models="offline")
+
+
+def descriptor_thresholds(conf: BackboneConfig | None = None) -> dict[str, float]:
+    """The gate and keyframe thresholds (``tau``, ``tau_m``, ``tau_k``) of ``conf.models``' descriptor,
+    without building it: the offline descriptor's calibration file, the paper's values for SALAD."""
+    conf = conf or BackboneConfig()
+    if conf.models == "paper":
+        from .paper_profile import PAPER_PARAMETERS
+
+        return {k: float(PAPER_PARAMETERS[k]) for k in ("tau", "tau_m", "tau_k")}
+    from .descriptor import default_thresholds
+
+    return dict(default_thresholds())

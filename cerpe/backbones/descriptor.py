@@ -132,7 +132,7 @@ def load_descriptor_mean(path: str | Path | None, dim: int) -> np.ndarray:
     return mu
 
 
-def _default_thresholds() -> dict[str, float]:
+def default_thresholds() -> dict[str, float]:
     """Calibrated thresholds from the shipped JSON, or conservative placeholders if absent."""
     path = data_path(THRESHOLDS_FILE)
     if path.is_file():
@@ -185,7 +185,7 @@ class XFeatSaladDescriptor:
         mean = self.conf.mean
         self.descriptor_mean: np.ndarray | None = (
             None if mean == "none" else load_descriptor_mean(None if mean == "shipped" else mean, self.dim))
-        th = thresholds or _default_thresholds()
+        th = thresholds or default_thresholds()
         self.thresholds: dict[str, float] = {k: float(th[k]) for k in ("tau", "tau_m", "tau_k")}
         self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(CACHE_SIZE)
         # split of the last describe() call, read by cerpe.algorithm for its stage timings

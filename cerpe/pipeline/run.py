@@ -523,24 +523,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def parse_sets(items: Sequence[str]) -> dict[str, Any]:
-    """``--set KEY=VALUE`` arguments -> ``{"dotted.key": value}`` (values parsed as YAML; the last of a key wins).
+    """``--set KEY=VALUE`` arguments -> dotted overrides (:func:`cerpe.method_config.parse_sets`)."""
+    from ..method_config import ConfigError
+    from ..method_config import parse_sets as parse
 
-    The keys are checked against the tree when the configuration is built (:func:`cerpe.method_config.build`).
-    """
-    import yaml
-
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = str(item).partition("=")
-        parts = [k.strip() for k in key.split(".")]
-        if not sep or not all(parts):
-            raise RunError(f"--set {item!r}: expected KEY=VALUE with a dotted key, e.g. policy.mode=pays")
-        try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError as exc:
-            raise RunError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})") from None
-        out[".".join(parts)] = value
-    return out
+    try:
+        return parse(items)
+    except ConfigError as exc:
+        raise RunError(str(exc)) from None
 
 
 def main(args: argparse.Namespace) -> int:
