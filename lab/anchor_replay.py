@@ -2,7 +2,7 @@
 
 Reads CERPE run folders where every direct estimate was recorded (the ``dir_*`` columns
 of ``steps.csv``, whatever verification said; or, in runs without them, ``est_*`` of
-runs made with ``verify_anchors=False``) and prints:
+runs made with ``anchors.verify=false``) and prints:
 
 1. ``pairs``: for every direct estimate and every earlier one of the same ordered
    pair at most ``--max-gap`` steps before, the disagreement of the new one with the
@@ -15,31 +15,37 @@ runs made with ``verify_anchors=False``) and prints:
    their mean / median e_rot, success, rejections, and the longest a > 0.3 rad
    wrong estimate is carried by propagation.
 3. ``report``: the development report's row (``cerpe dev``'s figures) of each run
-   replayed under its own ``run.json`` configuration with the ``--set`` changes
+   replayed under its own ``run.json`` configuration tree with the ``--set`` changes
    (exact for the switch back end with the ``gate`` request policy, except that
    second registrations of one step are not recorded and so verify nothing).
 
-Usage (tolerances as ``CerpeConfig`` names)::
+``--set`` takes dotted keys of the configuration tree (:mod:`cerpe.method_config`; the replay
+reads ``anchors.*`` and ``backend.propagate``); ``pairs`` and ``replay`` start from the defaults,
+``report`` from each run's own tree. Usage::
 
-    python -m lab.anchor_replay --record MANIFEST RUN   # cerpe run with verify_anchors=False
-    python -m lab.anchor_replay RUN [RUN...] [--max-gap 10] [--set anchor_rot_tol_rad=0.1 ...]
-    python -m lab.anchor_replay build/dev/runs/*/cerpe --what report --set report_unverified=false
+    python -m lab.anchor_replay --record MANIFEST RUN   # cerpe run with anchors.verify=false
+    python -m lab.anchor_replay RUN [RUN...] [--max-gap 10] [--set anchors.rot_tol_rad=0.1 ...]
+    python -m lab.anchor_replay build/dev/runs/*/cerpe --what report --set anchors.report_unverified=false
 
 Development data only (synthetic seeds other than 0, ``../shared/data``).
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from cerpe.algorithm import CerpeConfig
+from cerpe import knobs
+from cerpe.algorithm import AlgorithmConfig
 from cerpe.algorithm.anchors import NOT_REPORTED, Anchor, PairAnchors, disagreement
 from cerpe.geometry import e_rot, se3_from_tq_xyzw
+from cerpe.method_config import CerpeConfig
+from cerpe.pipeline.run import RunError, parse_sets
+
+from .runconf import RunConfigError, run_tree
 
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 RIGHT, WRONG = 0.1, 0.3
@@ -58,7 +64,7 @@ def load(run: Path):
     """Yield ``(encounter, ego, other, rows, metric)`` with per-step direct T, gt T, both odometries and odometers.
 
     The direct estimate is ``dir_*`` (recorded whatever verification said of it) where the run has
-    those columns, else ``est_*`` of the rows whose source is ``direct`` (runs with ``verify_anchors=False``).
+    those columns, else ``est_*`` of the rows whose source is ``direct`` (runs with ``anchors.verify=false``).
     """
     meta = json.loads((run / "run.json").read_text())
     metric = bool(meta.get("metric_scale", True))
@@ -107,39 +113,35 @@ def _cols(prefix: str, T) -> list[float]:
     return [*t, *q]
 
 
-def replay_pair(rows, metric: bool, cfg: CerpeConfig):
+def replay_pair(rows, metric: bool, cfg: AlgorithmConfig):
     """Yield ``(row, verdict, reported T or None, its anchor step or -1, source, candidates dropped)`` per
-    step of one ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``."""
-    pa = PairAnchors(cfg.anchor_config())
+    step of one ordered pair, as the switch back end (``RobotAgent._relative``) would decide under ``cfg``
+    (its ``anchors`` group and ``backend.propagate``)."""
+    conf = cfg.anchors
+    pa = PairAnchors(conf)
     for r in rows:
         t, rep, verdict, src_step, source, dropped = r["step"], None, "", -1, "none", 0
-        if cfg.verify_anchors:
+        if conf.verify:
             pa.track(t, r["X_i"], r["X_j"])
         if r["direct"]:
             est = anchor(r, metric)
-            if cfg.verify_anchors:
+            if conf.verify:
                 check = pa.offer(est)
                 verdict, dropped = check.verdict, len(check.dropped)
             else:
                 pa.anchor, verdict = est, "unchecked"
-            if verdict not in NOT_REPORTED and (verdict != "unverified" or cfg.report_unverified):
+            if verdict not in NOT_REPORTED and (verdict != "unverified" or conf.report_unverified):
                 rep, src_step, source = r["T"], t, "direct"
-        if rep is None and cfg.propagate:
+        if rep is None and cfg.backend.propagate:
             a, _ = pa.carried(t)
             if a is not None:
                 rep, src_step, source = a.propagated(r["X_i"], r["X_j"]), a.step, "propagated"
         yield r, verdict, rep, src_step, source, dropped
 
 
-def run_config(run_path: Path, **overrides) -> CerpeConfig:
-    """The run's own ``CerpeConfig`` (``run.json``), with ``overrides``."""
-    conf = json.loads((run_path / "run.json").read_text())["config"]["method_config"]["cerpe"]
-    return dataclasses.replace(CerpeConfig(**conf), **overrides)
-
-
-def replay_report(run_path: Path, cfg: CerpeConfig, name: str | None = None) -> tuple[dict, pd.DataFrame]:
+def replay_report(run_path: Path, cfg: AlgorithmConfig, name: str | None = None) -> tuple[dict, pd.DataFrame]:
     """The dev report's row (:func:`cerpe.pipeline.devreport.method_row`) of ``run_path`` with its
-    anchors replayed under ``cfg`` (e.g. :func:`run_config`; switch back end, ``request_policy`` gate:
+    anchors replayed under ``cfg`` (e.g. :func:`lab.runconf.run_tree`; switch back end, ``policy.mode`` gate:
     the gate and the passes do not depend on the anchors, so only the verdicts and what is reported
     change; second registrations of one step are not recorded, so they verify nothing here). Also
     the replayed rows."""
@@ -185,7 +187,7 @@ def pair_table(runs, max_gap: int) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
+def replay(runs, cfg: AlgorithmConfig) -> pd.DataFrame:
     out = []
     for run in runs:
         for enc, ego, other, rows, metric in load(run):
@@ -204,16 +206,10 @@ def replay(runs, cfg: CerpeConfig) -> pd.DataFrame:
 
 
 def record(manifest: Path, out: Path) -> None:
-    """``cerpe run MANIFEST --method cerpe`` with every direct estimate kept (``verify_anchors=False``)."""
-    from cerpe import algorithm
+    """``cerpe run MANIFEST --method cerpe --set anchors.verify=false``: every direct estimate kept."""
     from cerpe.pipeline.run import run_method
 
-    @dataclasses.dataclass(frozen=True)
-    class Unchecked(CerpeConfig):
-        verify_anchors: bool = False
-
-    algorithm.CerpeConfig = Unchecked  # what cerpe.pipeline.run builds its config from
-    print("run folder:", run_method(manifest, "cerpe", out, progress=False))
+    print("run folder:", run_method(manifest, "cerpe", out, sets={"anchors.verify": False}, progress=False))
 
 
 def main() -> None:
@@ -221,20 +217,23 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--record", action="store_true", help="RUNS = MANIFEST OUT: write a run to replay")
     ap.add_argument("--max-gap", type=int, default=10)
-    ap.add_argument("--set", nargs="*", default=[], help="CerpeConfig field=value")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="dotted keys of the configuration tree, e.g. anchors.rot_tol_rad=0.1")
     ap.add_argument("--what", choices=["pairs", "replay", "both", "report"], default="both")
     a = ap.parse_args()
     if a.record:
+        if len(a.runs) != 2:
+            raise SystemExit("anchor_replay --record: expected MANIFEST OUT")
         return record(*a.runs)
-    def value(k: str, v: str):
-        old = getattr(CerpeConfig(), k)
-        return v.lower() in ("1", "true", "yes") if isinstance(old, bool) else type(old)(v)
-
-    changes = {k: value(k, v) for k, v in (s.split("=") for s in a.set)}
-    cfg = dataclasses.replace(CerpeConfig(), **changes)
+    try:
+        changes = parse_sets(a.set)
+        cfg = CerpeConfig().override(changes)
+        confs = [run_tree(run, changes) for run in a.runs] if a.what == "report" else []
+    except (RunError, RunConfigError, knobs.KnobError) as exc:
+        raise SystemExit(f"anchor_replay: {exc}") from None
     pd.set_option("display.width", 200)
     if a.what == "report":
-        rows = [replay_report(run, run_config(run, **changes), run.parent.name)[0] for run in a.runs]
+        rows = [replay_report(run, conf, run.parent.name)[0] for run, conf in zip(a.runs, confs)]
         print(pd.DataFrame(rows).round(3).to_string())
         return None
     if a.what in ("pairs", "both"):
@@ -277,7 +276,7 @@ def main() -> None:
             "reported_wrong": g.e_rot.apply(lambda s: int((s > WRONG).sum())),
             "max_wrong_carried": R.groupby(["run", "enc", "ego", "other"]).wrong_carried.max().groupby("run").max(),
         })
-        print("--- replay with", {k: v for k, v in dataclasses.asdict(cfg.anchor_config()).items()})
+        print("--- replay with", {"anchors": knobs.as_dict(cfg.anchors), "backend.propagate": cfg.backend.propagate})
         print(summary.round(3).to_string())
 
 

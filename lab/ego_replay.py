@@ -12,7 +12,6 @@ prior view and of each chained view per motion hypothesis, and the prior view's 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import numpy as np
 
@@ -29,7 +28,7 @@ def main() -> None:
     from cerpe.backbones.offline import vote
 
     setting = load_manifest_setting(a.manifest)
-    plugins, cfg, _ = cerpe_plugins_and_config("cerpe", "offline", getattr(setting, "metric_depth", None),
+    plugins, cfg, _ = cerpe_plugins_and_config("cerpe", getattr(setting, "metric_depth", None),
                                                getattr(setting, "metric_depth_options", None))
     if a.trace:
         import cerpe.backbones.offline.reconstruction as rc

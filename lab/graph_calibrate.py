@@ -16,7 +16,7 @@ Usage::
    kind; samples more than 0.5 rad off are left out (gross errors are the kernel's job). Estimates
    without a ``rel`` (no metric depth) give ``direct_depth_rel_unknown`` (rotation, across) and their own
    along-line gain ``direct_depth_along_unknown``; the along-line gains per kind are also given on top
-   of the shipped floors (``graphdev.along_gains_on_floors``: the ones ``GraphConfig`` can take as is).
+   of the shipped floors (``graphdev.along_gains_on_floors``: the ones ``GraphModel`` can take as is).
 2. Odometry increments of every robot against ground truth (synthetic sets and real sets
    with trajectories), one step and 5 / 10 / 20 steps: per-step and per-metre sigmas from
    single steps (least squares on squared errors, own-odometry failures and jumps above
@@ -25,7 +25,7 @@ Usage::
    over steps makes it > 1).
 3. With ``--grid``: replay the graph (:func:`lab.graphdev.replay_run`), from the noise
    models fitted in 1 and 2 (not the defaults), on every
-   ``cerpe-graph`` run with multipliers of both models and kernel widths, and print e_pos,
+   ``cerpe-graph`` run with multipliers of both models and Cauchy kernel widths, and print e_pos,
    e_rot, success and the calibration ratio per set against CERPE and CERPE w/o EM.
 4. With ``--oracle``: replay with the direct translations corrected from ground truth
    (:data:`lab.graphdev.ORACLES`: one distance scale per pair, no error along the line
@@ -45,8 +45,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cerpe.algorithm.graph import GraphConfig
-from cerpe.algorithm.graph_model import odometry_noise_var, sensor_like
+from cerpe.algorithm.graph_model import GRAPH_MODEL, GraphModel, odometry_noise_var, sensor_like
 from cerpe.pipeline.evaluate import frame_errors, load_run, summarise
 
 from .graphdev import (
@@ -113,7 +112,7 @@ def fit_odometry(sets: list[Path]) -> dict:
             for r in enc.robots:
                 if r.T_world_cam is None or not np.all(np.isfinite(r.T_world_cam)):
                     continue
-                for s in odometry_samples(R[R["robot"] == r.robot_id], r.T_world_cam, jump_rad=GraphConfig().odo_jump_rad):
+                for s in odometry_samples(R[R["robot"] == r.robot_id], r.T_world_cam, jump_rad=GRAPH_MODEL.odo_jump_rad):
                     rows.append({**s, "set": d.name, "rel": -1.0 if rel is None else rel})
     O = pd.DataFrame(rows)
     one = O[(O["window"] == 1) & ~O["failed"]]
@@ -127,19 +126,19 @@ def fit_odometry(sets: list[Path]) -> dict:
            "odo_rot_per_rad": float(np.sqrt(cr[2])), "odo_trans_per_step": float(np.sqrt(ct[0])),
            "odo_trans_per_m": float(np.sqrt(ct[1]))}
     growth = []
-    fitted = dataclasses.replace(GraphConfig(), **fit)
+    fitted = dataclasses.replace(GRAPH_MODEL, **fit)
     for (rel, w), g in O[~O["failed"]].groupby(["rel", "window"]):
         row = {"rel": float(rel), "window": int(w), "n": int(len(g)),
                "trans_median_m": float(g["trans_err_m"].median()), "trans_rms_m": float(np.sqrt(np.mean(g["trans_err_m"] ** 2)))}
-        sensor = sensor_like(GraphConfig(), None if rel < 0 else float(rel))
-        for tag, c, sens in (("", fitted, False), ("shipped_", GraphConfig(), sensor)):  # the fit; GraphConfig's
+        sensor = sensor_like(GRAPH_MODEL, None if rel < 0 else float(rel))
+        for tag, c, sens in (("", fitted, False), ("shipped_", GRAPH_MODEL, sensor)):  # the fit; the shipped model
             row.update({f"{tag}{k}": v for k, v in _odo_ratios(g, w, c, sens).items()})
         growth.append(row)
     fails = O[(O["window"] == 1)]
     return {**fit, "n_steps": int(len(one)), "failed_steps": int(fails["failed"].sum()), "growth": growth}
 
 
-def _odo_ratios(g: pd.DataFrame, w: int, conf: GraphConfig, sensor: bool) -> dict:
+def _odo_ratios(g: pd.DataFrame, w: int, conf: GraphModel, sensor: bool) -> dict:
     """Observed over modelled odometry error of ``w``-step windows ``g`` under ``conf``'s odometry model
     (``sensor``: with its sensor-like scale), the motion of a window spread evenly over its steps."""
     var_r, var_t = odometry_noise_var(conf, w, g["dist_m"].to_numpy(), g["angle_rad"].to_numpy(), sensor)
@@ -148,7 +147,7 @@ def _odo_ratios(g: pd.DataFrame, w: int, conf: GraphConfig, sensor: bool) -> dic
             "trans_median_ratio": float(np.median(g["trans_err_m"] / np.sqrt(3 * var_t)) / (MAXWELL_MEDIAN / np.sqrt(3)))}
 
 
-def scaled(conf: GraphConfig, odo: float, direct: float, k: float, along: float | None = None) -> GraphConfig:
+def scaled(conf: GraphModel, odo: float, direct: float, k: float, along: float | None = None) -> GraphModel:
     f = {n: getattr(conf, n) * odo for n in ("odo_rot_per_step", "odo_rot_per_m", "odo_rot_per_rad",
                                              "odo_trans_per_step", "odo_trans_per_m")}
     f.update({n: getattr(conf, n) * direct for n in ("direct_rot_rad", "direct_trans_m", "direct_trans_rel",
@@ -171,7 +170,7 @@ def summary(steps: pd.DataFrame, every: int) -> dict:
     return out
 
 
-def grid(sets: list[Path], base: GraphConfig, odo: list[float], direct: list[float], ks: list[float],
+def grid(sets: list[Path], base: GraphModel, odo: list[float], direct: list[float], ks: list[float],
          alongs: list[float]) -> pd.DataFrame:
     rows = []
     ref = {}
@@ -199,13 +198,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", type=Path, default=ROOT / "build" / "dev" / "runs")
     p.add_argument("--grid", action="store_true",
-                   help="replay the graph with the noise models FITTED above (not GraphConfig's defaults) times "
+                   help="replay the graph with the noise models FITTED above (not GRAPH_MODEL's values) times "
                         "--odo / --direct, and kernel widths --k: a row at 1 1 1 is the fit, not the shipped graph")
     p.add_argument("--odo", type=float, nargs="+", default=[1.0, 2.0, 4.0])
     p.add_argument("--direct", type=float, nargs="+", default=[1.0, 2.0])
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0])
     p.add_argument("--along", type=float, nargs="+", default=[1.0], help="direct_along_factor values")
-    p.add_argument("--kernel", default="cauchy", choices=("cauchy", "huber", "none"))
     p.add_argument("--stat", default="median", choices=("median", "trimmed", "rms"),
                    help="direct estimates' sigmas from median errors (robust) or RMS errors (the calibration figure's)")
     p.add_argument("--oracle", action="store_true",
@@ -220,12 +218,12 @@ def main() -> int:
     print("sets:", ", ".join(d.name for d in sets))
     direct = fit_direct(sets, args.stat)
     print("direct estimates:", json.dumps({k: v for k, v in direct.items() if k not in ("per_set", "kinds")}, indent=1))
-    direct["along_gains_on_shipped_floors"] = along_gains_on_floors(direct, GraphConfig())
+    direct["along_gains_on_shipped_floors"] = along_gains_on_floors(direct, GRAPH_MODEL)
     print("along-line gains on the shipped floors (rel: gain; 'unknown': on direct_depth_rel_unknown):",
           json.dumps(direct["along_gains_on_shipped_floors"]))
     print("per depth kind (rel: the depth source's relative scale sigma; observed, the fit's and the defaults' "
           "sigmas; across/along per metre):")
-    K, c = pd.DataFrame(direct["kinds"]), GraphConfig()
+    K, c = pd.DataFrame(direct["kinds"]), GRAPH_MODEL
     K["default_rot"] = np.hypot(c.direct_rot_rad, c.direct_depth_rot * K["rel"])
     K["default_across_rel"] = np.hypot(c.direct_trans_rel, c.direct_depth_across * K["rel"])
     K["default_along_rel"] = np.hypot(c.direct_along_factor * c.direct_trans_rel, c.direct_depth_along * K["rel"])
@@ -237,8 +235,8 @@ def main() -> int:
     print(pd.DataFrame(odo["growth"]).to_string(index=False))
     result = {"direct": direct, "odometry": odo, "command": " ".join(sys.argv)}
     if args.grid:
-        base = GraphConfig(**{k: v for k, v in {**direct, **odo}.items() if k in GraphConfig.__dataclass_fields__},
-                           kernel=args.kernel)
+        base = dataclasses.replace(GRAPH_MODEL, **{k: v for k, v in {**direct, **odo}.items()
+                                                   if k in GraphModel.__dataclass_fields__})
         print("grid: replays from the fitted noise models above (not the defaults), scaled by --odo / --direct")
         g = grid(sets, base, args.odo, args.direct, args.k, args.along)
         with pd.option_context("display.width", 250, "display.max_columns", 30, "display.max_rows", 500):
@@ -250,7 +248,7 @@ def main() -> int:
             run = load_run(d / "cerpe-graph")
             row = {"set": d.name, "recorded": summary(run.steps, run.every)["e_pos_m"]}
             for name in ORACLES:
-                row[name] = summary(replay_run(d / "cerpe-graph", GraphConfig(), oracle=name), run.every)["e_pos_m"]
+                row[name] = summary(replay_run(d / "cerpe-graph", oracle=name), run.every)["e_pos_m"]
             rows.append(row)
         print("e_pos (m) of the graph with direct translations corrected from ground truth:")
         print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.3f}"))

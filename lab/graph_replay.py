@@ -5,15 +5,18 @@ Usage::
     cerpe dev --methods cerpe cerpe-wo-em cerpe-graph      # development runs (real dev sets, seed >= 1)
     python -m lab.graph_replay [--runs build/dev/runs ...] [--set KEY=V1,V2 ...]
 
-Every combination of the ``--set`` values (``GraphConfig`` fields, :mod:`cerpe.algorithm.graph_model`;
-an unknown key lists the known ones) is replayed on every set's recorded ``cerpe-graph`` passes
+Every combination of the ``--set`` values (fields of the noise model
+:class:`~cerpe.algorithm.graph_model.GraphModel`: the calibrated constants and the knobs of
+``backend.graph`` alike; an unknown key lists the known ones) is replayed on every set's recorded
+``cerpe-graph`` passes
 (:func:`lab.graphdev.replay_run`: the same direct estimates, verdicts and odometry, only
 the back end re-run) and judged by ``cerpe dev``'s graph checks against the set's recorded CERPE
 and CERPE w/o EM runs (:func:`cerpe.pipeline.devreport.checks`): e_pos against 0.7 x min(CERPE,
 w/o EM) over all frames and like for like over w/o EM's frames, e_rot and success. One line
 per combination: the geometric mean of the graph's e_pos over min(CERPE, w/o EM) (GT scale where a
 set has no predicted scale), how many sets pass each check, and the ratio per set. Without ``--set``:
-the shipped defaults, which give the recorded runs back. Refuses paper-default runs (test data).
+the shipped model :data:`~cerpe.algorithm.graph_model.GRAPH_MODEL`, which gives runs made with the
+default tree back. Refuses paper-default runs (test data).
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cerpe.algorithm.graph import GraphConfig
+from cerpe.algorithm.graph_model import GRAPH_MODEL, GraphError, GraphModel
 from cerpe.config import ConfigError, merge_conf
 from cerpe.pipeline.devreport import GRAPH_CHECKS, checks, report_runs
 from cerpe.pipeline.evaluate import load_run
@@ -36,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def grid(pairs: list[str]) -> list[dict]:
-    """``KEY=V1,V2`` strings -> every combination of the values, as GraphConfig overrides."""
+    """``KEY=V1,V2`` strings -> every combination of the values, as GraphModel overrides."""
     keys, values = [], []
     for p in pairs:
         key, sep, vals = p.partition("=")
@@ -50,7 +53,7 @@ def grid(pairs: list[str]) -> list[dict]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*values)]
 
 
-def judge(sets: list[Path], conf: GraphConfig) -> tuple[dict, list[str]]:
+def judge(sets: list[Path], conf: GraphModel) -> tuple[dict, list[str]]:
     """``cerpe dev``'s graph checks of the graph replayed with ``conf`` on each set: counts and per-set ratios."""
     counts, ratios, logs = {}, [], []
     for d in sets:
@@ -78,7 +81,7 @@ def main() -> int:
     p.add_argument("--runs", type=Path, nargs="+", default=[ROOT / "build" / "dev" / "runs"],
                    help="runs folders of `cerpe dev` outputs (default: build/dev/runs)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=V1,V2", dest="sets_config",
-                   help="a GraphConfig field and the values to replay it at (repeatable: every combination)")
+                   help="a GraphModel field and the values to replay it at (repeatable: every combination)")
     args = p.parse_args()
     try:
         sets = [d for runs in args.runs for d in dev_sets(runs)]
@@ -87,12 +90,17 @@ def main() -> int:
     if not sets:
         raise SystemExit(f"{', '.join(map(str, args.runs))}: no cerpe-graph development runs (run `cerpe dev "
                          f"--methods cerpe cerpe-wo-em cerpe-graph` first)")
-    defaults = dataclasses.asdict(GraphConfig())
-    for over in grid(args.sets_config) if args.sets_config else [{}]:
+    defaults, models = dataclasses.asdict(GRAPH_MODEL), []
+    for over in grid(args.sets_config) if args.sets_config else [{}]:  # every combination checked before any replay
+        bad = [k for k, v in over.items()
+               if k in defaults and (isinstance(v, bool) or not isinstance(v, (int, float)))]
+        if bad:  # every field of the model is a number
+            raise SystemExit(f"--set {bad[0]}: expected a number, got {over[bad[0]]!r}")
         try:
-            conf = GraphConfig(**merge_conf(defaults, over, "graph"))
-        except (ConfigError, ValueError) as exc:
+            models.append((over, GraphModel(**merge_conf(defaults, over, "graph model"))))
+        except (ConfigError, GraphError) as exc:
             raise SystemExit(str(exc)) from None
+    for over, conf in models:
         summary, per_set = judge(sets, conf)
         passed = "; ".join(f"{k.removeprefix('graph ')} {v[0]}/{v[1]}" for k, v in summary.items() if k != "geo_ratio")
         print(f"{over or 'defaults'}: graph / min(CERPE, w/o EM) geo-mean {summary['geo_ratio']:.3f}; pass: {passed}")

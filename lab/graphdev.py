@@ -6,7 +6,9 @@ pose and degradations; ``steps.csv``: each step's direct estimate ``dir_*`` what
 verdict, its inliers and verdict). So the graph can be re-run on recorded passes with other
 noise models in seconds (:func:`replay_run`), which is how its parameters are calibrated on
 development data (``lab/graph_calibrate.py``); replaying a ``cerpe-graph`` run with
-its own configuration gives its estimates back (a test checks it).
+its own noise model (:func:`run_graph_model`) gives its estimates back (a test checks it). The
+noise model is a :class:`~cerpe.algorithm.graph_model.GraphModel` (the calibrated constants and
+the knobs of ``backend.graph``): a study replays other values of its fields.
 
 In process the channel is lossless, so robot j's broadcast pose at step t is its
 ``robots.csv`` pose; runs over a lossy link cannot be replayed this way.
@@ -20,10 +22,13 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
-from cerpe.algorithm.graph import DirectEstimate, GraphConfig, PairGraph
+from cerpe.algorithm.graph import DirectEstimate, GraphModel, PairGraph
+from cerpe.algorithm.graph_model import graph_model
 from cerpe.errors import CerpeError
 from cerpe.geometry import pose_cov_sigmas, se3_inverse, se3_to_tq_xyzw
 from cerpe.pipeline.evaluate import POSE, load_run, poses_from_columns
+
+from .runconf import run_tree
 
 
 class GraphDevError(CerpeError, ValueError):
@@ -65,7 +70,7 @@ def depth_rel_sigma(run_meta: dict) -> float | None:
 
 
 def replay_pair(pair_steps: pd.DataFrame, ego_rows: pd.DataFrame, other_rows: pd.DataFrame,
-                conf: GraphConfig, rel_sigma: float | None = None) -> pd.DataFrame:
+                conf: GraphModel, rel_sigma: float | None = None) -> pd.DataFrame:
     """The graph of one ordered pair over one encounter's records: ``pair_steps`` with ``est_*``,
     ``source``, ``anchor_step``, ``sigma_pos_m``, ``sigma_rot_rad`` replaced by the replay's
     (``rel_sigma``: the depth source's, :func:`depth_rel_sigma`)."""
@@ -143,9 +148,18 @@ def oracle_steps(pair_steps: pd.DataFrame, oracle: str) -> pd.DataFrame:
     return out
 
 
-def replay_run(run_dir: Path | str, conf: GraphConfig, oracle: str | None = None) -> pd.DataFrame:
-    """:func:`replay_pair` over every ordered pair and encounter of a cerpe-method run folder
-    (``oracle``: its direct translations corrected first, :func:`oracle_steps`)."""
+def run_graph_model(run_dir: Path | str) -> GraphModel:
+    """The noise model the pose graph of a cerpe-method run had: :data:`~cerpe.algorithm.graph_model.GRAPH_MODEL`
+    with the knobs of the run's tree (``backend.graph``, ``anchors.max_unverified_steps``), as the agent builds it."""
+    tree = run_tree(run_dir)
+    return graph_model(tree.backend.graph, tree.anchors.max_unverified_steps)
+
+
+def replay_run(run_dir: Path | str, conf: GraphModel | None = None, oracle: str | None = None) -> pd.DataFrame:
+    """:func:`replay_pair` over every ordered pair and encounter of a cerpe-method run folder under noise
+    model ``conf`` (None: the run's own, :func:`run_graph_model`; ``oracle``: its direct translations
+    corrected first, :func:`oracle_steps`)."""
+    conf = run_graph_model(run_dir) if conf is None else conf
     run = load_run(run_dir)
     rel = depth_rel_sigma(run.meta)
     parts = []
@@ -188,7 +202,7 @@ def odometry_samples(robot_rows: pd.DataFrame, T_world_cam: np.ndarray, windows:
     Yields ``window``, ``dist_m``, ``angle_rad`` (of the estimated increment), ``rot_err_rad``,
     ``trans_err_m`` (right perturbation, in the new camera's frame) and ``failed`` (an own-odometry
     failure within the window, or with ``jump_rad > 0`` a step turning more than that: a jump,
-    which the graph models apart from the noise, ``GraphConfig.odo_jump_rad``).
+    which the graph models apart from the noise, ``GraphModel.odo_jump_rad``).
     """
     from cerpe.geometry import rotation_angle
 
@@ -281,7 +295,7 @@ def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "med
     metric depth) ``direct_depth_rel_unknown`` as the ``rel`` that predicts their rotation and across-line
     errors (the mean of both where both gains are > 0) and ``direct_depth_along_unknown`` as the along-line
     gain on it that predicts their along-line error (:func:`~cerpe.algorithm.graph_model.along_gain`). Returns
-    the :class:`~cerpe.algorithm.graph.GraphConfig` fields, ``unknown`` (the no-depth estimates'
+    the :class:`~cerpe.algorithm.graph_model.GraphModel` fields, ``unknown`` (the no-depth estimates'
     observed sigmas, None without them) and ``kinds``: per kind the observed and predicted sigmas."""
     good = samples[samples["rot_err_rad"] < GROSS_ROT_RAD]
     near = good[good["dist_m"] < MIN_REL_DIST_M]
@@ -316,7 +330,7 @@ def fit_direct_kinds(samples: pd.DataFrame, min_kind: int = 30, stat: str = "med
     return {**fit, "n": int(len(samples)), "n_used": int(len(good)), "unknown": U, "kinds": K.to_dict("records")}
 
 
-def along_gains_on_floors(fit: dict, conf: GraphConfig) -> dict:
+def along_gains_on_floors(fit: dict, conf: GraphModel) -> dict:
     """The along-line gains per depth kind that :func:`fit_direct_kinds`'s observed sigmas ask for on top of
     ``conf``'s floors (``direct_along_factor direct_trans_rel`` per metre) rather than the fitted ones:
     ``{rel: gain}`` for the kinds with ``rel > 0`` and ``"unknown"`` on ``conf.direct_depth_rel_unknown``;

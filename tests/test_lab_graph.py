@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cerpe.algorithm import CerpeConfig
+from cerpe.algorithm import GRAPH_MODEL
 from cerpe.pipeline import evaluate as ev
 from lab.graphdev import replay_run
 from test_pipeline_graph import POSE, runs  # noqa: F401  (runs: the toy world's cerpe and cerpe-graph runs)
@@ -19,7 +19,7 @@ from test_pipeline_graph import POSE, runs  # noqa: F401  (runs: the toy world's
 def test_replay_of_the_recorded_pass_gives_the_runs_estimates(runs):
     _, _, _, out = runs
     run = ev.load_run(out["cerpe-graph"])
-    rep = replay_run(out["cerpe-graph"], CerpeConfig().graph)
+    rep = replay_run(out["cerpe-graph"], GRAPH_MODEL)  # the toy runs' test double records no tree: its model
     key = ["encounter", "ego", "other", "step"]
     a = run.steps.sort_values(key).reset_index(drop=True)
     b = rep.sort_values(key).reset_index(drop=True)
@@ -27,7 +27,7 @@ def test_replay_of_the_recorded_pass_gives_the_runs_estimates(runs):
     cols = [f"est_{c}" for c in POSE] + ["sigma_pos_m", "sigma_rot_rad"]
     np.testing.assert_allclose(a[cols].to_numpy(float), b[cols].to_numpy(float), atol=1e-6)
     # replaying the paper's CERPE pass (same records) gives the same graph estimates: the pass is the same
-    rep2 = replay_run(out["cerpe"], CerpeConfig().graph).sort_values(key).reset_index(drop=True)
+    rep2 = replay_run(out["cerpe"], GRAPH_MODEL).sort_values(key).reset_index(drop=True)
     np.testing.assert_allclose(rep2[cols].to_numpy(float), b[cols].to_numpy(float), atol=1e-6)
 
 
@@ -56,11 +56,11 @@ def test_direct_noise_fit_recovers_hand_made_covariances_per_depth_kind():
     # direct estimates drawn from direct_cov of a known model for a sensor's (rel 0) and a monocular
     # prior's (rel 0.1) depth, through steps.csv columns and direct_samples: the fit gives the model back,
     # and its per-kind predicted sigmas match the observed ones
-    from cerpe.algorithm.graph import DirectEstimate, GraphConfig, direct_cov
+    from cerpe.algorithm.graph import DirectEstimate, GraphModel, direct_cov
     from cerpe.geometry import make_se3, random_se3, se3_to_tq_xyzw, so3_exp
     from lab.graphdev import along_gains_on_floors, direct_samples, fit_direct_kinds
 
-    true = GraphConfig(direct_rot_rad=0.003, direct_trans_m=0.004, direct_trans_rel=0.006, direct_along_factor=1.0,
+    true = GraphModel(direct_rot_rad=0.003, direct_trans_m=0.004, direct_trans_rel=0.006, direct_along_factor=1.0,
                        direct_depth_rot=0.05, direct_depth_across=0.25, direct_depth_along=1.0)
     rng = np.random.default_rng(7)
     parts = []
@@ -136,7 +136,7 @@ def test_graph_replay_judges_replays_by_the_dev_checks(runs, tmp_path, monkeypat
     (tmp_path / "runs" / "toy").symlink_to(root, target_is_directory=True)
     sets = dev_sets(tmp_path / "runs")
     assert [d.name for d in sets] == ["toy"]
-    summary, per_set = script.judge(sets, CerpeConfig().graph)
+    summary, per_set = script.judge(sets, GRAPH_MODEL)
     table, _ = report([("toy", out["cerpe"]), ("toy", out["cerpe-graph"])])
     want = checks(table)
     for c in want.itertuples(index=False):
@@ -145,10 +145,10 @@ def test_graph_replay_judges_replays_by_the_dev_checks(runs, tmp_path, monkeypat
     rows = table.set_index("method")
     assert summary["geo_ratio"] == pytest.approx(rows.loc["cerpe-graph", "e_pos_m"] / rows.loc["cerpe", "e_pos_m"])
     assert per_set == [f"toy {summary['geo_ratio']:.3f}"]
-    loose, _ = script.judge(sets, dataclasses.replace(CerpeConfig().graph, direct_rot_rad=0.2, direct_trans_rel=0.5))
+    loose, _ = script.judge(sets, dataclasses.replace(GRAPH_MODEL, direct_rot_rad=0.2, direct_trans_rel=0.5))
     assert loose["geo_ratio"] != pytest.approx(summary["geo_ratio"])
-    assert script.grid(["kernel_k=1,2", "kernel=huber"]) == [{"kernel_k": 1, "kernel": "huber"},
-                                                             {"kernel_k": 2, "kernel": "huber"}]
+    assert script.grid(["kernel_k=1,2", "odo_rot_per_step=0.01"]) == [{"kernel_k": 1, "odo_rot_per_step": 0.01},
+                                                                      {"kernel_k": 2, "odo_rot_per_step": 0.01}]
     bad = tmp_path / "paper" / "synthetic-cad" / "cerpe-graph"
     bad.mkdir(parents=True)
     (bad / "run.json").write_text(json.dumps({"manifest": "build/paper-default/synthetic-cad.yaml"}))

@@ -36,7 +36,7 @@ def _study(monkeypatch, capsys, name: str, *argv) -> str:
 def runs(tmp_path_factory) -> Path:
     """`cerpe dev --synth fixture --seeds 2` on the indoor world: cerpe, cerpe-wo-em and cerpe-graph runs."""
     out = tmp_path_factory.mktemp("lab") / "dev"
-    res = dev.dev_report(out, seeds=[2], methods=("cerpe", "cerpe-wo-em", "cerpe-graph"), preset="fixture",
+    res = dev.dev_report(out, seeds=[2], methods=("cerpe", "cerpe-wo-em", "cerpe-graph"), synth="fixture",
                          real=False, sets=[f"{SET[:-3]}*"], progress=False, echo=lambda s: None)
     assert res["errors"] == []
     return out
@@ -46,7 +46,7 @@ def runs(tmp_path_factory) -> Path:
 def fixture_sized(monkeypatch):
     """The studies that render development suites get the fixture's sizes (seconds, not minutes)."""
     full = dev.synthetic_set
-    monkeypatch.setattr(dev, "synthetic_set", lambda setting, seed, preset, out, progress=True:
+    monkeypatch.setattr(dev, "synthetic_set", lambda setting, seed, sizes, out, progress=True:
                         full(setting, seed, "fixture", out, progress))
 
 
@@ -93,12 +93,20 @@ def test_wide_pairs(runs, tmp_path, monkeypatch, capsys):
     assert "pairs (10-170 deg)" in out and "sift-ransac" in out and "all" in out
 
 
-def test_anchor_replay(runs, monkeypatch, capsys):
+def test_anchor_replay(runs, tmp_path, monkeypatch, capsys):
     run = runs / "runs" / SET / "cerpe"
+    rec = tmp_path / "unchecked"
+    out = _study(monkeypatch, capsys, "anchor_replay", "--record", runs / "manifests" / f"{SET}.yaml", rec)
+    assert f"run folder: {rec}" in out
+    steps = pd.read_csv(next(rec.glob("*/steps.csv")))
+    assert set(steps["anchor_verdict"].dropna()) == {"unchecked"}  # every direct estimate is the anchor
     out = _study(monkeypatch, capsys, "anchor_replay", run, "--what", "both")
     assert "--- replay with" in out and "max_wrong_carried" in out
-    out = _study(monkeypatch, capsys, "anchor_replay", run, "--what", "report", "--set", "report_unverified=false")
+    out = _study(monkeypatch, capsys, "anchor_replay", run, "--what", "report", "--set",
+                 "anchors.report_unverified=false")
     assert "carried_longest_steps" in out and SET in out
+    with pytest.raises(SystemExit, match="unknown key 'anchors.rot_tol'"):
+        _study(monkeypatch, capsys, "anchor_replay", run, "--set", "anchors.rot_tol=0.1")
 
 
 def test_ego_replay(runs, monkeypatch, capsys):
@@ -111,6 +119,10 @@ def test_ego_replay(runs, monkeypatch, capsys):
 
 
 def test_graph_replay(runs, monkeypatch, capsys):
+    from cerpe.algorithm.graph import GRAPH_MODEL
+    from lab.graphdev import run_graph_model
+
+    assert run_graph_model(runs / "runs" / SET / "cerpe-graph") == GRAPH_MODEL  # the default tree's knobs
     out = _study(monkeypatch, capsys, "graph_replay", "--runs", runs / "runs", "--set", "kernel_k=1,2")
     lines = out.splitlines()
     assert lines[0].startswith("{'kernel_k': 1}: graph / min(CERPE, w/o EM) geo-mean") and "pass: e_pos" in lines[0]
@@ -120,7 +132,7 @@ def test_graph_replay(runs, monkeypatch, capsys):
 def test_graph_calibrate(runs, monkeypatch, capsys):
     """The fixture's runs hold a few direct estimates, fewer than a noise fit needs: the study says so;
     its odometry fit, replays and summaries run on them (the direct fit's known answer: test_lab_graph)."""
-    from cerpe.algorithm.graph import GraphConfig
+    from cerpe.algorithm.graph import GRAPH_MODEL
     from lab import graph_calibrate as gc
 
     with pytest.raises(SystemExit, match="nothing to fit"):
@@ -129,7 +141,7 @@ def test_graph_calibrate(runs, monkeypatch, capsys):
     assert [d.name for d in sets] == [SET] and len(gc.direct_table(sets)) > 0
     odo = gc.fit_odometry(sets)
     assert odo["n_steps"] > 0 and odo["odo_trans_per_step"] >= 0 and odo["growth"]
-    g = gc.grid(sets, gc.scaled(GraphConfig(), 1.0, 1.0, 1.0), [1.0, 2.0], [1.0], [1.0], [1.0])
+    g = gc.grid(sets, gc.scaled(GRAPH_MODEL, 1.0, 1.0, 1.0), [1.0, 2.0], [1.0], [1.0], [1.0])
     assert len(g) == 2 and np.isfinite(g["e_rot_rad"]).all()
 
 
@@ -167,3 +179,13 @@ def test_render_examples(tmp_path, monkeypatch, capsys):
     out = _study(monkeypatch, capsys, "render_examples", "--size", "64x48", "--frames", 8, "--out",
                  tmp_path / "examples.png")
     assert (tmp_path / "examples.png").stat().st_size > 1000 and "examples.png" in out
+
+
+def test_policy_grid_builds_a_tree_per_entry():
+    from cerpe import method_config
+    from lab.policy import GRID
+
+    trees = {name: method_config.build(preset, "cerpe", sets) for name, (preset, sets) in GRID.items()}
+    assert trees["lean-pe-u2-rc-l1"] == trees["lean"]  # the preset, spelt out from LEAN_V1
+    assert trees["lean-v1"].policy.miss_limit == 3 and trees["lean-v1"].policy.recheck_rot_rad == 0.0
+    assert trees["gate-compressed"].policy.mode == "gate" and trees["gate-compressed"].messages.reply_codec == "webp"
