@@ -133,7 +133,7 @@ def test_synth_out_is_a_file_or_under_one(capsys, afile):
 
 def test_paper_profile_without_weights_is_one_error(capsys, monkeypatch):
     monkeypatch.setenv("CERPE_WEIGHTS_DIR", "/nonexistent-weights")
-    rc, err = _cli(capsys, "paper", "--profile", "paper", "--suite", "fixture", "--no-progress")
+    rc, err = _cli(capsys, "paper", "--models", "paper", "--suite", "fixture", "--no-progress")
     assert rc == 2 and "the 'paper' profile cannot start" in err and "docs/PAPER_MODELS.md" in err
 
 
@@ -157,21 +157,23 @@ def test_verbosity_flags_set_the_log_level(capsys, log_levels, flags, level):
     assert rc == 2 and log_levels.level == level
 
 
-def test_run_set_parses_config_overrides_and_refuses_malformed_ones(capsys, tmp_path):
+def test_run_set_and_preset_are_checked_before_anything_runs(capsys, tmp_path):
     from cerpe.pipeline.run import parse_sets
 
-    assert parse_sets(["share_estimates=true", "request_policy.mode=pays", "request_policy.miss_limit=3",
-                       "tau=0.4"]) == {"share_estimates": True, "request_policy": {"mode": "pays", "miss_limit": 3},
-                                       "tau": 0.4}
+    assert parse_sets(["messages.share_estimates=true", "policy.mode=pays", "policy.miss_limit=3",
+                       "gate.tau=0.4"]) == {"messages.share_estimates": True, "policy.mode": "pays",
+                                            "policy.miss_limit": 3, "gate.tau": 0.4}
     manifest = ROOT / "datasets_manifest" / "synthetic-indoor.yaml"
-    for bad, match in (("share_estimates", "expected KEY=VALUE"), ("=1", "expected KEY=VALUE"),
-                       ("tau=[", "not YAML"), ("graph=1", None)):
-        if match is None:
-            with pytest.raises(Exception, match="value and sub-keys"):
-                parse_sets(["graph=1", "graph.kernel=huber"])
-            continue
-        rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", "--set", bad)
-        assert rc == 2 and match in err, (bad, err)
+    for args, match in ((("--set", "share_estimates"), "expected KEY=VALUE"), (("--set", "=1"), "expected KEY=VALUE"),
+                        (("--set", "gate.tau=["), "not YAML"),
+                        (("--set", "memory.delta_k=abc"), "memory.delta_k: expected int, got 'abc'"),
+                        (("--set", "gate.tau=abc"), "gate.tau: expected float | None, got 'abc'"),
+                        (("--set", "messages.reply_quality=.nan"), "messages.reply_quality: expected int"),
+                        (("--set", "delta_k=2"), "unknown key 'delta_k'; known: gate, memory, scale"),
+                        (("--preset", "fast"), "unknown preset 'fast'; known: paper, graph")):
+        rc, err = _cli(capsys, "run", manifest, "--method", "cerpe", "--out", tmp_path / "r", *args)
+        assert rc == 2 and match in err and len(err.strip().splitlines()) == 1, (args, err)
+        assert not (tmp_path / "r").exists()  # refused before any folder is made
 
 
 # /proc: a folder nobody may write into, not even root (the tests may run as root, which ignores a chmod)

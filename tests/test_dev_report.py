@@ -143,11 +143,11 @@ def test_count_degradation():
 # --------------------------------------------------------------------------- the command
 def test_dev_refuses_the_paper_seed_and_unknown_methods(tmp_path):
     with pytest.raises(dev.DevError, match="paper-default"):
-        dev.dev_report(tmp_path, seeds=[0], preset="fixture", real=False)
+        dev.dev_report(tmp_path, seeds=[0], synth="fixture", real=False)
     with pytest.raises(dev.DevError, match="--methods"):
-        dev.dev_report(tmp_path, methods=["nope"], preset="fixture", real=False)
+        dev.dev_report(tmp_path, methods=["nope"], synth="fixture", real=False)
     with pytest.raises(dev.DevError, match="matches no"):
-        dev.dev_report(tmp_path, sets=["no-such-set"], preset="none", manifests_dir=tmp_path)
+        dev.dev_report(tmp_path, sets=["no-such-set"], synth="none", manifests_dir=tmp_path)
 
 
 def test_cli_refuses_seed_zero(capsys):
@@ -169,7 +169,7 @@ def fixture_report(tmp_path_factory):
         "name: dev-absent\nadapter: mocap\nenabled: if-present\ndata_root: ../no-such-data\n" + enc)
     (mans / "other.yaml").write_text("name: other\nadapter: mocap\nenabled: false\n" + enc)
     lines: list[str] = []
-    res = dev.dev_report(tmp / "out", seeds=[2], preset="fixture", manifests_dir=mans, label="before",
+    res = dev.dev_report(tmp / "out", seeds=[2], synth="fixture", manifests_dir=mans, label="before",
                          sets=["dev-absent", "dev-fixture-synthetic-indoor-*"], progress=False, echo=lines.append)
     return tmp, res, lines
 
@@ -217,7 +217,7 @@ def test_dev_reuses_finished_runs(fixture_report, monkeypatch):
         raise AssertionError("a finished run was run again")
 
     monkeypatch.setattr(rp, "run_method", boom)
-    again = dev.dev_report(tmp / "out", seeds=[2], preset="fixture", manifests_dir=tmp / "manifests",
+    again = dev.dev_report(tmp / "out", seeds=[2], synth="fixture", manifests_dir=tmp / "manifests",
                            sets=["dev-fixture-synthetic-indoor-*"], progress=False, echo=lambda s: None)
     pd.testing.assert_frame_equal(again["table"], res["table"])
 

@@ -42,9 +42,10 @@ def test_fit_descriptor_centres_and_mean(tmp_path, capsys):
         assert str(z["source"]) == f"{images} test" and int(z["n_images"]) == 6 and int(z["num_clusters"]) == 8
     rc, out, _ = _fit(capsys, "descriptor", "--descriptor-mean", "--images", images, "--out", tmp_path / "mean.npz")
     assert rc == 0 and "6 images -> mean descriptor" in out
+    from cerpe.backbones.config import DescriptorConfig
     from cerpe.backbones.descriptor import XFeatSaladDescriptor
 
-    desc = XFeatSaladDescriptor({"centring": str(tmp_path / "mean.npz")})  # the descriptor reads it back
+    desc = XFeatSaladDescriptor(DescriptorConfig(mean=str(tmp_path / "mean.npz")))  # the descriptor reads it back
     with np.load(tmp_path / "mean.npz") as z:
         assert z["mean"].shape == (desc.dim,) and np.isfinite(z["mean"]).all()
 

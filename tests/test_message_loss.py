@@ -32,9 +32,11 @@ class _Drop(Channel):
             super()._deliver(sender, frame, receiver)
 
 
-def _team(world, channel=None, **cfg):
+def _team(world, channel=None, **messages):
+    """A team of the ground-truth doubles; ``messages``: knobs of the ``messages`` group."""
+    sets = {"scale.min_pixels": 20, **{f"messages.{k}": v for k, v in messages.items()}}
     return Team(world.robot_ids, OverlapDescriptor(world), GTBackbone(world, seed=1), SensorDepthDouble(),
-                AlgorithmConfig().override({"scale.min_pixels": 20, **cfg}), channel)
+                AlgorithmConfig().override(sets), channel)
 
 
 def _pairs(results, ego="r0", other="r1"):
@@ -121,7 +123,7 @@ def _lose_descriptors_and_a_request(steps: set[int], request_step: int):
 def test_lost_descriptor_defers_the_gate_and_lost_reply_keeps_the_anchor():
     world = make_world(2, 14, seed=7, windows={(0, 1): [(2, 10)]})
     ch = _Drop(world.robot_ids, _lose_descriptors_and_a_request({5}, 7))
-    results = list(_team(world, ch, descriptor_max_age=0).run_encounter(world.to_encounter()))
+    results = list(_team(world, ch, stale_descriptor_steps=0).run_encounter(world.to_encounter()))
     pairs = _pairs(results)
     degr = {res.step: [d for r in res.robots if r.robot == "r0" for d in r.degradations] for res in results}
     assert not pairs[5].gate_open and "descriptor-missing" in pairs[5].reason and "descriptor:missing" in degr[5]
@@ -133,7 +135,7 @@ def test_lost_descriptor_defers_the_gate_and_lost_reply_keeps_the_anchor():
 def test_a_lost_descriptor_is_replaced_by_the_previous_one_at_most_max_age_old():
     world = make_world(2, 14, seed=7, windows={(0, 1): [(2, 12)]})
     ch = _Drop(world.robot_ids, _lose_descriptors_and_a_request({5, 8, 9}, -1))
-    results = list(_team(world, ch).run_encounter(world.to_encounter()))  # descriptor_max_age=1 (default)
+    results = list(_team(world, ch).run_encounter(world.to_encounter()))  # stale_descriptor_steps=1 (default)
     pairs = _pairs(results)
     degr = {res.step: [d for r in res.robots if r.robot == "r0" for d in r.degradations] for res in results}
     # step 5: step 4's descriptor opens the gate; the image of step 5 is requested and placed
@@ -228,12 +230,15 @@ def gt_plugins(monkeypatch):
     """The real ``run`` path (prepare_method, the per-encounter lossy channel) over the ground-truth doubles."""
     world, setting = _world_setting()
 
-    def plugins_and_config(method, profile, metric_depth, depth_options=None, overrides=None):
-        assert not overrides, "the ground-truth doubles take no overrides here"
-        cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "backend.propagate": method != "cerpe-wo-em", "backend.kind": "graph" if method == "cerpe-graph" else "switch"})
+    def plugins_and_config(method, metric_depth, depth_options=None, preset="paper", sets=None):
+        assert not sets, "the ground-truth doubles take no --set here"
+        from cerpe import knobs
+        from cerpe.method_config import METHOD_OVERRIDES
+
+        cfg = AlgorithmConfig().override({"scale.min_pixels": 20, **METHOD_OVERRIDES[method]})
         plugins = type("P", (), {"descriptor": OverlapDescriptor(world), "backbone": GTBackbone(world, seed=1),
                                  "depth": SensorDepthDouble()})
-        return plugins, cfg, {"cerpe": dataclasses.asdict(cfg), "preset": profile}
+        return plugins, cfg, {"tree": knobs.as_dict(cfg), "preset": preset}
 
     monkeypatch.setattr(rp, "cerpe_plugins_and_config", plugins_and_config)
     return setting
@@ -263,7 +268,7 @@ def test_loss_option_reproduces_the_run_for_a_seed(tmp_path, gt_plugins):
     assert "msg:lost" not in open(lossless / "gt" / "robots.csv").read()
     assert "msg:lost" in open(a / "gt" / "robots.csv").read()
     with pytest.raises(rp.RunError, match="exchanges no messages"):
-        rp.prepare_method("sift-ransac", "offline", 0, channel=LossSpec(0.1))
+        rp.prepare_method("sift-ransac", 0, channel=LossSpec(0.1))
 
 
 def test_sweep_step_on_a_tiny_fixture(tmp_path, gt_plugins, monkeypatch):

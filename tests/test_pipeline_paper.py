@@ -101,8 +101,8 @@ def test_run_is_current(ctx):
 
 def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
     """Table I's caption reads the CERPE runs' recorded config: no scale step (metric passes), previous frame."""
-    recorded = {"cerpe": {"backbone_metric_unit": True, "track_previous": True, "verify_anchors": True,
-                          "anchor_min_inliers": 40}, "preset": "offline"}
+    recorded = {"tree": {"scale": {"metric_unit": True}, "odometry": {"track_previous": True},
+                         "anchors": {"verify": True, "min_inliers": 40}}, "preset": "paper"}
     monkeypatch.setattr(rp, "prepare_method", fake_prepare(recorded))
     m = tmp_path / "toy.yaml"
     m.write_text("name: toy\n")
@@ -116,12 +116,12 @@ def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
     for text in (md, tex):
         assert "skips the scale step" in text and "metric_unit" in text.replace("\\_", "_")
         assert "previous frame" in text and "track_previous" in text.replace("\\_", "_")
-        assert "offline backbone preset" in text
+        assert "offline models" in text
         assert "only when verified" in text and "fewer than 40 registration inliers" in text
-    other = table1.cerpe_row_note("paper", [{"backbone_metric_unit": True, "track_previous": False,
-                                             "verify_anchors": False, "anchor_min_inliers": 40}])
+    other = table1.cerpe_row_note("paper", [{"scale": {"metric_unit": True}, "odometry": {"track_previous": False},
+                                             "anchors": {"verify": False, "min_inliers": 40}}])
     assert "skips the scale step" not in other and "keyframes, as in the paper" in other
-    assert "as in the paper (verify_anchors off)" in other and "registration inliers" not in other
+    assert "as in the paper (anchors.verify off)" in other and "registration inliers" not in other
     assert "VGGT" in other
 
 

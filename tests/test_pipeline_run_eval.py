@@ -54,7 +54,7 @@ def _fake_steps(fail_first: int = 2, noise_rad: float = 0.1):
 
 def fake_prepare(recorded: dict | None = None):
     """A stand-in for ``run.prepare_method``: the fake method, recording ``recorded`` as its config."""
-    return lambda method, profile, seed, depth=None, every=1, depth_options=None: (
+    return lambda method, seed, depth=None, every=1, depth_options=None, channel=None, preset="paper", sets=None: (
         recorded or {"fake": True}, _fake_steps())
 
 
@@ -157,6 +157,22 @@ def test_other_configuration_is_refused(tmp_path, manifest, fake_method):
     assert json.loads((out / "run.json").read_text())["seed"] == 7
 
 
+def test_a_run_folder_of_an_older_version_is_refused_with_how_to_rerun_it(tmp_path, manifest, fake_method):
+    s = _setting()
+    out = rp.run_method(manifest, "sift-ransac", tmp_path / "run", setting=s, progress=False)
+    meta = json.loads((out / "run.json").read_text())
+    meta["config"]["format"] = 1
+    (out / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(rp.RunError, match=r"another version of cerpe \(run format 1, this one writes 2\); rerun "
+                                          r"with --overwrite"):
+        rp.run_method(manifest, "sift-ransac", out, setting=s, progress=False)
+    from cerpe.pipeline.runcheck import run_is_current
+
+    assert not run_is_current(out, manifest, "sift-ransac")  # never silently reused
+    rp.run_method(manifest, "sift-ransac", out, setting=s, overwrite=True, progress=False)
+    assert json.loads((out / "run.json").read_text())["config"]["format"] == rp.RUN_FORMAT
+
+
 def test_mixed_configurations_never_aggregated(tmp_path, manifest, fake_method):
     s = _setting()
     a = rp.run_method(manifest, "sift-ransac", tmp_path / "a", setting=s, progress=False)
@@ -199,7 +215,7 @@ def test_unavailable_methods_exit_clearly(tmp_path, manifest, capsys):
 
     for m in ("nope", "co-visnet"):
         rc = main(["run", str(manifest), "--method", m, "--out", str(tmp_path / m)])
-        assert rc == 3
+        assert rc == 2
         assert "not available offline" in capsys.readouterr().err
         assert not (tmp_path / m).exists()
 

@@ -22,24 +22,24 @@ def _ctx(tmp_path, name: str) -> paper.PaperContext:
 def test_jobs_are_the_stale_runs_with_the_cerpe_methods_together(tmp_path):
     ctx = _ctx(tmp_path, "toy")
     current = {"cerpe-graph", "sift-ransac"}
-    jobs = schedule.paper_jobs(ctx, lambda out, manifest, m, preset: m in current)
+    jobs = schedule.paper_jobs(ctx, lambda out, manifest, m, preset="paper", sets=None: m in current)
     assert sorted(j.name for j in jobs) == ["toy/aliked-lightglue", "toy/cerpe+cerpe-wo-em"]
     ours = next(j for j in jobs if j.name == "toy/cerpe+cerpe-wo-em")
     assert ours.args[1] == ("cerpe", "cerpe-wo-em") and ours.outputs == (("toy", "cerpe"), ("toy", "cerpe-wo-em"))
     # nothing stale, no setting to sweep: no job
-    assert schedule.paper_jobs(ctx, lambda *a: True) == []
+    assert schedule.paper_jobs(ctx, lambda *a, **k: True) == []
 
 
 def test_loss_sweep_waits_for_the_lossless_runs_of_its_setting(tmp_path):
     ctx = _ctx(tmp_path, "synthetic-indoor")
-    jobs = {j.name: j for j in schedule.paper_jobs(ctx, lambda out, manifest, m, preset: m == "sift-ransac")}
+    jobs = {j.name: j for j in schedule.paper_jobs(ctx, lambda out, manifest, m, preset="paper", sets=None: m == "sift-ransac")}
     loss = jobs["message-loss"]
     assert loss.after == ("synthetic-indoor/cerpe+cerpe-wo-em+cerpe-graph",)
     conf, paths = loss.args
-    assert paths["runs"] == ctx.runs_root / "synthetic-indoor" / "message-loss" and conf["profile"] == "offline"
+    assert paths["runs"] == ctx.runs_root / "synthetic-indoor" / "message-loss" and conf["models"] == "offline"
     assert set(paths["lossless"]) == {"cerpe", "cerpe-wo-em"}
     # lossless runs already current: it waits for nothing
-    jobs = schedule.paper_jobs(ctx, lambda *a: True)
+    jobs = schedule.paper_jobs(ctx, lambda *a, **k: True)
     assert [j.name for j in jobs] == ["message-loss"] and jobs[0].after == ()
 
 

@@ -19,14 +19,14 @@ def fixture_encounter():
 
 
 def test_derived_wo_em_equals_real_run(fixture_encounter):
-    conf_full, steps_full = run_mod.prepare_method("cerpe", "offline", seed=0, metric_depth="mono-sim")
+    conf_full, steps_full = run_mod.prepare_method("cerpe", seed=0, metric_depth="mono-sim")
     full = list(steps_full(fixture_encounter))
     derived = [run_mod.without_propagation(r) for r in full]
 
     from cerpe.backbones.build import build_plugins
 
     plugins = build_plugins(depth="mono-sim")
-    cfg = AlgorithmConfig().override({"backend.propagate": False}).resolved(plugins.descriptor.thresholds)
+    cfg = algorithm.AlgorithmConfig().override({"backend.propagate": False}).resolved(plugins.descriptor.thresholds)
     real = list(algorithm.run_encounter(fixture_encounter, plugins.descriptor, plugins.backbone, plugins.depth,
                                         config=cfg, seed=0))
     assert len(real) == len(derived)
@@ -66,10 +66,10 @@ def test_each_cerpe_row_is_a_view_of_one_pass(fixture_encounter, method, backend
     each view equals a real run of its own configuration, field by field."""
     from cerpe.backbones.build import build_plugins
 
-    _, steps = run_mod.prepare_method(method, "offline", seed=0, metric_depth="mono-sim")
+    _, steps = run_mod.prepare_method(method, seed=0, metric_depth="mono-sim")
     derived = list(steps(fixture_encounter))
     plugins = build_plugins(depth="mono-sim")
-    cfg = AlgorithmConfig().override({"backend.propagate": propagate, "backend.kind": backend}).resolved(plugins.descriptor.thresholds)
+    cfg = algorithm.AlgorithmConfig().override({"backend.propagate": propagate, "backend.kind": backend}).resolved(plugins.descriptor.thresholds)
     real = list(algorithm.run_encounter(fixture_encounter, plugins.descriptor, plugins.backbone, plugins.depth,
                                         config=cfg, seed=0))
     _same_records(derived, real)

@@ -409,6 +409,15 @@ def run_method(manifest: Path | str, method: str, out: Path | str, *, preset: st
     if method in BASELINE_METHODS and loss is not None and not loss.lossless:  # before any data is loaded
         raise RunError(f"--loss/--garble: {method} exchanges no messages (a per-frame baseline); "
                        f"only the cerpe methods run over the lossy channel")
+    if method in CERPE_METHODS:  # a bad preset or --set: one error before any data is loaded
+        from .. import method_config
+
+        try:
+            method_config.build(preset, method, sets)
+        except method_config.ConfigError as exc:
+            raise RunError(str(exc)) from None
+    elif sets or preset != "paper":
+        raise RunError(f"method {method!r}: --preset and --set configure the cerpe methods only")
     manifest = Path(manifest).resolve()
     out = Path(out)
     ensure_dir(out, "--out", create=False)
@@ -535,9 +544,9 @@ def parse_sets(items: Sequence[str]) -> dict[str, Any]:
 
 def main(args: argparse.Namespace) -> int:
     if args.method in UNAVAILABLE:
-        print(f"cerpe run: method {args.method!r} not available offline: {UNAVAILABLE[args.method]}",
+        print(f"cerpe run: error: method {args.method!r} not available offline: {UNAVAILABLE[args.method]}",
               file=sys.stderr)
-        return 3
+        return 2
     loss = None if args.loss == 0 and args.garble == 0 else \
         LossSpec(args.loss, args.garble, args.seed if args.loss_seed is None else args.loss_seed)
     out = run_method(args.manifest, args.method, args.out, preset=args.preset, sets=parse_sets(args.sets) or None,
