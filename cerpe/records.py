@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 
 from .geometry import pose_cov_sigmas, se3_to_tq_xyzw
+from .reasons import check_degradations, check_reason
 
 Source = Literal["direct", "propagated", "none"]
 SOURCES: tuple[str, ...] = ("direct", "propagated", "none")
@@ -39,17 +40,17 @@ class PairRecord:
         gate_score: cosine similarity of the two robots' current descriptors (the
             paper's gate score, what gate-quality metrics read); NaN if the other's
             descriptor message was lost or garbled.
-        gate_open: whether the gate opened: ``gate_score >= tau``, or with ``gate_memory``
+        gate_open: whether the gate opened: ``gate_score >= tau``, or with ``gate.memory_aware``
             ``gate_score_memory >= tau`` (the ego requested the other's image unless
             ``request_skipped``; with the policy ``always`` it requested it in any case).
         source: ``direct`` (from this step's pass), ``propagated`` (an anchor moved
             by both robots' ego-motion) or ``none``.
         T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
-        reason: why there is no direct estimate although the gate was open, or
-            why there is no estimate at all, or ``unverified`` (a direct estimate
-            nothing confirmed yet, or its propagation), or ``direct-rejected: ...``
-            (the direct estimate disagreed with the anchor, which is propagated
-            instead); ``""`` otherwise.
+        reason: tokens of :data:`cerpe.reasons.REASONS` joined by ``"; "``: why there is no
+            direct estimate although the gate was open, or no estimate at all, or ``unverified``
+            (a direct estimate nothing confirmed yet, or its propagation), or ``direct-rejected``
+            (the direct estimate disagreed with the anchor, which is propagated instead);
+            ``""`` otherwise. Numbers are columns of their own, never in the reason.
         bytes_pair: bytes of the image request and image reply for this pair.
         anchor_step: step of the anchor a propagated estimate comes from (-1 if none).
         gate_score_memory: best cosine of the other's descriptor against the ego's
@@ -101,6 +102,9 @@ class PairRecord:
     switch: tuple | None = None
     request_skipped: bool = False
 
+    def __post_init__(self) -> None:
+        check_reason(self.reason)  # a closed vocabulary: cerpe.reasons.REASONS
+
     def as_row(self) -> dict:
         row = {
             "step": self.step, "stamp_s": self.stamp_s, "ego": self.ego, "other": self.other,
@@ -131,8 +135,8 @@ class RobotRecord:
         bytes_sent: bytes this robot put on the wire at this step, by message kind
             (``descriptor``, ``pose``, ``request``, ``reply``).
         timings_s: seconds per stage (see :data:`STAGES`).
-        degradations: counted, logged problems of this step (``"depth:no-valid-pixels"``,
-            ``"msg:garbled"``, ``"backbone:no-estimate"``...).
+        degradations: counted, logged problems of this step (names of :data:`cerpe.reasons.DEGRADATIONS`:
+            ``"depth:none"``, ``"msg:garbled"``...).
     """
 
     step: int
@@ -145,6 +149,9 @@ class RobotRecord:
     bytes_sent: dict[str, int] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     degradations: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        check_degradations(self.degradations)  # a closed vocabulary: cerpe.reasons.DEGRADATIONS
 
     @property
     def bytes_total(self) -> int:

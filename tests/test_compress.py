@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cerpe.algorithm import AlgorithmConfig, Team
-from cerpe.algorithm.degradations import known
+from cerpe.reasons import known_degradation as known
 from cerpe.compress import CompressError, DescriptorCodec, fit_projection, load_projection, save_projection
 from cerpe.memory import cosine
 from cerpe.messages import (HEADER_BYTES, DescriptorMessage, ImageReply, MessageError, PoseMessage, decode)
@@ -205,8 +205,8 @@ def test_gate_on_decoded_messages_equals_direct_quantised_cosine(world, tmp_path
     desc, path = _fit_on(world, tmp_path)
     cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "messages.descriptor_codec": name, "messages.projection": str(path)})
     team = Team(world.robot_ids, desc, GTBackbone(world), SensorDepthDouble(), cfg)
-    codec = team.agents[0].codec
-    assert team.agents[0].gate_tau == 0.3
+    codec = team.agents[0].gate.codec
+    assert team.agents[0].gate.tau == 0.3
     for t in range(8):
         res = team.step(*_inputs(world, t))
         for p in res.pairs:
@@ -232,7 +232,7 @@ def _tampered_team(world, tmp_path, tamper):
         f = honest(dtype)
         if agent.cur.step != 6:
             return f
-        m = tamper(decode(f), agent.codec)
+        m = tamper(decode(f), agent.gate.codec)
         return m.encode()
 
     agent.descriptor_frame = frame

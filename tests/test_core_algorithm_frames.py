@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cerpe.algorithm import DEGRADATIONS, AlgorithmConfig, Team
-from cerpe.algorithm.degradations import known
+from cerpe.reasons import known_degradation as known
 from cerpe.protocols import FrameContext, View
 from cerpe.transport import Channel
 from gt_backbone import GTBackbone, OverlapDescriptor, SensorDepthDouble, make_world

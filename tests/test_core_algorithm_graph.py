@@ -11,7 +11,7 @@ import pytest
 from cerpe.algorithm import DEGRADATIONS, AlgorithmConfig, GraphConfig, GraphModel, Team
 from cerpe.algorithm import graph as graph_mod
 from cerpe.algorithm.anchors import AnchorConfig
-from cerpe.algorithm.degradations import known
+from cerpe.reasons import known_degradation as known
 from cerpe.algorithm.graph import DirectEstimate, GraphError, PairGraph, graph_model, odometry_cov
 from cerpe.knobs import KnobError
 from cerpe.algorithm.graph_sim import simulate_pair

@@ -28,12 +28,12 @@ Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
 ``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``graph`` (the pose-graph
 back end, ``graph_sim`` a simulated stream for it), ``policy`` (when an open gate requests the image), ``agent`` (one robot's state and phases), ``link``
 (the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
-process), ``degradations`` (the counted names).
+process). The reasons and counted degradations are :mod:`cerpe.reasons`.
 """
+from ..reasons import DEGRADATIONS
 from .agent import RobotAgent
 from .anchors import Anchor, AnchorConfig, PairAnchors
 from .config import BACKENDS, PAPER_THRESHOLDS, AlgorithmConfig, AlgorithmError
-from .degradations import DEGRADATIONS
 from .engine import StepEngine, drive
 from .graph import GRAPH_MODEL, DirectEstimate, GraphConfig, GraphEstimate, GraphModel, PairGraph
 from .link import Inbox, Link, Mailbox, Received

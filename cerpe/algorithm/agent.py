@@ -1,20 +1,23 @@
-"""One robot: its memory, odometry, anchors, and the per-phase methods of a step.
+"""One robot: the phases of a step of Algorithm 1 over the robot's state.
 
 :class:`RobotAgent` knows nothing of how frames travel; :class:`~cerpe.algorithm.engine.StepEngine`
-calls its methods in the order of Algorithm 1 and moves the frames over a link.
+calls its methods in the order of Algorithm 1 and moves the frames over a link. Everything the robot
+remembers is one :class:`~cerpe.algorithm.state.RobotState`; phases 2-3 (descriptor on the wire, gate,
+request policy) are its :class:`~cerpe.algorithm.gating.Gate`, phases 7b-8 (peers' poses, shared
+estimates, relative poses) its :class:`~cerpe.algorithm.relative.Relative`, the others methods here.
 """
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
+from typing import Mapping
 
 import numpy as np
 
 from ..compress import make_codec
 from ..geometry import se3_inverse
 from ..memory import Keyframe, KeyframeMemory
-from ..messages import ImageReply, ImageRequest, PoseMessage
+from ..messages import DescriptorMessage, EstimateMessage, ImageReply, ImageRequest, PoseMessage
 from ..protocols import (
     BLANK_STD,
     BackboneOutput,
@@ -24,32 +27,26 @@ from ..protocols import (
     PoseBackbone,
     View,
 )
-from ..records import RobotRecord
+from ..records import PairRecord, RobotRecord
 from ..scale import recover_scale
-from .anchors import Anchor, PairAnchors
-from .bridge import PoseLog
 from .config import AlgorithmConfig, AlgorithmError
 from .frames import check_frame, describe, intrinsics_tuple, received_view
-from .gating import GateSide
-from .graph import PairGraph
+from .gating import Gate
 from .policy import try_hard
 from .poses import ego_motion
-from .relative import PairSide
-from .state import Previous, StepState
-
-log = logging.getLogger(__name__)
+from .relative import Relative
+from .state import Previous, RobotState, StepState
 
 
-class RobotAgent(GateSide, PairSide):
-    """One robot: its memory, odometry ``X`` (identity at its first step), anchors per peer.
+class RobotAgent:
+    """One robot: its state (memory, odometry ``X`` from identity at its first step, anchors per peer)
+    and the phases of a step.
 
     Phases, in order: :meth:`begin_step`, :meth:`descriptor_frame`,
     :meth:`score_descriptor`, :meth:`image_reply` / :meth:`accept_reply`,
     :meth:`joint_pass`, :meth:`estimate_scale`, :meth:`update_odometry`,
-    :meth:`pose_frame`, :meth:`note_pose`, :meth:`relative`, :meth:`manage_memory`,
-    :meth:`record`. Everything the robot remembers between steps (keyframes with
-    their backbone memos, the previous frame, scale, anchors, peers' poses) lives
-    here, so a new agent starts from nothing.
+    :meth:`pose_frame`, :meth:`note_pose`, :meth:`pair_record`, :meth:`manage_memory`,
+    :meth:`record`. A new agent starts from nothing.
     """
 
     def __init__(self, robot_id: str, index: int, config: AlgorithmConfig, descriptor: DescriptorEncoder,
@@ -60,57 +57,81 @@ class RobotAgent(GateSide, PairSide):
         self.descriptor = descriptor
         self.backbone = backbone
         self.depth = depth
-        self.memory = KeyframeMemory(self.config.memory)
-        self.X = np.eye(4)
-        self.last_scale = float("nan")
+        self.s = RobotState(self.robot_id, self.index, KeyframeMemory(self.config.memory))
         self.step_rule = self.config.odometry.step_rule()
-        self.ego_base: tuple[float, np.ndarray] | None = None  # (stamp, X) of the last pose the odometry set
-        self.ego_speeds: list[tuple[float, float, np.ndarray]] = []  # accepted steps: (speed, stamp, t), newest last
-        self.pairs: dict[str, PairAnchors] = {}
-        self.shared_anchors: dict[str, list[Anchor]] = {}  # peer -> the recent candidates shared estimates made
-        self.shared_steps: dict[str, int] = {}  # peer -> step of its last usable shared estimate (request policy)
-        self.graphs: dict[str, PairGraph] = {}  # backend="graph": one pose graph per peer
-        self.sigmas: dict[str, tuple[float, float]] = {}  # backend="graph": last (rot rad, pos m) sigma per peer
-        self.asks = {}  # request policy: peer -> what its requests brought (policy.AskLog; GateSide.note_request)
-        self.poses: dict[str, tuple[int, np.ndarray]] = {}
-        self.last_descriptors: dict[str, tuple[int, np.ndarray]] = {}  # peer -> (step, values) last scored fresh
-        self.pose_logs: dict[str, PoseLog] = {}  # peer -> poses seen (messages, replies): bridges a lost one
-        self.odometers: dict[str, tuple[int, np.ndarray, float]] = {}  # robot -> (step, position, metres)
-        self.last_step: int | None = None
-        self.cur: StepState | None = None
-        self.previous: Previous | None = None
         # compressed descriptor messages (cerpe.compress; None: the full descriptor at descriptor_dtype)
         msgs = self.config.messages
-        self.codec = make_codec(msgs.descriptor_codec, msgs.projection)
-        self.gate_tau = float(self.config.gate.tau)
-        if self.codec is not None:
+        codec = make_codec(msgs.descriptor_codec, msgs.projection)
+        tau = float(self.config.gate.tau)
+        if codec is not None:
             dim = getattr(descriptor, "dim", None)
-            if dim is not None and int(dim) != self.codec.projection.dim:
-                raise AlgorithmError(f"robot {self.robot_id}: descriptor_codec {self.codec.name!r}: the projection "
-                                     f"takes {self.codec.projection.dim} values, the descriptor gives {dim}")
-            tau = msgs.codec_tau
-            self.gate_tau = float(tau if tau is not None else self.codec.tau if self.codec.tau is not None
-                                  else self.config.gate.tau)
-        self._kf_wire: dict[int, np.ndarray] = {}  # keyframe step -> its codec values (the memory-aware gate)
+            if dim is not None and int(dim) != codec.projection.dim:
+                raise AlgorithmError(f"robot {self.robot_id}: descriptor_codec {codec.name!r}: the projection "
+                                     f"takes {codec.projection.dim} values, the descriptor gives {dim}")
+            tau = float(msgs.codec_tau if msgs.codec_tau is not None else codec.tau if codec.tau is not None
+                        else self.config.gate.tau)
+        self.gate = Gate(self.s, self.config, codec, tau)
+        self.relative = Relative(self.s, self.config, depth, self.gate)
 
-    # ---------------------------------------------------------------- helpers
-    def _where(self, step: int | None = None) -> str:
-        s = self.cur.step if step is None and self.cur is not None else step
-        return f"robot {self.robot_id} step {s}"
+    # ---------------------------------------------------------------- what others read
+    @property
+    def X(self) -> np.ndarray:
+        """``[4,4]`` this robot's odometry pose ``T_odom_cam``."""
+        return self.s.X
 
-    def _state(self) -> StepState:
-        if self.cur is None:
-            raise AlgorithmError(f"robot {self.robot_id}: no step in progress (call begin_step first)")
-        return self.cur
+    @property
+    def cur(self) -> StepState | None:
+        """This step's state (None before the first step)."""
+        return self.s.cur
+
+    @property
+    def memory(self) -> KeyframeMemory:
+        return self.s.memory
 
     def degrade(self, what: str) -> None:
-        """Count a run-time fault in this step's record (names in :data:`cerpe.algorithm.DEGRADATIONS`)."""
-        self._state().degradations.append(what)
-        log.debug("%s: %s", self._where(), what)
+        """Count a run-time fault in this step's record (names in :data:`cerpe.reasons.DEGRADATIONS`)."""
+        self.s.degrade(what)
 
     def count_sent(self, kind: str, nbytes: int) -> None:
         """Book ``nbytes`` put on the wire this step under message ``kind``."""
-        self._state().bytes_sent[kind] += int(nbytes)
+        self.s.step_state().bytes_sent[kind] += int(nbytes)
+
+    # ---------------------------------------------------------------- phases of the collaborators
+    def descriptor_frame(self, dtype: str) -> bytes:
+        """Phase 2: this step's descriptor as a wire frame (:meth:`Gate.descriptor_frame`)."""
+        return self.gate.descriptor_frame(dtype)
+
+    def score_descriptor(self, other: str, descriptor: np.ndarray | DescriptorMessage | None) -> float:
+        """Phase 3: the gate score against a received descriptor (:meth:`Gate.score_descriptor`)."""
+        return self.gate.score_descriptor(other, descriptor)
+
+    def peer_gone(self, other: str) -> None:
+        self.gate.peer_gone(other)
+
+    def gate_open(self, other: str) -> bool:
+        return self.gate.gate_open(other)
+
+    def wants_image(self, other: str) -> bool:
+        """Phase 3: whether to request ``other``'s image (the gate and the request policy)."""
+        return self.gate.wants_image(other)
+
+    def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
+        """Phase 7: a robot's broadcast pose (:meth:`Relative.note_pose`)."""
+        self.relative.note_pose(other, step, X_j)
+
+    def reply_missing(self, other: str) -> None:
+        self.relative.reply_missing(other)
+
+    def estimate_frame(self, index_of: Mapping[str, int]) -> bytes:
+        """Phase 7b: the shared estimates of this step (:meth:`Relative.estimate_frame`)."""
+        return self.relative.estimate_frame(index_of)
+
+    def note_estimates(self, other: str, msg: EstimateMessage) -> None:
+        self.relative.note_estimates(other, msg)
+
+    def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
+        """Phase 8: this step's record about ``other`` (:meth:`Relative.pair_record`)."""
+        return self.relative.pair_record(other, bytes_pair)
 
     # ---------------------------------------------------------------- 1. describe
     def begin_step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> np.ndarray:
@@ -122,29 +143,29 @@ class RobotAgent(GateSide, PairSide):
         counted once as ``frame:blank``.
         """
         step = int(context.step)
-        where = self._where(step)
+        where = self.s.where(step)
         if context.robot_id != self.robot_id:
             raise AlgorithmError(f"{where}: frame context belongs to robot {context.robot_id!r}")
-        if self.last_step is not None and step <= self.last_step:
-            raise AlgorithmError(f"{where}: steps must increase (previous {self.last_step})")
+        if self.s.last_step is not None and step <= self.s.last_step:
+            raise AlgorithmError(f"{where}: steps must increase (previous {self.s.last_step})")
         img = check_frame(image, context, where)
         view = View(key=(self.robot_id, step), image=img, intrinsics=context.intrinsics)
         d, blank, timings = describe(self.descriptor, view, where, BLANK_STD)
-        self.cur = StepState(step=step, stamp_s=float(step if stamp_s is None else stamp_s), image=img,
+        self.s.cur = StepState(step=step, stamp_s=float(step if stamp_s is None else stamp_s), image=img,
                               context=context, view=view, descriptor=np.zeros_like(d) if blank else d,
                               blank=bool(blank), timings=timings)
         if blank == "zero-norm":
-            self.degrade("descriptor:zero-norm")
+            self.s.degrade("descriptor:zero-norm")
         if blank:
-            self.degrade("frame:blank")
-        return self.cur.descriptor
+            self.s.degrade("frame:blank")
+        return self.s.cur.descriptor
 
     # ---------------------------------------------------------------- 3b. image exchange
     def image_reply(self, request: ImageRequest) -> ImageReply | None:
         """Answer an image request of this step with the current image as JPEG (None: stale, counted)."""
-        st = self._state()
+        st = self.s.step_state()
         if request.step != st.step or request.target != self.index:
-            self.degrade("msg:stale-request")
+            self.s.degrade("msg:stale-request")
             return None
         if st.reply_cache is None:
             t0 = time.perf_counter()
@@ -156,27 +177,27 @@ class RobotAgent(GateSide, PairSide):
             st.timings["gate"] += time.perf_counter() - t0
         # the newest own pose goes with the image: this step's once odometry ran (or at the first
         # step, identity), else the previous step's; a requester whose pose message is lost bridges from it
-        now = bool(st.ego_status) or self.last_step is None
-        return dataclasses.replace(st.reply_cache, pose_step=st.step if now else self.last_step,
-                                   T_odom_cam=self.X.copy())
+        now = bool(st.ego_status) or self.s.last_step is None
+        return dataclasses.replace(st.reply_cache, pose_step=st.step if now else self.s.last_step,
+                                   T_odom_cam=self.s.X.copy())
 
     def accept_reply(self, other: str, reply: ImageReply) -> View | None:
         """Decode a collaborator's JPEG for the joint pass (see :func:`~cerpe.algorithm.frames.received_view`)."""
-        st = self._state()
+        st = self.s.step_state()
         if reply.step != st.step:
-            self.degrade("msg:stale-reply")
+            self.s.degrade("msg:stale-reply")
             return None
         t0 = time.perf_counter()
         view, fault = received_view(other, reply)
         st.timings["gate"] += time.perf_counter() - t0
         if reply.T_odom_cam is not None and 0 <= reply.pose_step <= st.step:
-            self._log_pose(other, reply.pose_step, reply.T_odom_cam)
+            self.relative.log_pose(other, reply.pose_step, reply.T_odom_cam)
         if view is None:  # the pair gets no direct estimate this step
-            self.degrade(f"msg:{fault}")
+            self.s.degrade(f"msg:{fault}")
             st.gate_reason[other] = f"reply-{fault}"
             return None
         # the costliest registration only for a gated image (request_policy "always" asks without the gate)
-        hard = self.gate_open(other) and try_hard(self._pair_view(other, st.step))
+        hard = self.gate.gate_open(other) and try_hard(self.gate.pair_view(other, st.step))
         view = dataclasses.replace(view, try_hard=hard)
         st.collab_views[other] = view
         return view
@@ -188,11 +209,11 @@ class RobotAgent(GateSide, PairSide):
         Kept views come with the memo the backbone gave them as current view, every view
         with its role (``View.role``). None for a blank frame (no pass).
         """
-        st = self._state()
+        st = self.s.step_state()
         st.passed = True
         if st.blank:
             return None
-        kfs = self.memory.newest_first()
+        kfs = self.s.memory.newest_first()
         # metric depth priors: each keyframe's reference, and the current frame's when it is
         # computed anyway (no keyframe yet: the scale needs it; track_previous: the next step does)
         rel = getattr(self.depth, "rel_sigma", None)  # the depth source's own word on its scale noise
@@ -204,7 +225,7 @@ class RobotAgent(GateSide, PairSide):
                                   depth_rel_sigma=rel) for kf in kfs]
         st.own_views = {0: (st.step, None)}
         st.own_views.update({1 + k: (kf.step, kf.T_odom_cam) for k, kf in enumerate(kfs)})
-        prev = self.previous
+        prev = self.s.previous
         st.prev_index = None
         if self.config.odometry.track_previous and prev is not None and kfs and prev.view.key != kfs[0].key:
             st.prev_index = len(views)
@@ -218,13 +239,13 @@ class RobotAgent(GateSide, PairSide):
         st.timings["backbone"] += time.perf_counter() - t0
         if not isinstance(out, BackboneOutput) or len(out.valid) != len(views):
             n = len(out.valid) if isinstance(out, BackboneOutput) else type(out).__name__
-            raise AlgorithmError(f"{self._where()}: backbone returned {n} views for {len(views)} given")
+            raise AlgorithmError(f"{self.s.where()}: backbone returned {n} views for {len(views)} given")
         valid = np.asarray(out.valid, dtype=bool).copy()
         for k in range(len(views)):
             if valid[k] and not np.all(np.isfinite(out.T_frame_cam[k])):
                 valid[k] = False
                 out.reasons[k] = "non-finite pose"
-                self.degrade("backbone:non-finite-pose")
+                self.s.degrade("backbone:non-finite-pose")
         out.valid = valid
         st.out = out
         st.view = dataclasses.replace(st.view, memo=out.memos[0])  # travels with the frame if it is kept
@@ -232,7 +253,7 @@ class RobotAgent(GateSide, PairSide):
 
     # ---------------------------------------------------------------- 5. scale
     def _current_depth(self) -> np.ndarray | None:
-        st = self._state()
+        st = self.s.step_state()
         done, d = st.depth_cache
         if done:
             return d
@@ -242,17 +263,17 @@ class RobotAgent(GateSide, PairSide):
         if d is not None:
             d = np.asarray(d, dtype=np.float32)
             if d.ndim != 2 or d.size == 0:
-                raise AlgorithmError(f"{self._where()}: depth source {getattr(self.depth, 'name', '?')!r} "
+                raise AlgorithmError(f"{self.s.where()}: depth source {getattr(self.depth, 'name', '?')!r} "
                                      f"returned shape {d.shape}, expected [H,W]")
         else:
-            self.degrade("depth:none")
+            self.s.degrade("depth:none")
         st.depth_cache = (True, d)
         return d
 
     def _pass(self, what: str) -> StepState:
-        st = self._state()
+        st = self.s.step_state()
         if not st.passed:
-            raise AlgorithmError(f"{self._where()}: {what} before joint_pass")
+            raise AlgorithmError(f"{self.s.where()}: {what} before joint_pass")
         return st
 
     def estimate_scale(self) -> float:
@@ -264,7 +285,7 @@ class RobotAgent(GateSide, PairSide):
         if out.metric_unit and self.config.scale.metric_unit:
             st.scale = 1.0  # not kept as last_scale: that is the fallback of later up-to-scale passes
             return st.scale
-        kfs = self.memory.newest_first()
+        kfs = self.s.memory.newest_first()
         metric, idx = ([kf.depth_ref_m for kf in kfs], list(range(1, 1 + len(kfs)))) if kfs \
             else ([self._current_depth()], [0])
         t0 = time.perf_counter()
@@ -272,17 +293,17 @@ class RobotAgent(GateSide, PairSide):
                             [out.depth_conf[k] for k in idx], min_pixels=self.config.scale.min_pixels)
         st.timings["scale"] += time.perf_counter() - t0
         for _, reason in est.skipped:
-            self.degrade(f"scale:skipped-{reason}")
+            self.s.degrade(f"scale:skipped-{reason}")
         if est.ok:
-            st.scale = self.last_scale = est.scale
-        elif np.isfinite(self.last_scale):
-            st.scale = self.last_scale
-            self.degrade("scale:fallback-last")
+            st.scale = self.s.last_scale = est.scale
+        elif np.isfinite(self.s.last_scale):
+            st.scale = self.s.last_scale
+            self.s.degrade("scale:fallback-last")
         elif not getattr(self.depth, "metric", True):  # a source that never has metric depth
             st.scale, st.metric_scale = 1.0, False
-            self.degrade("scale:unit-no-depth")
+            self.s.degrade("scale:unit-no-depth")
         else:
-            self.degrade("scale:unavailable")
+            self.s.degrade("scale:unavailable")
         return st.scale
 
     # ---------------------------------------------------------------- 6. odometry
@@ -294,19 +315,19 @@ class RobotAgent(GateSide, PairSide):
         """
         st = self._pass("update_odometry")
         out = st.out
-        kfs = self.memory.newest_first()
+        kfs = self.s.memory.newest_first()
         if out is None:
             st.ego_status = "blank"
-            self.ego_base, self.ego_speeds = None, []  # what the next step measures from is unknown
-            return self.X
+            self.s.ego_base, self.s.ego_speeds = None, []  # what the next step measures from is unknown
+            return self.s.X
         if not kfs:
-            st.ego_status = "first" if self.last_step is None else "no-keyframe"
+            st.ego_status = "first" if self.s.last_step is None else "no-keyframe"
             if st.ego_status == "no-keyframe":
-                self.degrade("ego:no-keyframe")
-                self.ego_base, self.ego_speeds = None, []
+                self.s.degrade("ego:no-keyframe")
+                self.s.ego_base, self.s.ego_speeds = None, []
             else:
-                self.ego_base = (st.stamp_s, self.X.copy())
-            return self.X
+                self.s.ego_base = (st.stamp_s, self.s.X.copy())
+            return self.s.X
         if not out.valid[0]:
             st.ego_status = "current-invalid"
         elif not np.isfinite(st.scale):
@@ -317,22 +338,22 @@ class RobotAgent(GateSide, PairSide):
             starts: dict[int, np.ndarray] = {}
             p, ref = st.prev_index, out.reference
             if ref is not None and (ref == p or 1 <= ref <= len(kfs)):
-                starts[ref] = self.previous.T_odom_cam if ref == p else kfs[ref - 1].T_odom_cam
+                starts[ref] = self.s.previous.T_odom_cam if ref == p else kfs[ref - 1].T_odom_cam
             if p is not None:
-                starts.setdefault(p, self.previous.T_odom_cam)
+                starts.setdefault(p, self.s.previous.T_odom_cam)
             for k, kf in enumerate(kfs):
                 starts.setdefault(1 + k, kf.T_odom_cam)
             for s, X_s in starts.items():
                 if out.valid[s]:
                     st.ego_status = "ok"
-                    self.X = self._step_rule(st, ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale))
+                    self.s.X = self._step_rule(st, ego_motion(X_s, out.T_frame_cam[s], out.T_frame_cam[0], st.scale))
                     if s != ref and s != p and s > 1:
-                        self.degrade("ego:older-keyframe")
-                    return self.X
+                        self.s.degrade("ego:older-keyframe")
+                    return self.s.X
             st.ego_status = "keyframes-invalid"
-        self.degrade("ego:no-estimate")
-        self.ego_base, self.ego_speeds = None, []
-        return self.X
+        self.s.degrade("ego:no-estimate")
+        self.s.ego_base, self.s.ego_speeds = None, []
+        return self.s.X
 
     def _step_rule(self, st: StepState, X_new: np.ndarray) -> np.ndarray:
         """``X_new``, or, when its step is implausibly slow after the accepted ones
@@ -342,10 +363,10 @@ class RobotAgent(GateSide, PairSide):
 
         After a step without an estimate (``X`` kept) the history starts again: what the next
         step is measured from no longer is where the robot was."""
-        base, hist = self.ego_base, self.ego_speeds
-        self.ego_base = (st.stamp_s, X_new)
+        base, hist = self.s.ego_base, self.s.ego_speeds
+        self.s.ego_base = (st.stamp_s, X_new)
         if base is None or not st.stamp_s > base[0]:
-            self.ego_speeds = []
+            self.s.ego_speeds = []
             return X_new
         dt = st.stamp_s - base[0]
         inc = se3_inverse(base[1]) @ X_new
@@ -357,22 +378,22 @@ class RobotAgent(GateSide, PairSide):
             n = float(np.linalg.norm(t_ref))
             held[:3, 3] = t_ref * (ref * dt / n) if n > 0 else 0.0
             X = base[1] @ held
-            self.ego_base = (st.stamp_s, X)
+            self.s.ego_base = (st.stamp_s, X)
             st.ego_status = "held"
-            self.degrade("ego:step-held")
+            self.s.degrade("ego:step-held")
             return X
-        self.ego_speeds = (hist + [(length / dt, st.stamp_s, inc[:3, 3].copy())])[-int(self.step_rule.window):]
+        self.s.ego_speeds = (hist + [(length / dt, st.stamp_s, inc[:3, 3].copy())])[-int(self.step_rule.window):]
         return X_new
 
     # ---------------------------------------------------------------- 7. pose broadcast
     def pose_frame(self) -> bytes:
-        st = self._state()
-        return PoseMessage(self.index, st.step, self.X).encode()
+        st = self.s.step_state()
+        return PoseMessage(self.index, st.step, self.s.X).encode()
 
     # ---------------------------------------------------------------- 9. memory
     def manage_memory(self) -> bool:
         """Keyframe rule and tracking reference; returns whether the current frame became a keyframe."""
-        st = self._state()
+        st = self.s.step_state()
         st.keyframe = self._keyframe_rule(st)
         self._keep_previous(st)
         return st.keyframe
@@ -381,18 +402,18 @@ class RobotAgent(GateSide, PairSide):
         out = st.out
         if st.blank:
             return False  # a blank frame (counted) is never worth keeping
-        if len(self.memory) and (out is None or not out.valid[0]):
+        if len(self.s.memory) and (out is None or not out.valid[0]):
             return False  # a view the backbone cannot place would only break later passes
         if st.ego_status == "keyframes-invalid":
-            self.memory.clear()
-            self.degrade("memory:reinit")
+            self.s.memory.clear()
+            self.s.degrade("memory:reinit")
             insert = True
         else:
-            insert, _, _, _ = self.memory.decide(st.descriptor, st.step)
+            insert, _, _, _ = self.s.memory.decide(st.descriptor, st.step)
         if insert:
-            self.memory.insert(Keyframe(step=st.step, key=st.view.key, descriptor=st.descriptor,
+            self.s.memory.insert(Keyframe(step=st.step, key=st.view.key, descriptor=st.descriptor,
                                         image=st.image, intrinsics=st.context.intrinsics,
-                                        T_odom_cam=self.X.copy(), depth_ref_m=self._current_depth(),
+                                        T_odom_cam=self.s.X.copy(), depth_ref_m=self._current_depth(),
                                         memo=st.view.memo))
         return bool(insert)
 
@@ -404,17 +425,17 @@ class RobotAgent(GateSide, PairSide):
         """
         if st.blank:
             return
-        self.previous = None
+        self.s.previous = None
         if not self.config.odometry.track_previous:
             return
         if st.ego_status in ("ok", "held") or (st.ego_status == "first" and st.out is not None):
             # joint_pass attached this frame's depth and memo to st.view
-            self.previous = Previous(step=st.step, view=st.view, T_odom_cam=self.X.copy())
+            self.s.previous = Previous(step=st.step, view=st.view, T_odom_cam=self.s.X.copy())
 
     def record(self) -> RobotRecord:
-        st = self._state()
-        self.last_step = st.step
-        return RobotRecord(step=st.step, stamp_s=st.stamp_s, robot=self.robot_id, T_odom_cam=self.X.copy(),
-                           scale=float(st.scale), n_keyframes=len(self.memory), keyframe=st.keyframe,
+        st = self.s.step_state()
+        self.s.last_step = st.step
+        return RobotRecord(step=st.step, stamp_s=st.stamp_s, robot=self.robot_id, T_odom_cam=self.s.X.copy(),
+                           scale=float(st.scale), n_keyframes=len(self.s.memory), keyframe=st.keyframe,
                            bytes_sent=dict(st.bytes_sent), timings_s={k: float(v) for k, v in st.timings.items()},
                            degradations=list(st.degradations))

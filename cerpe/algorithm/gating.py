@@ -1,14 +1,13 @@
-"""The gate side of a robot: its descriptor on the wire, the scores of received ones, the request decision.
+"""Phases 2 (broadcast) and 3 (gate, request policy) of a robot: :class:`Gate`.
 
-A mixin of :class:`~cerpe.algorithm.agent.RobotAgent` (it reads the agent's step state,
-memory, codec, anchors and odometers); apart so that the agent stays one step's phases.
-Scores are cosines of ``[D]`` descriptors (or of a codec's dequantised values).
+A collaborator of :class:`~cerpe.algorithm.agent.RobotAgent`: it reads and writes the robot's
+:class:`~cerpe.algorithm.state.RobotState` (this step's scores, the keyframes, anchors and
+odometers, what requests brought). Scores are cosines of ``[D]`` descriptors (or of a codec's
+dequantised values).
 """
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..memory import Keyframe, cosine
@@ -16,48 +15,34 @@ from ..messages import DescriptorMessage, decode
 from .direct import SHARED_VIA
 from .policy import AskLog, PairView, after_request, decide, skip_for_shared
 
-if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent
-    from ..compress import DescriptorCodec
-    from ..memory import KeyframeMemory
-    from .anchors import PairAnchors
-    from .config import AlgorithmConfig
-    from .state import PairInfo, StepState
+from ..compress import DescriptorCodec
+from .config import AlgorithmConfig
+from .state import PairInfo, RobotState
 
 
-class GateSide:
-    """Phases 2 (broadcast) and 3 (gate, request policy) of :class:`~cerpe.algorithm.agent.RobotAgent`."""
+class Gate:
+    """Phases 2 and 3 of one robot over its :class:`~cerpe.algorithm.state.RobotState`.
 
-    if TYPE_CHECKING:
-        config: AlgorithmConfig
-        codec: DescriptorCodec | None
-        gate_tau: float
-        memory: KeyframeMemory
-        pairs: dict[str, PairAnchors]
-        sigmas: dict[str, tuple[float, float]]
-        asks: dict[str, AskLog]
-        shared_steps: dict[str, int]
-        odometers: dict[str, tuple[int, np.ndarray, float]]
-        last_descriptors: dict[str, tuple[int, np.ndarray]]
-        _kf_wire: dict[int, np.ndarray]
-        robot_id: str
-        index: int
+    ``codec``: the compressed descriptor codec (None: the full descriptor); ``tau``: the gate
+    threshold the scores are compared with (``gate.tau``, or the codec's own).
+    """
 
-        def _state(self) -> StepState: ...
-        def degrade(self, what: str) -> None: ...
+    def __init__(self, state: RobotState, config: AlgorithmConfig, codec: DescriptorCodec | None, tau: float) -> None:
+        self.s, self.config, self.codec, self.tau = state, config, codec, float(tau)
 
     # ---------------------------------------------------------------- 2. broadcast
     def descriptor_frame(self, dtype: str) -> bytes:
         """This step's descriptor as a wire frame; the quantised values are kept for scoring."""
-        st = self._state()
+        st = self.s.step_state()
         if self.codec is not None:
-            msg = self.codec.message(self.index, st.step, st.descriptor)
+            msg = self.codec.message(self.s.index, st.step, st.descriptor)
             st.wire_descriptor = self.codec.dequantise(msg.descriptor)
             return msg.encode()
-        frame = DescriptorMessage(self.index, st.step, st.descriptor, dtype).encode()
+        frame = DescriptorMessage(self.s.index, st.step, st.descriptor, dtype).encode()
         st.wire_descriptor = decode(frame).descriptor
         return frame
 
-    def _received_values(self, msg: DescriptorMessage) -> tuple[np.ndarray | None, str]:
+    def received_values(self, msg: DescriptorMessage) -> tuple[np.ndarray | None, str]:
         """A received descriptor message -> the values the gate scores, or ``(None, fault)``."""
         if self.codec is not None:
             return self.codec.decode(msg)
@@ -69,11 +54,11 @@ class GateSide:
         """A keyframe's descriptor as the gate compares it: its codec values (cached per keyframe) or itself."""
         if self.codec is None:
             return kf.descriptor
-        v = self._kf_wire.get(kf.step)
+        v = self.s.kf_wire.get(kf.step)
         if v is None:
-            live = {k.step for k in self.memory.newest_first()}
-            self._kf_wire = {s: w for s, w in self._kf_wire.items() if s in live}
-            v = self._kf_wire[kf.step] = self.codec.wire(kf.descriptor)
+            live = {k.step for k in self.s.memory.newest_first()}
+            self.s.kf_wire = {s: w for s, w in self.s.kf_wire.items() if s in live}
+            v = self.s.kf_wire[kf.step] = self.codec.wire(kf.descriptor)
         return v
 
     # ---------------------------------------------------------------- 3. gate
@@ -89,18 +74,18 @@ class GateSide:
         received descriptor is also scored against every keyframe; the best of all
         (and the keyframe that gave it) opens the gate with ``gate_memory``.
         """
-        st = self._state()
+        st = self.s.step_state()
         t0 = time.perf_counter()
         own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
         score, reason = float("nan"), ""
         if isinstance(descriptor, DescriptorMessage):
-            descriptor, fault = self._received_values(descriptor)
+            descriptor, fault = self.received_values(descriptor)
             if fault:
-                self.degrade(f"descriptor:{fault}")
+                self.s.degrade(f"descriptor:{fault}")
                 reason = f"descriptor-{fault}"
         fresh = descriptor is not None
         if not reason and descriptor is None:  # lost: the peer's last one if recent, else the gate waits
-            self.degrade("descriptor:missing")
+            self.s.degrade("descriptor:missing")
             descriptor = self._recent_descriptor(other, st.step)
             if descriptor is None:
                 reason = "descriptor-missing"
@@ -111,17 +96,17 @@ class GateSide:
         else:
             d = np.asarray(descriptor, dtype=np.float32).ravel()
             if d.size != own.size:
-                self.degrade("descriptor:wrong-length")
+                self.s.degrade("descriptor:wrong-length")
                 reason = "descriptor-length-mismatch"
             elif not np.all(np.isfinite(d)) or not np.any(d):
-                self.degrade("descriptor:other-zero-norm")
+                self.s.degrade("descriptor:other-zero-norm")
                 reason = "other-descriptor-degenerate"
             else:
                 score = cosine(own, d)
                 if fresh:
-                    self.last_descriptors[other] = (st.step, d)
+                    self.s.last_descriptors[other] = (st.step, d)
                 best = (score, -1)
-                for kf in self.memory.newest_first():
+                for kf in self.s.memory.newest_first():
                     c = cosine(self._keyframe_values(kf), d)
                     if c > best[0]:
                         best = (c, kf.step)
@@ -134,36 +119,36 @@ class GateSide:
 
     def peer_gone(self, other: str) -> None:
         """The link says ``other`` left: its last descriptor no longer stands in for a lost one."""
-        self.last_descriptors.pop(other, None)
+        self.s.last_descriptors.pop(other, None)
 
     def _recent_descriptor(self, other: str, step: int) -> np.ndarray | None:
         """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
         ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""
-        last = self.last_descriptors.get(other)
+        last = self.s.last_descriptors.get(other)
         if last is None or not 0 < step - last[0] <= self.config.messages.stale_descriptor_steps:
             return None
-        self.degrade("descriptor:stale-used")
+        self.s.degrade("descriptor:stale-used")
         return last[1]
 
     def gate_open(self, other: str) -> bool:
         """``score >= gate_tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes
-        too (``gate_tau`` is ``tau``, or the codec's own threshold with a compressed descriptor)."""
-        st = self._state()
+        too (``tau`` is ``gate.tau``, or the codec's own threshold with a compressed descriptor)."""
+        st = self.s.step_state()
         s = st.scores.get(other, float("nan"))
         if self.config.gate.memory_aware and np.isfinite(s):
             s = st.memory_scores[other][0]
-        return bool(np.isfinite(s) and s >= self.gate_tau)
+        return bool(np.isfinite(s) and s >= self.tau)
 
     def wants_image(self, other: str) -> bool:
         """Whether to request ``other``'s image this step: the gate and the request policy
         (:mod:`~cerpe.algorithm.policy`; the paper's asks whenever the gate opens; with ``share_estimates``
         the ``peer-shares`` rule may skip it). A skipped request is kept (``PairRecord.request_skipped``,
         reason ``request-skipped: <rule>``); the pair then propagates its anchor."""
-        st = self._state()
+        st = self.s.step_state()
         gate = self.gate_open(other)
         conf = self.config.policy
         shares = bool(self.config.messages.share_estimates and conf.mode != "always")
-        view = self._pair_view(other, st.step) if conf.mode == "pays" or shares else None
+        view = self.pair_view(other, st.step) if conf.mode == "pays" or shares else None
         ask, why = decide(conf, gate, view)
         if ask and shares and skip_for_shared(view):
             ask, why = False, "peer-shares"
@@ -177,21 +162,21 @@ class GateSide:
         The image placed when this robot's own registration gave the estimate offered to anchor verification;
         with ``share_estimates`` a peer's estimate on more inliers is offered instead, and the request counts
         as a miss: its image added only a weaker second view (the ``peer-shares`` rule reads this)."""
-        self.asks[other] = after_request(self.config.policy, self.asks.get(other), self._state().step,
+        self.s.asks[other] = after_request(self.config.policy, self.s.asks.get(other), self.s.step_state().step,
                                          info.direct_T is not None and info.direct_via != SHARED_VIA,
                                          info.verdict, info.check_rot_rad)
 
-    def _pair_view(self, other: str, step: int) -> PairView:
+    def pair_view(self, other: str, step: int) -> PairView:
         """What the request policy reads about a pair before this step's pass (anchors, odometers of
         the previous step, the graph's last sigma)."""
-        pair = self.pairs.get(other)
-        tries = self.asks.get(other, AskLog()).view(step)
-        tries["steps_since_shared"] = step - self.shared_steps.get(other, -(1 << 30))
+        pair = self.s.pairs.get(other)
+        tries = self.s.asks.get(other, AskLog()).view(step)
+        tries["steps_since_shared"] = step - self.s.shared_steps.get(other, -(1 << 30))
         if pair is None or pair.anchor is None:
             return PairView(anchored=False, pending=bool(pair and pair.candidates), **tries)
         a = pair.anchor
-        odo = [self.odometers.get(r, (0, None, o))[2] for r, o in ((self.robot_id, a.odo_i), (other, a.odo_j))]
-        rot, pos = self.sigmas.get(other, (float("nan"), float("nan")))
+        odo = [self.s.odometers.get(r, (0, None, o))[2] for r, o in ((self.s.robot_id, a.odo_i), (other, a.odo_j))]
+        rot, pos = self.s.sigmas.get(other, (float("nan"), float("nan")))
         return PairView(anchored=True, pending=bool(pair.challengers), steps_since=step - a.step,
                         travelled_m=abs(odo[0] - a.odo_i) + abs(odo[1] - a.odo_j),
                         sigma_rot_rad=rot, sigma_pos_m=pos, **tries)

@@ -16,20 +16,13 @@ import numpy as np
 from ..errors import CerpeError
 from ..geometry import rotation_angle
 from ..knobs import Group, knob
+from ..reasons import DEGRADATIONS
 from .anchors import SETS_ANCHOR
 # verdicts that confirm a direct estimate: those that set an anchor and "" (no verdict given); any other
 # (unverified, rejected, weak, or a verdict added later) does not
 CONFIRMED: frozenset[str] = SETS_ANCHOR | {""}
-GRAPH_DEGRADATIONS: dict[str, str] = {
-    "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
-                                   "positive definite: the estimate is not added to the pair's graph",
-    "graph:out-of-order": "a direct estimate between poses the graph does not have (the other robot's pose of that "
-                          "step is missing, or the step precedes the graph's newest node): not added",
-    "graph:solver-failed": "GTSAM threw or returned a non-finite estimate or covariance: the graph restarts from "
-                           "its last good estimate (the estimate that caused it is dropped)",
-    "graph:not-converged": "the graph did not settle within graph_max_iterations updates: the last good estimate "
-                           "is kept (the graph restarts from it, the new estimate dropped)",
-}
+# the degradations the graph counts (described in cerpe.reasons.DEGRADATIONS)
+GRAPH_DEGRADATIONS: tuple[str, ...] = tuple(k for k in DEGRADATIONS if k.startswith("graph:"))
 
 
 class GraphError(CerpeError, ValueError):

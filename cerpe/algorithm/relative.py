@@ -1,86 +1,72 @@
-"""The pair side of a robot: peers' poses, shared estimates, and this step's relative pose per peer.
+"""Phases 7b and 8 of a robot: peers' poses, shared estimates, and this step's relative pose per peer.
 
-A mixin of :class:`~cerpe.algorithm.agent.RobotAgent` (it reads the agent's step state, odometry
-``X``, anchors, pose logs and graphs); apart so that the agent stays one step's phases. Phase 8
-(:meth:`PairSide.relative`) is the paper's switch: this step's verified direct estimate, else the
+:class:`Relative` is a collaborator of :class:`~cerpe.algorithm.agent.RobotAgent` over the robot's
+:class:`~cerpe.algorithm.state.RobotState` (odometry ``X``, anchors, pose logs, graphs). Phase 8
+(:meth:`Relative.relative`) is the paper's switch: this step's verified direct estimate, else the
 pair's anchor propagated with both odometries; with ``backend="graph"`` the pair's pose graph
 (:mod:`~cerpe.algorithm.graph`) answers instead. Phase 7b is our extension (``share_estimates``).
 """
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
 from ..geometry import pose_cov_sigmas
 from ..messages import EstimateMessage
+from ..reasons import join, split
 from ..records import PairRecord
 from .anchors import NOT_REPORTED, Anchor, PairAnchors
 from .bridge import PoseLog
 from .direct import REASON_SHARED, SHARED_VIA, direct_estimates, estimate_message, shared_estimate
 from .graph import DirectEstimate, PairGraph, graph_model
 from .poses import check_pose
-from .state import PairInfo, StepState
+from .state import PairInfo, RobotState, StepState
 
-if TYPE_CHECKING:  # the attributes the mixin reads, owned by RobotAgent (and GateSide)
-    from ..protocols import MetricDepthSource
-    from .config import AlgorithmConfig
+from .config import AlgorithmConfig
+from .gating import Gate
 
 # reasons that describe the switch's anchors only (the graph keeps every direct estimate)
-_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held"})
+_SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held", "direct-rejected",
+                          "direct-weak"})
 
 
-class PairSide:
-    """Phases 7b (shared estimates) and 8 (relative poses) of :class:`~cerpe.algorithm.agent.RobotAgent`."""
+class Relative:
+    """Phases 7b (shared estimates) and 8 (relative poses) of one robot over its
+    :class:`~cerpe.algorithm.state.RobotState`; ``depth``: its depth source (the graph's noise model
+    reads its ``rel_sigma``), ``gate``: its :class:`~cerpe.algorithm.gating.Gate` (was the gate open,
+    what did the request bring)."""
 
-    if TYPE_CHECKING:
-        config: AlgorithmConfig
-        robot_id: str
-        index: int
-        X: np.ndarray
-        depth: MetricDepthSource
-        pairs: dict[str, PairAnchors]
-        shared_anchors: dict[str, list[Anchor]]
-        shared_steps: dict[str, int]
-        graphs: dict[str, PairGraph]
-        sigmas: dict[str, tuple[float, float]]
-        poses: dict[str, tuple[int, np.ndarray]]
-        pose_logs: dict[str, PoseLog]
-        odometers: dict[str, tuple[int, np.ndarray, float]]
-
-        def _state(self) -> StepState: ...
-        def _where(self, step: int | None = None) -> str: ...
-        def degrade(self, what: str) -> None: ...
-        def gate_open(self, other: str) -> bool: ...
-        def note_request(self, other: str, info: PairInfo) -> None: ...
+    def __init__(self, state: RobotState, config: AlgorithmConfig, depth: Any, gate: Gate) -> None:
+        self.s, self.config, self.depth, self.gate = state, config, depth, gate
 
     # ---------------------------------------------------------------- 8. relative poses
     def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
         """Remember robot ``other``'s broadcast odometry pose (and advance its odometer)."""
-        X = check_pose(X_j, f"{self._where()}: pose of robot {other}")
-        self.poses[other] = (int(step), X)
-        self._odometer(other, int(step), X)
-        if other != self.robot_id:
-            self._log_pose(other, int(step), X)
+        X = check_pose(X_j, f"{self.s.where()}: pose of robot {other}")
+        self.s.poses[other] = (int(step), X)
+        self.odometer(other, int(step), X)
+        if other != self.s.robot_id:
+            self.log_pose(other, int(step), X)
 
     def reply_missing(self, other: str) -> None:
         """The gate opened for ``other`` but no reply came (request or reply lost): counted; the anchor is carried."""
-        self.degrade("msg:reply-missing")
-        self._state().gate_reason.setdefault(other, "reply-missing")
+        self.s.degrade("msg:reply-missing")
+        self.s.step_state().gate_reason.setdefault(other, "reply-missing")
 
-    def _log_pose(self, other: str, step: int, X: np.ndarray) -> None:
-        log_ = self.pose_logs.setdefault(other, PoseLog())
+    def log_pose(self, other: str, step: int, X: np.ndarray) -> None:
+        log_ = self.s.pose_logs.setdefault(other, PoseLog())
         for _ in range(log_.note(step, X)):  # anchors stored with a bridged pose, now interpolated
-            self.degrade("pose:bridged-next")
+            self.s.degrade("pose:bridged-next")
 
-    def _odometer(self, robot: str, step: int, X: np.ndarray) -> float:
+    def odometer(self, robot: str, step: int, X: np.ndarray) -> float:
         """Metres ``robot`` travelled: the distances between the successive poses seen of it, summed."""
-        last = self.odometers.get(robot)
+        last = self.s.odometers.get(robot)
         if last is not None and step <= last[0]:
             return last[2]
         total = 0.0 if last is None else last[2] + float(np.linalg.norm(X[:3, 3] - last[1]))
-        self.odometers[robot] = (step, X[:3, 3].copy(), total)
+        self.s.odometers[robot] = (step, X[:3, 3].copy(), total)
         return total
 
     # ---------------------------------------------------------------- 7b. shared estimates (our extension)
@@ -88,38 +74,38 @@ class PairSide:
         """The ``estimate`` frame of this step (``CerpeConfig.share_estimates``): the best own direct
         estimate of each peer (wire index ``index_of``) whose image this pass held; sent even when it
         holds none, so that a peer waiting for it need not wait out its deadline."""
-        st = self._state()
+        st = self.s.step_state()
         best = {}
         for other in st.collab_index:
             ests, _ = self._directs(st, other)
             if ests and other in index_of:
                 best[int(index_of[other])] = ests[0]
-        return estimate_message(self.index, st.step, best).encode()
+        return estimate_message(self.s.index, st.step, best).encode()
 
     def note_estimates(self, other: str, msg: EstimateMessage) -> None:
         """Keep robot ``other``'s estimate of this robot from its ``estimate`` frame of this step, unless
         it stands on fewer than ``anchor_min_inliers`` registration inliers (where this robot placed
         nothing itself, the peer's estimates stood on a median of 24 inliers in the synthetic indoor
         development runs, with 4-10 times the median rotation error of the robot's own)."""
-        st = self._state()
+        st = self.s.step_state()
         if int(msg.step) != st.step:
-            self.degrade("msg:stale-estimate")
+            self.s.degrade("msg:stale-estimate")
             return
-        got = shared_estimate(msg, self.index)
+        got = shared_estimate(msg, self.s.index)
         bar = int(self.config.anchors.min_inliers)
         if got is not None and not 0 <= got[3] < bar:  # below the bar that replaces an anchor: too weak
             st.shared[other] = got
-            self.shared_steps[other] = st.step
+            self.s.shared_steps[other] = st.step
 
     def _directs(self, st: StepState, other: str) -> tuple[list, str]:
         """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
         if other not in st.directs:
-            st.directs[other] = direct_estimates(st, other, self.X, self.degrade)
+            st.directs[other] = direct_estimates(st, other, self.s.X, self.s.degrade)
         return st.directs[other]
 
     def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
         """This step's estimate of ``T_cj_ci`` for robot ``other``: ``(source, T or None, reason, anchor_step)``."""
-        st = self._state()
+        st = self.s.step_state()
         t0 = time.perf_counter()
         try:
             return self._relative(st, other)
@@ -128,7 +114,7 @@ class PairSide:
 
     def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
         """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
-        st = self._state()
+        st = self.s.step_state()
         source, T, reason, anchor_step = self.relative(other)
         cov = switch = None
         if self.config.backend.kind == "graph":
@@ -136,10 +122,10 @@ class PairSide:
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
         info = st.pair_info.get(other, PairInfo())
         if st.requested.get(other):  # what the request policy reads: did the image place, did it set the anchor?
-            self.note_request(other, info)
+            self.gate.note_request(other, info)
         best, via = st.memory_scores.get(other, (float("nan"), -1))
-        return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.robot_id, other=other,
-                          gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate_open(other),
+        return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.s.robot_id, other=other,
+                          gate_score=float(st.scores.get(other, float("nan"))), gate_open=self.gate.gate_open(other),
                           source=source, T_cj_ci=T, reason=reason, bytes_pair=int(bytes_pair),
                           anchor_step=anchor_step, gate_score_memory=float(best), gate_via=int(via),
                           direct_via=info.direct_via, anchor_verdict=info.verdict,
@@ -158,44 +144,43 @@ class PairSide:
         """
         t0 = time.perf_counter()
         info = st.pair_info.get(other, PairInfo())
-        graph = self.graphs.get(other)
+        graph = self.s.graphs.get(other)
         if graph is None:
             model = graph_model(self.config.backend.graph, self.config.anchors.max_unverified_steps)
-            graph = self.graphs[other] = PairGraph(model, getattr(self.depth, "rel_sigma", None))
-        pose = self.poses.get(other)
+            graph = self.s.graphs[other] = PairGraph(model, getattr(self.depth, "rel_sigma", None))
+        pose = self.s.poses.get(other)
         direct = (None if info.direct_T is None else
                   DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
                                  depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
-        res = graph.step(st.step, self.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
+        res = graph.step(st.step, self.s.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
                          direct, own_ok=st.ego_status in ("ok", "first"), stamp_s=st.stamp_s)
         st.timings["graph"] += time.perf_counter() - t0
         for what in res.degradations:
-            self.degrade(what)
+            self.s.degrade(what)
         if res.cov is not None:  # what the request policy reads at the next gate
             pos, rot = pose_cov_sigmas(res.cov)
-            self.sigmas[other] = (float(rot), float(pos))
+            self.s.sigmas[other] = (float(rot), float(pos))
         # what the switch said about its own anchors does not describe the graph's estimate
-        reason = "; ".join(r for r in reason.split("; ") if r and r not in _SWITCH_ONLY
-                           and not r.startswith(("direct-rejected", "direct-weak")))
+        reason = join(*(r for r in split(reason) if r not in _SWITCH_ONLY))
         if res.T_cj_ci is None:
             if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
-                return "none", None, "; ".join(r for r in (reason, "unverified-expired") if r), res.node_step, None
+                return "none", None, join(reason, "unverified-expired"), res.node_step, None
             if res.uninformative:  # predicted rotation sigma above graph.max_sigma_rot_rad (an odometry failure)
-                return "none", None, "; ".join(r for r in (reason, "graph-uninformative") if r), res.node_step, None
+                return "none", None, join(reason, "graph-uninformative"), res.node_step, None
             return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
         return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
 
     def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
-        pose = self.poses.get(other)
+        pose = self.s.poses.get(other)
         fresh = pose is not None and pose[0] == st.step
-        pair = self.pairs.setdefault(other, PairAnchors(self.config.anchors))
+        pair = self.s.pairs.setdefault(other, PairAnchors(self.config.anchors))
         info = st.pair_info.setdefault(other, PairInfo())
-        if fresh and self.config.anchors.verify and pair.track(st.step, self.X, pose[1]):
-            self.degrade("anchor:odometry-jump")
+        if fresh and self.config.anchors.verify and pair.track(st.step, self.s.X, pose[1]):
+            self.s.degrade("anchor:odometry-jump")
         # the peer's estimate (share_estimates) only while the pair's anchor (if any) is not this robot's own:
         # it stands in where this robot cannot place the peer, it does not replace what this robot measured
-        asked, shared = st.requested.get(other, self.gate_open(other)), st.shared.get(other)
-        if pair.anchor is not None and not any(pair.anchor is a for a in self.shared_anchors.get(other, ())):
+        asked, shared = st.requested.get(other, self.gate.gate_open(other)), st.shared.get(other)
+        if pair.anchor is not None and not any(pair.anchor is a for a in self.s.shared_anchors.get(other, ())):
             shared = None
         if asked or shared is not None:
             ests, reason = self._directs(st, other) if asked else ([], "")
@@ -205,23 +190,23 @@ class PairSide:
             if ests:
                 via, T = ests[0][1], ests[0][2]
                 info.direct_via, info.direct_T, info.direct_inliers = via, T, ests[0][3]
-                plog = self.pose_logs.get(other)
+                plog = self.s.pose_logs.get(other)
                 X_j = pose[1] if fresh else None if plog is None else plog.exact(st.step)
                 bridged = X_j is None
                 if bridged:  # the pose message is lost: bridge it (corrected when the next one comes)
                     X_j = None if plog is None else plog.bridged(st.step)
                     if X_j is None:
-                        self.degrade("anchor:not-stored-pose-missing")
-                        return "direct", T, "anchor-not-stored: pose message missing", st.step
-                    self.degrade("pose:bridged")
-                est = Anchor(st.step, T, self.X.copy(), X_j.copy(), self._odometer(self.robot_id, st.step, self.X),
-                             self.odometers[other][2] if other in self.odometers else 0.0, st.metric_scale,
+                        self.s.degrade("anchor:not-stored-pose-missing")
+                        return "direct", T, "anchor-not-stored", st.step
+                    self.s.degrade("pose:bridged")
+                est = Anchor(st.step, T, self.s.X.copy(), X_j.copy(), self.odometer(self.s.robot_id, st.step, self.s.X),
+                             self.s.odometers[other][2] if other in self.s.odometers else 0.0, st.metric_scale,
                              int(info.direct_inliers))
                 if bridged:
                     plog.defer(st.step, est)
                 if via == SHARED_VIA:  # remembered while it may become the anchor (a candidate that verifies late)
                     keep = int(self.config.anchors.candidate_steps) + 1
-                    self.shared_anchors[other] = [a for a in self.shared_anchors.get(other, ())
+                    self.s.shared_anchors[other] = [a for a in self.s.shared_anchors.get(other, ())
                                                   if a is pair.anchor or st.step - a.step <= keep] + [est]
                 if not self.config.anchors.verify:  # the paper: every direct estimate is the new anchor
                     pair.anchor, info.verdict = est, "unchecked"
@@ -231,25 +216,23 @@ class PairSide:
                 check = pair.offer(est, others)
                 info.verdict, info.check_rot_rad, info.check_trans_m = check.verdict, check.rot_rad, check.trans_m
                 if check.verdict == "replaced":
-                    self.degrade("anchor:replaced")
+                    self.s.degrade("anchor:replaced")
                 for _ in check.dropped:  # unverified candidates the group that verified left out
-                    self.degrade("anchor:inconsistent")
+                    self.s.degrade("anchor:inconsistent")
                 # nothing agrees with it yet; a peer's estimate (share_estimates), which this robot could not
                 # check by a registration of its own, is held until another estimate verifies it
                 if check.verdict == "unverified" and (not self.config.anchors.report_unverified or via == SHARED_VIA):
                     return "none", None, "unverified-held", -1
                 if check.verdict == "weak":  # agrees, but on too few inliers to replace the anchor
-                    self.degrade("anchor:weak")
-                    reason = (f"direct-weak: {est.inliers} inliers < {self.config.anchors.min_inliers}; "
-                              f"the anchor of step {check.against} is kept")
+                    self.s.degrade("anchor:weak")
+                    reason = "direct-weak"
                 elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
                     why = ("unverified" if check.verdict == "unverified" else "",
                            REASON_SHARED if via == SHARED_VIA else "")
-                    return "direct", T, "; ".join(w for w in why if w), st.step
+                    return "direct", T, join(*why), st.step
                 else:
-                    self.degrade("anchor:inconsistent")
-                    reason = (f"direct-rejected: {check.rot_rad:.2f} rad / {check.trans_m:.2f} m from the anchor "
-                              f"of step {check.against}")
+                    self.s.degrade("anchor:inconsistent")
+                    reason = "direct-rejected"
         else:  # closed; say why when there was no score at all (lost, blank, mismatched)
             reason = f"request-skipped: {st.skipped[other]}" if other in st.skipped else st.gate_reason.get(other, "")
             if not self.config.backend.propagate:
@@ -260,15 +243,15 @@ class PairSide:
         if anchor is None:
             why = ("no-anchor" if not pair.candidates else
                    "unverified-expired" if self.config.anchors.report_unverified else "unverified-held")
-            return "none", None, "; ".join(r for r in (reason, why) if r), -1
+            return "none", None, join(reason, why), -1
         if pose is None:
-            return "none", None, "; ".join(r for r in (reason, "no-pose-of-other") if r), -1
+            return "none", None, join(reason, "no-pose-of-other"), -1
         X_j = pose[1]
         if not fresh:
-            self.degrade("pose:stale")
-            reason = "; ".join(r for r in (reason, "stale-pose") if r)
-            plog = self.pose_logs.get(other)
+            self.s.degrade("pose:stale")
+            reason = join(reason, "stale-pose")
+            plog = self.s.pose_logs.get(other)
             X_j = X_j if plog is None else plog.bridged(st.step)  # the last velocity carried on
         if not verified:
-            reason = "; ".join(r for r in (reason, "unverified") if r)
-        return "propagated", anchor.propagated(self.X, X_j), reason, anchor.step
+            reason = join(reason, "unverified")
+        return "propagated", anchor.propagated(self.s.X, X_j), reason, anchor.step

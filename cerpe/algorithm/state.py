@@ -1,13 +1,20 @@
-"""What one robot holds during a step (:class:`StepState`) and between steps besides its memory (:class:`Previous`)."""
+"""What one robot holds: between steps (:class:`RobotState`, the one place of a robot's state) and during
+a step (:class:`StepState`, dropped when the next begins); :class:`Previous` and :class:`PairInfo` are parts."""
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from ..memory import KeyframeMemory
 from ..messages import ImageReply
 from ..protocols import BackboneOutput, FrameContext, View
+from .config import AlgorithmError
+
+log = logging.getLogger("cerpe.algorithm.agent")
 
 
 @dataclass
@@ -74,3 +81,72 @@ class Previous:
     step: int
     view: View
     T_odom_cam: np.ndarray
+
+
+@dataclass
+class RobotState:
+    """Everything one robot remembers between steps (a new agent starts from nothing) and its step in progress.
+
+    The agent's phases (:class:`~cerpe.algorithm.agent.RobotAgent`, its
+    :class:`~cerpe.algorithm.gating.Gate` and :class:`~cerpe.algorithm.relative.Relative`) read and
+    write it; nothing else does.
+
+    Attributes:
+        robot_id, index: this robot's id and wire index.
+        memory: its bounded keyframe memory (keyframes carry their backbone memos).
+        X: ``[4,4]`` odometry pose ``T_odom_cam`` (identity at the first step).
+        last_scale: the last memory scale estimated (the fallback of later up-to-scale passes).
+        ego_base, ego_speeds: the step-length rule's history: ``(stamp, X)`` of the last pose the odometry
+            set, and the accepted steps ``(speed, stamp, t)``, newest last.
+        previous: the last placed frame, the tracking reference.
+        pairs: peer -> anchor verification state (:class:`~cerpe.algorithm.anchors.PairAnchors`).
+        shared_anchors: peer -> the recent candidates the peer's shared estimates made.
+        shared_steps: peer -> step of its last usable shared estimate.
+        graphs, sigmas: ``backend.kind graph``: peer -> pose graph, and its last (rot rad, pos m) sigma.
+        asks: peer -> what the requests to it brought (:class:`~cerpe.algorithm.policy.AskLog`).
+        poses: robot -> ``(step, X)`` of its last broadcast pose.
+        last_descriptors: peer -> ``(step, values)`` of its last descriptor scored fresh.
+        pose_logs: peer -> poses seen (messages, replies): bridges a lost one.
+        odometers: robot -> ``(step, position, metres travelled)``.
+        kf_wire: keyframe step -> its codec values (the memory-aware gate with a compressed descriptor).
+        last_step: the step of the last record (None before the first).
+        cur: this step's :class:`StepState` (None between :meth:`begin` and the first step).
+    """
+
+    robot_id: str
+    index: int
+    memory: KeyframeMemory
+    X: np.ndarray = field(default_factory=lambda: np.eye(4))
+    last_scale: float = float("nan")
+    ego_base: tuple[float, np.ndarray] | None = None
+    ego_speeds: list[tuple[float, float, np.ndarray]] = field(default_factory=list)
+    previous: Previous | None = None
+    pairs: dict[str, Any] = field(default_factory=dict)
+    shared_anchors: dict[str, list] = field(default_factory=dict)
+    shared_steps: dict[str, int] = field(default_factory=dict)
+    graphs: dict[str, Any] = field(default_factory=dict)
+    sigmas: dict[str, tuple[float, float]] = field(default_factory=dict)
+    asks: dict[str, Any] = field(default_factory=dict)
+    poses: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)
+    last_descriptors: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)
+    pose_logs: dict[str, Any] = field(default_factory=dict)
+    odometers: dict[str, tuple[int, np.ndarray, float]] = field(default_factory=dict)
+    kf_wire: dict[int, np.ndarray] = field(default_factory=dict)
+    last_step: int | None = None
+    cur: StepState | None = None
+
+    def where(self, step: int | None = None) -> str:
+        """``robot <id> step <t>`` for messages (this step's when ``step`` is None)."""
+        s = self.cur.step if step is None and self.cur is not None else step
+        return f"robot {self.robot_id} step {s}"
+
+    def step_state(self) -> StepState:
+        """This step's state; :class:`AlgorithmError` when no step is in progress."""
+        if self.cur is None:
+            raise AlgorithmError(f"robot {self.robot_id}: no step in progress (call begin_step first)")
+        return self.cur
+
+    def degrade(self, what: str) -> None:
+        """Count a run-time fault in this step's record (names in :data:`cerpe.reasons.DEGRADATIONS`)."""
+        self.step_state().degradations.append(what)
+        log.debug("%s: %s", self.where(), what)

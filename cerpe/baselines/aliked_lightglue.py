@@ -88,7 +88,7 @@ class AlikedLightGlue:
         t1 = time.perf_counter()
         n_i, n_j = len(f_i["keypoints"]), len(f_j["keypoints"])
         if n_i < 2 or n_j < 2:
-            return PairEstimate(None, f"too-few-keypoints:{n_i},{n_j}", timings_s={"features": t1 - t0})
+            return PairEstimate(None, "too-few-keypoints", timings_s={"features": t1 - t0})
         m = self.matcher({"image0": f_i, "image1": f_j})["matches"]
         p_i = f_i["keypoints"][m[:, 0]].astype(np.float64)  # pixels of the input images
         p_j = f_j["keypoints"][m[:, 1]].astype(np.float64)

@@ -22,7 +22,8 @@ class PairEstimate:
     Attributes:
         T_cj_ci: ``[4,4]`` estimate of the paper's ``T_ij`` (maps points of camera i
             into camera j) with a unit-norm translation (direction only), or None.
-        reason: why there is no estimate (``"too-few-matches:12<15"``...); ``""`` otherwise.
+        reason: why there is no estimate (a token of :data:`cerpe.reasons.REASONS`: ``too-few-matches``...);
+            ``""`` otherwise.
         n_matches: tentative correspondences fed to RANSAC.
         n_inliers: RANSAC inliers that also pass the cheirality check.
         timings_s: stage name -> seconds.
@@ -80,7 +81,7 @@ def relative_pose_from_matches(
         raise BaselineError(f"matched point arrays differ in shape: {pts_i.shape} vs {pts_j.shape}")
     m = len(pts_i)
     if m < max(min_matches, 5):
-        return PairEstimate(None, f"too-few-matches:{m}<{max(min_matches, 5)}", n_matches=m)
+        return PairEstimate(None, "too-few-matches", n_matches=m)
     n_i = cv2.undistortPoints(pts_i[:, None, :], K_i.K, None).reshape(-1, 2)
     n_j = cv2.undistortPoints(pts_j[:, None, :], K_j.K, None).reshape(-1, 2)
     f_mean = 0.25 * (K_i.fx + K_i.fy + K_j.fx + K_j.fy)
@@ -94,7 +95,7 @@ def relative_pose_from_matches(
     n_inl, R, t, mask_pose = cv2.recoverPose(E, n_i, n_j, np.eye(3), mask=mask.copy())
     n_inl = int(n_inl)
     if n_inl < min_inliers:
-        return PairEstimate(None, f"too-few-inliers:{n_inl}<{min_inliers}", n_matches=m, n_inliers=n_inl)
+        return PairEstimate(None, "too-few-inliers", n_matches=m, n_inliers=n_inl)
     t = np.asarray(t, np.float64).ravel()
     nt = np.linalg.norm(t)
     if not np.isfinite(nt) or nt < 1e-12 or not np.all(np.isfinite(R)):

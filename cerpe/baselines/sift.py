@@ -57,7 +57,7 @@ class SiftRansac:
         p_j, d_j = self._features(image_j)
         t1 = time.perf_counter()
         if d_i is None or d_j is None or len(p_i) < 2 or len(p_j) < 2:
-            return PairEstimate(None, f"too-few-keypoints:{len(p_i)},{len(p_j)}",
+            return PairEstimate(None, "too-few-keypoints",
                                 timings_s={"features": t1 - t0})
         knn = self._matcher.knnMatch(d_i, d_j, k=2)
         good = [m[0] for m in knn if len(m) == 2 and m[0].distance < self.conf["ratio"] * m[1].distance]

@@ -251,7 +251,7 @@ def _baseline_steps(method: str, seed: int, every: int = 1) -> tuple[StepSource,
                     if evaluated:
                         est = bl.estimate(imgs[i], robots[i].intrinsics, imgs[j], robots[j].intrinsics)
                     else:  # independent per frame: a step nobody evaluates need not be computed
-                        est = PairEstimate(None, f"not-evaluated (evaluation.every={every})")
+                        est = PairEstimate(None, "not-evaluated")
                     dt = float(sum(est.timings_s.values()))
                     timing[i]["backbone"] += dt
                     for (a, b, T) in ((i, j, est.T_cj_ci),
@@ -260,7 +260,7 @@ def _baseline_steps(method: str, seed: int, every: int = 1) -> tuple[StepSource,
                             step=t, stamp_s=float(robots[a].stamps_s[t]), ego=robots[a].robot_id,
                             other=robots[b].robot_id, gate_score=float("nan"), gate_open=True,
                             source="direct" if T is not None else "none", T_cj_ci=T,
-                            reason=est.reason, bytes_pair=reply_bytes[b],
+                            reason=est.reason, bytes_pair=reply_bytes[b], direct_inliers=int(est.n_inliers),
                         )
             recs = [
                 RobotRecord(step=t, stamp_s=float(r.stamps_s[t]), robot=r.robot_id,
