@@ -365,7 +365,7 @@ def calibration_figure(frames: pd.DataFrame, table: pd.DataFrame, title: str = "
 
 
 def message_loss_figure(summary: pd.DataFrame, title: str = ""):
-    """Success and errors against the fraction of frames lost (issue 21, figure 5b).
+    """Success and errors against the fraction of frames lost.
 
     Args:
         summary: :func:`cerpe.pipeline.message_loss.main`'s rows: ``method, loss,

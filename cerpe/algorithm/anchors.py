@@ -1,4 +1,4 @@
-"""Anchor verification for one ordered pair of robots (issue 18, item 2).
+"""Anchor verification for one ordered pair of robots.
 
 A direct estimate ``T_cj_ci`` becomes the pair's **anchor** (what propagation
 starts from) only when something independent agrees with it:

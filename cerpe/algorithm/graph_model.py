@@ -136,7 +136,7 @@ class GraphModel:
     odo_accel_noise_sigmas: float = 2.0
     # direct estimates: the floors (all a depth sensor's estimates get) as calibrated before depth kinds; the
     # gains on the depth source's rel_sigma per depth kind from dev runs (see the commits that set them)
-    # direct_rot_rad with kernel_k (chosen together, issue 20, graph replays of the eight dev-* runs): at 0.004
+    # direct_rot_rad with kernel_k (chosen together, graph replays of the eight dev-* runs): at 0.004
     # and k 3 the dev direct rotation errors (median 0.005, p90 0.026 rad) made every estimate a 10-30 sigma
     # outlier to every other, so the Cauchy kernel kept whichever it started from (indoor-s1: a first,
     # unverified estimate 0.69 m off held for nine steps); 0.006 with k 2 lets them pull on each other

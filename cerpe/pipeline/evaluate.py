@@ -52,7 +52,7 @@ from .gatequality import (COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP, best_f1,
 
 log = logging.getLogger(__name__)
 
-RIGHT_ROT_RAD = 0.3  # an estimate farther off in rotation is wrong (``right_pct``; issue 18's "0.3 rad wrong")
+RIGHT_ROT_RAD = 0.3  # an estimate farther off in rotation is wrong (``right_pct``)
 
 POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",

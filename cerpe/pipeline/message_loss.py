@@ -1,4 +1,4 @@
-"""The message-loss sweep (issue 21, figure 5b): CERPE's results against the fraction of frames lost.
+"""The message-loss sweep: CERPE's results against the fraction of frames lost.
 
 One pipeline step, :func:`main` ``(conf, paths) -> Path``: for each loss probability
 and loss seed, ``cerpe run --loss P --loss-seed N`` on the first ``encounters``
