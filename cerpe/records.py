@@ -115,8 +115,8 @@ class PairRecord:
             "check_rot_rad": self.check_rot_rad, "check_trans_m": self.check_trans_m,
         }
         row.update(_pose_cols("est", self.T_cj_ci))
-        pos, rot = (pose_cov_sigmas(self.cov) if self.cov is not None and np.all(np.isfinite(self.cov))
-                    else (float("nan"), float("nan")))
+        # per block: a covariance may know the rotation only (NaN translation block: scale unknown)
+        pos, rot = pose_cov_sigmas(self.cov) if self.cov is not None else (float("nan"), float("nan"))
         row.update({"sigma_pos_m": float(pos), "sigma_rot_rad": float(rot), "direct_inliers": int(self.direct_inliers)})
         row.update(_pose_cols("dir", self.T_direct))
         row["request_skipped"] = bool(self.request_skipped)

@@ -18,6 +18,9 @@ from ..geometry import rotation_angle
 from ..knobs import Group, knob
 from ..reasons import DEGRADATIONS
 from .anchors import SETS_ANCHOR
+# the translation sigma of a direct estimate or an odometry increment without metric depth (their unit is
+# the pass's own): no information next to the unit-length translations of such passes
+UNSCALED_TRANS_SIGMA = 100.0
 # verdicts that confirm a direct estimate: those that set an anchor and "" (no verdict given); any other
 # (unverified, rejected, weak, or a verdict added later) does not
 CONFIRMED: frozenset[str] = SETS_ANCHOR | {""}
@@ -113,6 +116,11 @@ class GraphModel:
     and walk) exceeds ``drift_chi2``, the walk into each of them gets ``drift_inflate`` times the
     growth of its innovation as translation sigma and the window is solved afresh from the newest
     one; the next confirmed estimate off the same way (cosine, chi-square) is followed at once.
+
+    Without metric depth (``metric`` False: a depth source that never has any) every pass has a unit
+    of its own, so neither the direct estimates' translations nor the odometry's share a scale: their
+    translation blocks get :data:`UNSCALED_TRANS_SIGMA` (no information) and the graph fuses rotations
+    only; the agent reports the switch's translation direction with the graph's rotation.
     """
 
     # calibrated on development data only (lab/graph_calibrate.py: `cerpe dev` runs of the real
@@ -170,6 +178,7 @@ class GraphModel:
     drift_inflate: float = 2.0
     max_unverified_steps: int = 2
     max_sigma_rot_rad: float = 0.5
+    metric: bool = True
     max_iterations: int = 100
     converge_tol: float = 1e-6
     relinearize_threshold: float = 1e-3
@@ -206,10 +215,11 @@ class GraphModel:
 GRAPH_MODEL = GraphModel()
 
 
-def graph_model(conf: GraphModel, max_unverified_steps: int) -> GraphModel:
-    """:data:`GRAPH_MODEL` with the knobs of ``backend.graph`` and the anchors' ``max_unverified_steps``."""
+def graph_model(conf: GraphConfig, max_unverified_steps: int, metric: bool = True) -> GraphModel:
+    """:data:`GRAPH_MODEL` with the knobs of ``backend.graph``, the anchors' ``max_unverified_steps`` and
+    whether the depth source has metric depth at all (``metric``)."""
     return dataclasses.replace(GRAPH_MODEL, window_nodes=int(conf.window_nodes), kernel_k=float(conf.kernel_k),
-                               max_unverified_steps=int(max_unverified_steps))
+                               max_unverified_steps=int(max_unverified_steps), metric=bool(metric))
 
 
 @dataclass(frozen=True)
@@ -300,6 +310,8 @@ def odometry_cov(conf: GraphModel, T_prev_cur: np.ndarray, n_steps: int, lost_st
     if conf.odo_jump_rad > 0 and a > conf.odo_jump_rad * n:  # not a motion, a failure: the walk may jump by it
         var_r += a**2
         var_t += (d + conf.odo_lost_trans) ** 2
+    if not conf.metric:  # translations in the units of their passes: no information
+        var_t = UNSCALED_TRANS_SIGMA**2
     return np.diag([var_r] * 3 + [var_t] * 3)
 
 
@@ -323,6 +335,10 @@ def direct_cov(conf: GraphModel, est: DirectEstimate) -> np.ndarray:
     if dist > 0 and along != across:
         w = T[:3, :3].T @ T[:3, 3] / dist  # the line between the cameras, in camera i (the perturbation's frame)
         cov[3:, 3:] += f**2 * (along**2 - across**2) * np.outer(w, w)
+    if not conf.metric:  # translations in the units of their passes: no information
+        cov[3:, :] = 0.0
+        cov[:, 3:] = 0.0
+        cov[3:, 3:] = np.eye(3) * UNSCALED_TRANS_SIGMA**2
     return cov
 
 

@@ -119,7 +119,7 @@ class Relative:
         cov = switch = None
         if self.config.backend.kind == "graph":
             switch = (source, T, reason, anchor_step)
-            source, T, reason, anchor_step, cov = self._graph_relative(st, other, reason)
+            source, T, reason, anchor_step, cov = self._graph_relative(st, other, switch)
         info = st.pair_info.get(other, PairInfo())
         if st.requested.get(other):  # what the request policy reads: did the image place, did it set the anchor?
             self.gate.note_request(other, info)
@@ -134,19 +134,24 @@ class Relative:
                           request_skipped=other in st.skipped)
 
     def _graph_relative(self, st: StepState, other: str,
-                        reason: str) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
+                        switch: tuple) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
         """``backend="graph"``: the pair graph's estimate instead of the switch's (:mod:`~cerpe.algorithm.graph`).
 
         The graph takes this step's odometry poses and this step's direct estimate (the
         one anchor verification judged, whatever its verdict: the robust kernel weighs
         it). ``source`` is ``direct`` when that estimate became a node, ``propagated``
         otherwise, ``none`` before the first node; ``anchor_step`` is the newest node's step.
+        ``switch``: the switch's ``(source, T, reason, anchor_step)`` of this step. Without metric
+        depth (the depth source's ``metric`` False) the graph fuses rotations only: it reports where
+        the switch does, with the switch's translation direction and its own rotation (translation
+        covariance unknown: NaN), so it is never worse than the estimates it fuses.
         """
+        metric = bool(getattr(self.depth, "metric", True))
         t0 = time.perf_counter()
         info = st.pair_info.get(other, PairInfo())
         graph = self.s.graphs.get(other)
         if graph is None:
-            model = graph_model(self.config.backend.graph, self.config.anchors.max_unverified_steps)
+            model = graph_model(self.config.backend.graph, self.config.anchors.max_unverified_steps, metric)
             graph = self.s.graphs[other] = PairGraph(model, getattr(self.depth, "rel_sigma", None))
         pose = self.s.poses.get(other)
         direct = (None if info.direct_T is None else
@@ -159,9 +164,11 @@ class Relative:
             self.s.degrade(what)
         if res.cov is not None:  # what the request policy reads at the next gate
             pos, rot = pose_cov_sigmas(res.cov)
-            self.s.sigmas[other] = (float(rot), float(pos))
+            self.s.sigmas[other] = (float(rot), float(pos) if metric else float("nan"))
+        if not metric:
+            return self._unscaled(res, switch)
         # what the switch said about its own anchors does not describe the graph's estimate
-        reason = join(*(r for r in split(reason) if r not in _SWITCH_ONLY))
+        reason = join(*(r for r in split(switch[2]) if r not in _SWITCH_ONLY))
         if res.T_cj_ci is None:
             if res.expired:  # nothing confirmed yet and the newest node too old: said as the switch says it
                 return "none", None, join(reason, "unverified-expired"), res.node_step, None
@@ -169,6 +176,18 @@ class Relative:
                 return "none", None, join(reason, "graph-uninformative"), res.node_step, None
             return "none", None, reason or ("no-direct-estimate-yet" if direct is None else "graph-empty"), -1, None
         return "direct" if res.measured else "propagated", res.T_cj_ci, reason, res.node_step, res.cov
+
+    @staticmethod
+    def _unscaled(res: Any, switch: tuple) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
+        """Without metric depth: the graph's rotation on the switch's estimate, where the switch has one."""
+        source, T, reason, anchor_step = switch
+        if T is None or res.T_cj_ci is None:
+            return source, T, reason, anchor_step, None
+        out = np.array(T, dtype=np.float64, copy=True)
+        out[:3, :3] = res.T_cj_ci[:3, :3]
+        cov = np.full((6, 6), np.nan)
+        cov[:3, :3] = res.cov[:3, :3]  # the rotation block; the translation's scale is unknown
+        return source, out, reason, anchor_step, cov
 
     def _relative(self, st: StepState, other: str) -> tuple[str, np.ndarray | None, str, int]:
         pose = self.s.poses.get(other)
