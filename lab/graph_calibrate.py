@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from cerpe.algorithm.graph_model import GRAPH_MODEL, GraphModel, odometry_noise_var, sensor_like
+from cerpe.pipeline.devreport import GRAPH_BOUND
 from cerpe.pipeline.evaluate import frame_errors, load_run, summarise
 
 from .graphdev import (
@@ -185,7 +186,7 @@ def grid(sets: list[Path], base: GraphModel, odo: list[float], direct: list[floa
             run = load_run(d / "cerpe-graph")
             s = summary(replay_run(d / "cerpe-graph", conf), run.every)
             c, w = ref.get((d.name, "cerpe"), {}), ref.get((d.name, "cerpe-wo-em"), {})
-            bound = 0.7 * min(c.get("e_pos_m", np.nan), w.get("e_pos_m", np.nan))
+            bound = GRAPH_BOUND * c.get("e_pos_m", np.nan)
             rows.append({"odo_x": o, "direct_x": di, "kernel_k": k, "along": al, "set": d.name, **s,
                          "cerpe_e_pos": c.get("e_pos_m"), "woem_e_pos": w.get("e_pos_m"), "bound_e_pos": bound,
                          "cerpe_e_rot": c.get("e_rot_rad"), "cerpe_success": c.get("success_pct"),

@@ -200,7 +200,7 @@ def test_dev_runs_the_five_methods_and_skips_absent_sets(fixture_report):
     # the checks of a synthetic set: no real-set comparison, the carried and graph checks from the table
     checks = res["checks"]
     assert set(checks["check"]) == {"wrong estimate carried", "graph e_pos vs CERPE",
-                                    "graph e_pos vs CERPE, w/o EM's frames", "graph e_rot / success vs CERPE"}
+                                    "graph e_pos vs w/o EM, its frames", "graph e_rot / success vs CERPE"}
     assert set(checks["result"]) <= {"pass", "FAIL", "n/a"} and "development checks:" in lines[-3]
     assert list(pd.read_csv(out / "report_checks.csv")["check"]) == list(checks["check"])
     assert pd.read_csv(out / "report-before.csv").shape[0] == len(dev.METHODS) == 5
@@ -232,16 +232,16 @@ def _method_row(set_name: str, method: str, **kw) -> dict:
 
 def test_checks_known_answers() -> None:
     """The development checks on a hand-made table: a real set CERPE wins, one where the baseline's wrong poses
-    "succeed" (CERPE places nothing: a failure, not n/a), the graph bound either side of 0.7 x min, and n/a
-    for a missing method."""
+    "succeed" (CERPE places nothing: a failure, not n/a), the graph either side of what it fuses (never worse:
+    1.0 x CERPE over all frames, 1.0 x w/o EM over w/o EM's frames), and n/a for a missing method."""
     from cerpe.pipeline.devreport import checks
 
     t = pd.DataFrame([
         _method_row("win", "cerpe", e_rot_rad=0.02, e_rot_median_rad=0.02, success_pct=64.3, e_pos_m=1.0),
         _method_row("win", "aliked-lightglue", e_rot_rad=1.2, e_rot_median_rad=1.0, success_pct=42.9),
         _method_row("win", "cerpe-wo-em", e_pos_m=0.8, e_rot_rad=0.02, success_pct=50.0, e_pos_on_woem_frames_m=0.8),
-        _method_row("win", "cerpe-graph", e_pos_m=0.55, e_rot_rad=0.02, success_pct=64.3,
-                    e_pos_on_woem_frames_m=0.57),
+        _method_row("win", "cerpe-graph", e_pos_m=0.95, e_rot_rad=0.02, success_pct=64.3,
+                    e_pos_on_woem_frames_m=0.81),
         _method_row("room", "cerpe", success_pct=0.0),
         _method_row("room", "aliked-lightglue", e_rot_rad=1.1, e_rot_median_rad=1.2, success_pct=74.0),
         _method_row("dark", "cerpe", e_rot_rad=0.05, e_rot_median_rad=0.04, success_pct=20.0),
@@ -249,7 +249,7 @@ def test_checks_known_answers() -> None:
         _method_row("none", "cerpe"),
         _method_row("none", "aliked-lightglue"),
         _method_row("synth", "cerpe", e_pos_m=0.6, e_rot_rad=0.01, success_pct=60.0, carried_longest_steps=4),
-        _method_row("synth", "cerpe-graph", e_pos_m=0.5, e_rot_rad=0.011, success_pct=60.0),
+        _method_row("synth", "cerpe-graph", e_pos_m=0.61, e_rot_rad=0.011, success_pct=60.0),
     ])
     c = checks(t, real=["win", "room", "dark", "none"]).set_index(["check", "set"])["result"]
     assert c[("real set: CERPE vs ALIKED+LG", "win")] == "pass"
@@ -258,26 +258,26 @@ def test_checks_known_answers() -> None:
     assert c[("real set: CERPE vs ALIKED+LG", "none")] == "n/a"  # neither has one
     assert ("real set: CERPE vs ALIKED+LG", "synth") not in c  # not a real set
     assert c[("wrong estimate carried", "win")] == "pass" and c[("wrong estimate carried", "synth")] == "FAIL"
-    assert c[("graph e_pos vs CERPE", "win")] == "pass"  # 0.55 <= 0.7 x min(1.0, 0.8) = 0.56
-    assert c[("graph e_pos vs CERPE", "synth")] == "FAIL"  # 0.5 > 0.7 x 0.6 (no w/o EM row: CERPE alone)
+    assert c[("graph e_pos vs CERPE", "win")] == "pass"  # 0.95 <= 1.0 x 1.0
+    assert c[("graph e_pos vs CERPE", "synth")] == "FAIL"  # 0.61 > 1.0 x 0.6
     assert c[("graph e_rot / success vs CERPE", "win")] == "pass" and c[("graph e_rot / success vs CERPE", "synth")] == "FAIL"
     assert ("graph e_pos vs CERPE", "room") not in c  # no cerpe-graph row
-    # like for like on w/o EM's frames: 0.57 > 0.7 x 0.8 = 0.56 although the plain e_pos check passes; no w/o EM row: none
-    assert c[("graph e_pos vs CERPE, w/o EM's frames", "win")] == "FAIL"
-    assert ("graph e_pos vs CERPE, w/o EM's frames", "synth") not in c
+    # like for like on w/o EM's frames: 0.81 > 1.0 x 0.8 although the plain e_pos check passes; no w/o EM row: none
+    assert c[("graph e_pos vs w/o EM, its frames", "win")] == "FAIL"
+    assert ("graph e_pos vs w/o EM, its frames", "synth") not in c
     t.loc[t["set"] == "win", "e_pos_m"] = float("nan")  # no predicted scale (RGB only): the GT-scale figures
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_m"] = 0.3
-    t.loc[(t["set"] == "win") & (t["method"] == "cerpe"), "e_pos_gt_scale_m"] = 0.4
+    t.loc[(t["set"] == "win") & (t["method"] == "cerpe"), "e_pos_gt_scale_m"] = 0.25
     t.loc[t["set"] == "win", "e_pos_on_woem_frames_m"] = float("nan")  # no predicted scale on any frame
     c = checks(t, real=["win"]).set_index(["check", "set"])
-    assert c.loc[("graph e_pos vs CERPE", "win"), "result"] == "FAIL"
+    assert c.loc[("graph e_pos vs CERPE", "win"), "result"] == "FAIL"  # 0.3 > 1.0 x 0.25
     assert "(GT scale)" in c.loc[("graph e_pos vs CERPE", "win"), "figures"]
-    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "result"] == "n/a"  # no GT-scale figures either
+    assert c.loc[("graph e_pos vs w/o EM, its frames", "win"), "result"] == "n/a"  # no GT-scale figures either
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-graph"), "e_pos_gt_scale_on_woem_frames_m"] = 0.2
     t.loc[(t["set"] == "win") & (t["method"] == "cerpe-wo-em"), "e_pos_gt_scale_on_woem_frames_m"] = 0.3
     c = checks(t, real=["win"]).set_index(["check", "set"])
-    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "result"] == "pass"  # 0.2 <= 0.7 x 0.3
-    assert c.loc[("graph e_pos vs CERPE, w/o EM's frames", "win"), "figures"] == "0.200 vs 0.7 x 0.300 (GT scale)"
+    assert c.loc[("graph e_pos vs w/o EM, its frames", "win"), "result"] == "pass"  # 0.2 <= 1.0 x 0.3
+    assert c.loc[("graph e_pos vs w/o EM, its frames", "win"), "figures"] == "0.200 vs 1 x 0.300 (GT scale)"
 
 
 def test_a_dev_run_exports_to_colmap_through_its_manifest(fixture_report, tmp_path):
