@@ -1,10 +1,10 @@
 """The offline backbone: classical multi-view geometry behind :class:`cerpe.protocols.PoseBackbone`.
 
-The stand-in for VGGT's joint pass over ``[current] + memory + collaborators``:
-XFeat features (cached by content), mutual-nearest-neighbour matches (cached by
-both images' content), then a metric reconstruction on the views' depth priors
-(:mod:`.reconstruction`), and an image-only one (:mod:`.two_view`) where no prior
-anchors or to add views the metric one left out. Per view: the pose in the current
+The stand-in for VGGT's joint pass over ``[current] + memory + collaborators``.
+It computes XFeat features (cached by content) and mutual-nearest-neighbour matches
+(cached by both images' content). Then it builds a metric reconstruction on the views'
+depth priors (:mod:`.reconstruction`). An image-only one (:mod:`.two_view`) serves where
+no prior anchors, or adds views the metric one left out. Per view: the pose in the current
 camera's frame (``T_frame_cam[0] = I``), sparse depth of its inlier points and
 confidence ``n_obs / (1 + reprojection error px)``.
 
@@ -62,7 +62,8 @@ class OfflineGeometryBackbone:
     ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``, ``cross-fallback-placed``,
     ``cross-fallback-none`` (collaborators asked for with ``try_hard`` that the joint pass left, placed
     or not apart),
-    ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``); statistics only, they change no result.
+    ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``).
+    They are statistics only and change no result.
     """
 
     def __init__(self, conf: OfflineConfig | None = None, encoder: XFeatEncoder | None = None,
