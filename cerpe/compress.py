@@ -117,7 +117,7 @@ def fit_projection(X: np.ndarray, k: int = 384, random_dims: int = 512, pq_m: in
 
     The directions are those of the second moment (no mean removed), so the cosine of
     two projections approximates the descriptors' own cosine (the gate's score) rather
-    than that of their deviations from a development mean; ``k`` is capped at ``n - 1``
+    than that of their deviations from a development mean. ``k`` is capped at ``n - 1``
     and ``D``. ``k + random_dims`` must be a multiple of ``pq_m``.
     """
     import faiss

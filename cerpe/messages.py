@@ -71,7 +71,7 @@ class DescriptorMessage:
     one fp32 scale); receivers use the decoded, quantised values. A *coded* dtype
     (``pca-int8``, ``pca-pq``: :mod:`cerpe.compress`) carries ``descriptor`` as the
     ``[n] uint8`` code of a fitted projection and quantiser, identified by
-    ``codebook`` (u32); only a :class:`~cerpe.compress.DescriptorCodec` of that
+    ``codebook`` (u32). Only a :class:`~cerpe.compress.DescriptorCodec` of that
     codebook turns it back into values; the empty code is the zero descriptor.
     """
 

@@ -197,7 +197,7 @@ class DescriptorEncoder(Protocol):
 
     Images without usable texture (blank, black, constant grey): an encoder may
     define ``flags(view) -> frozenset[str]``, called by the algorithm right after
-    ``describe(view)``; ``"low-texture"`` in it marks the frame blank (the gate
+    ``describe(view)``. ``"low-texture"`` in it marks the frame blank (the gate
     stays closed, the frame is never a keyframe nor a tracking reference, and it
     is counted). A zero descriptor is treated the same way.
     """

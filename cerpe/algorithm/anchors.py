@@ -250,7 +250,7 @@ class PairAnchors:
         fewer than ``min_inliers`` known inliers: the anchor stays), else rejected (or, the
         ``replace_after``-th agreeing rejection, it replaces the anchor). Without:
         verified when one of ``others`` agrees with it or it is the newest of the
-        group the recent candidates verify (:func:`consensus`); rejected when that
+        group the recent candidates verify (:func:`consensus`). Rejected when that
         group leaves it out (its newest member becomes the anchor); else kept as a
         candidate (unverified).
         """

@@ -8,7 +8,7 @@ pose graph under a robust kernel, so a wrong estimate is down-weighted, not foll
 
 Formulation. Robot i's odometry poses ``X_i`` live in its own frame ``o_i``, robot j's
 broadcast poses ``X_j`` in ``o_j``; the unknown offset ``O = T_oj_oi`` relates them:
-``T_cj_ci(t) = X_j(t)^-1 O X_i(t)``. With exact odometry ``O`` is constant; an odometry
+``T_cj_ci(t) = X_j(t)^-1 O X_i(t)``. With exact odometry ``O`` is constant. An odometry
 error ``eps`` (body frame of the new camera) of one increment moves it by a right
 perturbation ``Ad(O^-1 X_j) eps_j - Ad(X_i) eps_i``, so ``O`` is a random walk whose
 steps both odometries' noise models give (:func:`odometry_cov`). The graph has one
@@ -197,7 +197,7 @@ class PairGraph:
     def _speed_change(self, which: int, inc: np.ndarray, s0: int, s1: int) -> float:
         """The acceleration (m/s^2) increment ``inc`` (steps ``s0 -> s1``) implies beyond odometry noise:
         its length against the robot's previous speed kept, less ``odo_accel_noise_sigmas`` times the
-        per-step translation sigma, over its duration squared; 0 where a stamp is missing (then the
+        per-step translation sigma, over its duration squared. 0 where a stamp is missing (then the
         next increment is not judged either). Keeps the new speed."""
         t0, t1 = self._stamps.get(s0), self._stamps.get(s1)
         if t0 is None or t1 is None or not t1 > t0:

@@ -189,7 +189,7 @@ def backoff_steps(conf: PolicyConfig, misses: int, anchored: bool = True) -> int
 
 def try_hard(view: PairView) -> bool:
     """Whether a pair asks the backbone for its costliest registration of this step's image (see the
-    module docstring): never with an anchor; else when ``n = view.hard_misses - HARD_TRIES + 1`` (requests that
+    module docstring): never with an anchor. Without one, when ``n = view.hard_misses - HARD_TRIES + 1`` (requests that
     placed nothing since the last anchor-setting estimate) is at most 0, a power of two up to
     ``HARD_BACKOFF_MAX_STEPS``, or a multiple of it beyond."""
     if view.anchored:

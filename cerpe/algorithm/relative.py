@@ -72,7 +72,7 @@ class Relative:
     # ---------------------------------------------------------------- 7b. shared estimates (our extension)
     def estimate_frame(self, index_of: Mapping[str, int]) -> bytes:
         """The ``estimate`` frame of this step (``CerpeConfig.share_estimates``): the best own direct
-        estimate of each peer (wire index ``index_of``) whose image this pass held; sent even when it
+        estimate of each peer (wire index ``index_of``) whose image this pass held. Sent even when it
         holds none, so that a peer waiting for it need not wait out its deadline."""
         st = self.s.step_state()
         best = {}

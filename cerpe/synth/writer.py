@@ -346,7 +346,7 @@ def suite_lock(out: Path):
 
     Two processes asked for the same suite (two robots started on one host from one
     synthetic manifest, or ``cerpe bench`` beside ``make paper``) would otherwise render
-    into the same ``.partial`` folder; the second now waits for the first and then finds
+    into the same ``.partial`` folder. The second now waits for the first and then finds
     the suite made. The lock is released when its holder exits, even by a crash (``flock``).
     """
     import fcntl

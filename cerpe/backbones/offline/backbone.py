@@ -56,14 +56,15 @@ class OfflineGeometryBackbone:
         learned: the cross-robot learned matcher to use (default: a :class:`.cross.LearnedMatcher`
             of ``conf.cross``, built on first use).
 
-    ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
-    ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
-    ``cross-learned`` (collaborator views the learned stage ran for),
-    ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``, ``cross-fallback-placed``,
-    ``cross-fallback-none`` (collaborators asked for with ``try_hard`` that the joint pass left, placed
-    or not apart),
-    ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``).
-    They are statistics only and change no result.
+    ``counts`` accumulates events over passes; they are statistics only and change no result:
+
+    * ``dense-refined``, ``dense-refused:<why>``, ``merged``, ``merge-refused:<why>``;
+    * ``cross-registered``, ``cross-none``, ``cross-learned-pairs``, ``cross-unscaled``,
+      ``cross-bad-image``, ``cross-image-size-mismatch``;
+    * ``cross-learned``: collaborator views the learned stage ran for;
+    * ``cross-fallback-placed``, ``cross-fallback-none``: collaborators asked for with
+      ``try_hard`` that the joint pass left, placed apart or not;
+    * ``cross-appearance-checked``, ``cross-appearance-rejected``.
     """
 
     def __init__(self, conf: OfflineConfig | None = None, encoder: XFeatEncoder | None = None,
@@ -91,7 +92,7 @@ class OfflineGeometryBackbone:
 
         With ``cross.enabled``, views whose role is ``"collaborator"`` stay out of the
         own reconstruction and are registered against single own views
-        (``BackboneOutput.registrations``); a collaborator without intrinsics is left
+        (``BackboneOutput.registrations``). A collaborator without intrinsics is left
         unplaced (``no-intrinsics``) rather than refused, as is one whose image this backbone
         refuses (``bad-image``) or whose size is not its intrinsics' (``image-size-mismatch``)."""
         S = len(views)

@@ -298,7 +298,7 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, j
 def check_joint_placements(p: Pass, rec: Any, collab: Sequence[int], reasons: list[str]) -> None:
     """The appearance check of the collaborator views ``collab`` that the joint (metric)
     reconstruction ``rec`` placed, against the current view (0), on the points it observes
-    (``rec.obs``; none for a two-view placement scaled by the current view's prior); a view that fails leaves
+    (``rec.obs``; none for a two-view placement scaled by the current view's prior). A view that fails leaves
     ``rec`` (in place) with reason :data:`~cerpe.protocols.REASON_APPEARANCE`. An image-only
     reconstruction (unit not the metre) is not checked."""
     if rec is None or not rec.metric or 0 not in rec.T:

@@ -106,7 +106,7 @@ def log_ratio(p: Pass, d: int, T_0_d: np.ndarray) -> tuple[float, int]:
 
     It is taken over the ``n`` vote grid pixels of ``d`` (its moving ones left out) that land
     inside the current view with a grey level within ``VOTE_GREY_TOL`` and a ratio within a
-    factor ``1 + FRAME_SCALE_MAX``; ``r = 0`` when ``n < FRAME_SCALE_MIN_PIXELS``."""
+    factor ``1 + FRAME_SCALE_MAX``. ``r = 0`` when ``n < FRAME_SCALE_MIN_PIXELS``."""
     D0 = np.asarray(p.views[0].depth_m, np.float64)
     H0, W0 = p.feats[0].image_hw
     grey = blurred_greys(p, (d, 0), VOTE_BLUR_SIGMA)
