@@ -65,8 +65,9 @@ class AnchorConfig(Group):
 
     Take two estimates ``k`` steps apart, between which the robots travelled ``d`` metres together.
     They agree when the rotation between them is at most ``rot_tol_rad + ROT_DRIFT_PER_STEP * k``
-    and their translations differ by at most ``trans_tol_m + TRANS_DRIFT_FRAC * d + TRANS_REL *
-    |t|`` (``|t|`` the newer estimate's distance between the cameras).
+    and their translations differ by at most
+    ``trans_tol_m + TRANS_DRIFT_FRAC * d + TRANS_REL * |t|``
+    (``|t|`` the newer estimate's distance between the cameras).
     """
 
     verify: bool = knob(True, "a direct estimate becomes the anchor only when something independent agrees "
