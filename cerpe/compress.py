@@ -1,14 +1,14 @@
 """Compressed descriptor messages: a fitted linear projection, then int8 or product quantisation.
 
 The global descriptor (8192 values for the offline descriptor, 8448 for SALAD) is
-projected onto ``k`` principal directions of development descriptors (:func:`fit_projection`,
-training-free: an eigen-decomposition, made once by ``cerpe fit projection``
-and shipped beside the k-means centres), and what those directions leave (the residual)
-onto ``random_dims`` random Gaussian directions (Johnson-Lindenstrauss: inner products
-preserved in expectation, whatever the scene); the concatenation is L2-normalised. A
-projection of the development data alone loses what unseen scenes have of their own (on
-held-out development scenes the gate's ROC AUC fell by 0.05-0.08); the random part keeps
-it. Two codecs quantise the projected vector:
+projected onto ``k`` principal directions of development descriptors (:func:`fit_projection`).
+The fit is training-free: an eigen-decomposition, made once by ``cerpe fit projection``
+and shipped beside the k-means centres. What those directions leave (the residual) is
+projected onto ``random_dims`` random Gaussian directions (Johnson-Lindenstrauss: inner
+products preserved in expectation, whatever the scene). The concatenation is L2-normalised.
+A projection fitted on development data alone loses what unseen scenes have of their own,
+and the gate then ranks their overlap worse; the random part keeps it. Two codecs quantise
+the projected vector:
 
 * ``pca-int8``: every value as int8 with one float32 scale per vector
   (code: ``scale f32 | int8 values``);
@@ -16,12 +16,12 @@ it. Two codecs quantise the projected vector:
   centroids per sub-space, k-means by ``faiss``, fitted with the projection).
 
 A code travels in a :class:`~cerpe.messages.DescriptorMessage` of dtype ``pca-int8`` /
-``pca-pq`` with the projection's ``codebook`` id (CRC32 of its arrays); the gate scores
+``pca-pq`` with the projection's ``codebook`` id (CRC32 of its arrays). The gate scores
 the cosine of the *decoded* vectors (:meth:`DescriptorCodec.wire`). A zero descriptor
 (a blank frame) is the empty code and decodes to zeros. Decoding never raises on the
-receiver's side: :meth:`DescriptorCodec.decode` returns ``(None, fault)`` for another
+receiver's side. :meth:`DescriptorCodec.decode` returns ``(None, fault)`` for another
 codec (``codec-mismatch``), another codebook (``codebook-mismatch``) or a code that does
-not decode (``bad-code``); the robot counts ``descriptor:<fault>`` and keeps the gate closed.
+not decode (``bad-code``). The robot counts ``descriptor:<fault>`` and keeps the gate closed.
 """
 from __future__ import annotations
 
@@ -52,10 +52,10 @@ class Projection:
     """A fitted projection and its product quantiser (see the module docstring).
 
     Shapes: ``components [k, D]`` (orthonormal rows: the leading principal directions of
-    the second moment of development descriptors), ``pq_centroids [pq_m, 256, dims / pq_m]``;
-    ``random_dims`` rows of a Gaussian matrix drawn from ``random_seed`` project the residual
-    (not stored: drawn on load, and part of :attr:`codebook`, so two robots whose NumPy
-    draws differ see a codebook mismatch instead of wrong scores).
+    the second moment of development descriptors), ``pq_centroids [pq_m, 256, dims / pq_m]``.
+    ``random_dims`` rows of a Gaussian matrix drawn from ``random_seed`` project the residual.
+    They are not stored but drawn on load, and are part of :attr:`codebook`. So two robots
+    whose NumPy draws differ see a codebook mismatch instead of wrong scores.
     """
 
     components: np.ndarray
@@ -117,7 +117,7 @@ def fit_projection(X: np.ndarray, k: int = 384, random_dims: int = 512, pq_m: in
 
     The directions are those of the second moment (no mean removed), so the cosine of
     two projections approximates the descriptors' own cosine (the gate's score) rather
-    than that of their deviations from a development mean; ``k`` is capped at ``n - 1``
+    than that of their deviations from a development mean. ``k`` is capped at ``n - 1``
     and ``D``. ``k + random_dims`` must be a multiple of ``pq_m``.
     """
     import faiss

@@ -343,7 +343,7 @@ def propagate_relative_pose(
 
 # --------------------------------------------------------------------------- pose covariances
 # A pose covariance here is ``[6,6]`` over the tangent ``xi = [omega, v]`` (rotation first, as
-# GTSAM orders it) of a right perturbation: the true pose is ``T @ exp(xi)``, i.e. the error
+# GTSAM orders it) of a right perturbation. The true pose is ``T @ exp(xi)``, i.e. the error
 # is expressed in the frame of the pose's own camera (``ci`` for ``T_cj_ci``).
 def se3_adjoint(T: ArrayLike) -> Array:
     """``[...,6,6]`` adjoint of ``T`` in the ``[omega, v]`` order: ``T exp(xi) T^-1 = exp(Ad_T xi)``."""

@@ -1,8 +1,8 @@
 """Bounded keyframe memory of one robot (paper Sec. III-B, Algorithm 1 "Memory Management").
 
-The rule (paper Eq. keyframe selection): with ``c`` the cosine similarity of the
-current descriptor to the *most recent* keyframe's descriptor and ``Delta`` the
-step gap to it, the current frame becomes a keyframe when the memory is empty or
+The rule (paper Eq. keyframe selection): let ``c`` be the cosine similarity of the
+current descriptor to the *most recent* keyframe's descriptor, and ``Delta`` the
+step gap to it. The current frame becomes a keyframe when the memory is empty or
 
     (c < tau_m and Delta > delta_k)  or  c < tau_k
 
@@ -33,9 +33,9 @@ class KeyframeMemoryError(CerpeError, ValueError):
 class MemoryConfig(Group):
     """The keyframe rule's parameters (the paper's ``tau_m``, ``tau_k``, ``Delta_k``, ``L``).
 
-    ``delta_k``: the paper says "fixed" without a value; 3 steps is 0.3 s at the 10 Hz of the CAD
-    and OpenMARS data: a multi-view backbone needs baseline between the views it triangulates, and at
-    urban speeds (5-15 m/s) 0.3 s gives 1.5-4.5 m between keyframes while a memory of 5 still spans
+    ``delta_k``: the paper says "fixed" without a value. 3 steps is 0.3 s at the 10 Hz of the CAD
+    and OpenMARS data. A multi-view backbone needs baseline between the views it triangulates: at
+    urban speeds (5-15 m/s) 0.3 s gives 1.5-4.5 m between keyframes. A memory of 5 then still spans
     only 1.5-2 s, so the newest keyframe (through which ego-motion is composed) stays close to the
     current view. ``tau_m``/``tau_k`` None: the descriptor's calibrated values (the paper's 0.9 / 0.2
     are SALAD's); :class:`KeyframeMemory` needs them resolved.

@@ -10,13 +10,13 @@ Frame layout (little endian), shared by every message type::
     payload        ...
     crc32   u32    4 B   (over everything before it)
 
-The paper's broadcast ``m_i^t = (i, X_i^t, d_i^t)`` travels as two frames: the
-:class:`DescriptorMessage` before the joint backbone pass (the gate needs it) and
+The paper's broadcast ``m_i^t = (i, X_i^t, d_i^t)`` travels as two frames. The
+:class:`DescriptorMessage` goes before the joint backbone pass (the gate needs it) and
 the :class:`PoseMessage` right after it (propagation needs ``X_j^t`` of the same
 step). This costs one extra 14-byte header per robot and step and keeps one
 backbone pass per step. With ``CerpeConfig.share_estimates`` (our extension, off in the paper's
 rows) a robot also broadcasts, right after its pose, the direct estimates it made this step
-(:class:`EstimateMessage`, 62 B each, possibly none), so that a robot whose own pass could not
+(:class:`EstimateMessage`, 62 B each, possibly none). So a robot whose own pass could not
 place its peer's image still gets the pair's pose. A garbled frame (bad magic, length or checksum) raises
 :class:`MessageError` in :func:`decode`; transports count and drop such frames.
 """
@@ -71,7 +71,7 @@ class DescriptorMessage:
     one fp32 scale); receivers use the decoded, quantised values. A *coded* dtype
     (``pca-int8``, ``pca-pq``: :mod:`cerpe.compress`) carries ``descriptor`` as the
     ``[n] uint8`` code of a fitted projection and quantiser, identified by
-    ``codebook`` (u32); only a :class:`~cerpe.compress.DescriptorCodec` of that
+    ``codebook`` (u32). Only a :class:`~cerpe.compress.DescriptorCodec` of that
     codebook turns it back into values; the empty code is the zero descriptor.
     """
 

@@ -66,11 +66,10 @@ class View:
             backbone corrects a per-frame scale only above a threshold
             (``frame_scale_min_rel_sigma``); it never asks which source made the depth.
         try_hard: for a collaborator view, the robot asks for the backbone's costliest
-            registration of it: the gate opened for it, the robot holds no anchor of the
-            sender yet (first contact, or a pair that lost its anchor), and tries that failed
-            back off
-            (:func:`cerpe.algorithm.policy.try_hard`). A backbone may ignore it; the offline
-            backbone's ``cross.fallback`` reads it.
+            registration of it. It does so when the gate opened for it and the robot holds no
+            anchor of the sender yet (first contact, or a pair that lost its anchor); tries
+            that failed back off (:func:`cerpe.algorithm.policy.try_hard`). A backbone may
+            ignore it; the offline backbone's ``cross.fallback`` reads it.
     """
 
     key: Hashable
@@ -89,7 +88,7 @@ class Registration:
 
     The offline backbone registers each collaborator image against each of the
     robot's own views that carries a depth prior (current frame, previous frame,
-    keyframes), so the algorithm can (a) place a collaborator seen only from an
+    keyframes). So the algorithm can (a) place a collaborator seen only from an
     older keyframe, through that keyframe's odometry pose, and (b) verify a
     direct estimate by the agreement of two registrations through different views.
 
@@ -198,7 +197,7 @@ class DescriptorEncoder(Protocol):
 
     Images without usable texture (blank, black, constant grey): an encoder may
     define ``flags(view) -> frozenset[str]``, called by the algorithm right after
-    ``describe(view)``; ``"low-texture"`` in it marks the frame blank (the gate
+    ``describe(view)``. ``"low-texture"`` in it marks the frame blank (the gate
     stays closed, the frame is never a keyframe nor a tracking reference, and it
     is counted). A zero descriptor is treated the same way.
     """
@@ -227,11 +226,11 @@ class MetricDepthSource(Protocol):
 
     Returns None when the source has nothing for this frame (the scale step then
     skips it and counts it). Optionally ``rel_sigma: float``: the relative sigma of a depth
-    map's scale and low-frequency shape (what a whole placement's points share, so it
-    moves a camera placed on them along its line of sight; per-pixel noise averages out):
-    about 0.1 for a monocular network, ~0 for a depth sensor. The pose graph's noise model
+    map's scale and low-frequency shape, about 0.1 for a monocular network, ~0 for a depth
+    sensor. That error is what a whole placement's points share, so it moves a camera placed
+    on them along its line of sight; per-pixel noise averages out. The pose graph's noise model
     reads it (:class:`cerpe.algorithm.graph.DirectEstimate`); absent: unknown. Optionally
-    ``metric: bool``: False for a source that never has metric depth (no depth at all): the
+    ``metric: bool``: False for a source that never has metric depth (no depth at all). The
     algorithm then takes s = 1 (counted ``scale:unit-no-depth``) instead of giving up.
     """
 

@@ -46,11 +46,11 @@ class PairRecord:
         source: ``direct`` (from this step's pass), ``propagated`` (an anchor moved
             by both robots' ego-motion) or ``none``.
         T_cj_ci: the estimate of the paper's ``T_ij`` (metric), None when ``none``.
-        reason: tokens of :data:`cerpe.reasons.REASONS` joined by ``"; "``: why there is no
-            direct estimate although the gate was open, or no estimate at all, or ``unverified``
-            (a direct estimate nothing confirmed yet, or its propagation), or ``direct-rejected``
-            (the direct estimate disagreed with the anchor, which is propagated instead);
-            ``""`` otherwise. Numbers are columns of their own, never in the reason.
+        reason: tokens of :data:`cerpe.reasons.REASONS` joined by ``"; "``. They say why there
+            is no direct estimate although the gate was open, or no estimate at all. Or they say
+            ``unverified`` (a direct estimate nothing confirmed yet, or its propagation), or
+            ``direct-rejected`` (the direct estimate disagreed with the anchor, which is
+            propagated instead). ``""`` otherwise. Numbers are columns of their own, never in the reason.
         bytes_pair: bytes of the image request and image reply for this pair.
         anchor_step: step of the anchor a propagated estimate comes from (-1 if none).
         gate_score_memory: best cosine of the other's descriptor against the ego's

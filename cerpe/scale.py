@@ -151,17 +151,18 @@ def recover_scale(
 class StepLengthRule:
     """When a metric ego-motion step is too slow after the motion before it to be believed.
 
-    A pass can place the current view on the wrong motion: a vehicle ahead that holds
-    most keypoints and surface, moving with the camera, makes a car at 8 m/s measure
-    1.7 m/s for as long as it stays in view (development CAD scenes); the scale looks
-    collapsed although every depth is right. Kinematics bound how fast a platform slows
-    down: a step's speed ``|t| / dt`` is implausible when it is below the reference speed
-    (the median of the last ``window`` accepted steps' speeds, once there are
-    ``min_history`` and they are steady) by more than a factor ``max_ratio`` AND by more than
-    ``max_accel_mps2`` times the time since the last accepted step plus ``noise_m / dt``
-    (the position noise of one step, so slow platforms and short steps never trip it).
-    The bound widens with every held step: a slower speed that persists is accepted once
-    the platform could have braked to it.
+    A pass can place the current view on the wrong motion. A vehicle ahead that holds
+    most keypoints and surface, moving with the camera, makes a fast car measure a
+    fraction of its speed for as long as it stays in view. The scale looks collapsed
+    although every depth is right. Kinematics bound how fast a platform slows down.
+
+    The reference speed is the median of the last ``window`` accepted steps' speeds, once
+    there are ``min_history`` and they are steady. A step's speed ``|t| / dt`` is implausible
+    when it is below the reference by more than a factor ``max_ratio``. It must also be below
+    by more than ``max_accel_mps2`` times the time since the last accepted step, plus
+    ``noise_m / dt``. That last term is the position noise of one step, so slow platforms and
+    short steps never trip the rule. The bound widens with every held step: a slower speed
+    that persists is accepted once the platform could have braked to it.
 
     Only drops are held. The failure is a collapse (a co-moving object, the at-rest motion
     prior of a sequence's first steps); a rise after collapsed steps is the odometry

@@ -1,12 +1,11 @@
 """How many threads torch may use inside one operation (intra-op), for every model cerpe runs.
 
 Why one setting, and why 1 by default: a convolution or attention on the CPU gives
-results that differ in the last bits with the number of intra-op threads (ALIKED
+results that differ in the last bits with the number of intra-op threads. ALIKED
 keypoints and LightGlue matches of the same images hash differently at 1 and 2
-threads), and those bits can flip a RANSAC or gate decision. With one fixed count the
-tables do not depend on the number of cores or on ``cerpe paper --jobs N``; parallelism
-comes from worker processes instead, which costs nothing here: two ALIKED+LightGlue runs of
-the SUN3D dev set on ``make paper``'s two workers took 133 s at 2 threads each and 125 s at 1.
+threads, and those bits can flip a RANSAC or gate decision. With one fixed count the
+tables do not depend on the number of cores or on ``cerpe paper --jobs N``. Parallelism
+comes from worker processes instead, which are no slower than more threads per process.
 
 ``CERPE_THREADS`` (environment) or a model's ``num_threads`` conf key overrides it,
 e.g. for one robot's online process on a many-core computer.

@@ -1,6 +1,6 @@
 """In-process message channel between robots of one team, optionally lossy.
 
-Frames are the exact wire bytes of :mod:`cerpe.messages`; the channel counts what
+Frames are the exact wire bytes of :mod:`cerpe.messages`. The channel counts what
 each sender puts on the wire (per message kind) and can, with seeded
 probabilities, drop a frame or garble it (flip bytes or truncate it) on its way
 to each receiver. Receivers decode with :func:`cerpe.messages.decode`; a frame

@@ -33,7 +33,7 @@ def format_tum_cov(stamps_s: np.ndarray, T: np.ndarray, cov: np.ndarray, stamp_d
     """The covariance companion of a TUM file: ``stamp c00 c01 ... c55`` per pose.
 
     ``cov [N,6,6]`` are right-perturbation covariances over ``[rotation, translation]``
-    (:mod:`cerpe.geometry`, "pose covariances") of the poses ``T [N,4,4]``; written in ROS
+    (:mod:`cerpe.geometry`, "pose covariances") of the poses ``T [N,4,4]``. Written in ROS
     ``PoseWithCovariance`` order and frame (:func:`~cerpe.geometry.pose_cov_in_parent`), so a
     line pairs with the TUM line of the same stamp as a ``PoseWithCovarianceStamped`` would.
     Non-finite covariances are written as ``nan``.

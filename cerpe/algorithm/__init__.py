@@ -12,11 +12,12 @@ One step of one robot (:class:`StepEngine`, over a :class:`Link`):
 5. metric scale from the keyframes' depth references (``scale``);
 6. odometry through the view the current one was measured against;
 7. broadcast a :class:`~cerpe.messages.PoseMessage`;
-8. per peer: direct estimate (gate open, the collaborator placed: through the joint
-   pass or its registrations against single own views), made the anchor when it is
-   verified (:mod:`~cerpe.algorithm.anchors`), else the anchor propagated with both
-   odometries (``propagation``); with ``backend="graph"`` (not in the paper) the pair's
-   robust pose graph over every direct estimate and both odometries instead (``graph``);
+8. per peer: a direct estimate when the gate opened and the collaborator was placed
+   (through the joint pass or its registrations against single own views). It becomes
+   the anchor when it is verified (:mod:`~cerpe.algorithm.anchors`); else the anchor is
+   propagated with both odometries (``propagation``). With ``backend="graph"`` (not in
+   the paper) the pair's robust pose graph over every direct estimate and both
+   odometries replaces this (``graph``);
 9. keyframe rule (:mod:`cerpe.memory`).
 
 :class:`Team` runs N engines in one process over the lossy
@@ -26,9 +27,10 @@ input raises :class:`AlgorithmError` naming robot, step and field.
 
 Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
 ``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``graph`` (the pose-graph
-back end, ``graph_sim`` a simulated stream for it), ``policy`` (when an open gate requests the image), ``agent`` (one robot's state and phases), ``link``
-(the link protocol), ``engine`` (the step), ``channel_link`` and ``team`` (in
-process). The reasons and counted degradations are :mod:`cerpe.reasons`.
+back end; ``graph_sim`` a simulated stream for it). ``policy`` decides when an open gate
+requests the image, ``agent`` holds one robot's state and phases, ``link`` the link
+protocol, ``engine`` the step; ``channel_link`` and ``team`` run a team in one process.
+The reasons and counted degradations are :mod:`cerpe.reasons`.
 """
 from ..reasons import DEGRADATIONS
 from .agent import RobotAgent

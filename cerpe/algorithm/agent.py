@@ -356,10 +356,12 @@ class RobotAgent:
         return self.s.X
 
     def _step_rule(self, st: StepState, X_new: np.ndarray) -> np.ndarray:
-        """``X_new``, or, when its step is implausibly slow after the accepted ones
-        (:class:`~cerpe.scale.StepLengthRule`), the last pose moved by the pass's rotation and
-        the last accepted step's translation direction at the reference speed (``ego_status``
-        ``held``, counted ``ego:step-held``; the pose graph counts the step as lost odometry).
+        """``X_new``, or a held pose when its step is implausibly slow after the accepted ones
+        (:class:`~cerpe.scale.StepLengthRule`).
+
+        The held pose is the last pose moved by the pass's rotation and by the last accepted
+        step's translation direction at the reference speed (``ego_status`` ``held``, counted
+        ``ego:step-held``; the pose graph counts the step as lost odometry).
 
         After a step without an estimate (``X`` kept) the history starts again: what the next
         step is measured from no longer is where the robot was."""

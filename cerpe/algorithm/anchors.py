@@ -7,19 +7,20 @@ starts from) only when something independent agrees with it:
   within a tolerance that grows with the steps since that anchor and with the
   distance both robots travelled since (odometry drifts);
 * with no anchor yet: a second estimate of the same step through another own
-  view (two registrations that agree), or the recent unverified candidates: the
-  largest group of them (with the estimate) that agree pairwise in rotation AND
-  translation, each carried to the newer one's step with both odometries
-  (:func:`consensus`), of ``verify_support`` + 1 estimates or more; the
-  estimates that agree with all of it in rotation must be at least
-  ``verify_fraction`` of the recent ones. Its newest member becomes the anchor
-  and the candidates outside it are rejected (a translation outlier with the
-  right rotation cannot block estimates that agree).
+  view (two registrations that agree);
+* or, with no anchor yet, the recent unverified candidates (:func:`consensus`).
+  Their largest group (with the estimate) that agree pairwise in rotation AND
+  translation, each carried to the newer one's step with both odometries, must
+  have ``verify_support`` + 1 estimates or more. The estimates that agree with
+  all of it in rotation must be at least ``verify_fraction`` of the recent ones.
+  Its newest member becomes the anchor and the candidates outside it are
+  rejected (a translation outlier with the right rotation cannot block
+  estimates that agree).
 
 An estimate that agrees with the anchor but stands on fewer than ``min_inliers``
 registration inliers is *weak*: the pair keeps the anchor (and propagates it
 instead of reporting the estimate). An estimate that disagrees with the anchor is
-*rejected* (the pair keeps the anchor); when ``replace_after`` rejected estimates
+*rejected* (the pair keeps the anchor). When ``replace_after`` rejected estimates
 of the last ``candidate_steps`` steps agree with the newest of them, the newest replaces it (persistent
 disagreement: the anchor was the wrong one). Before any anchor is
 verified, the newest unverified estimate may be propagated for at most
@@ -48,12 +49,10 @@ NOT_REPORTED: frozenset[str] = frozenset({"rejected", "weak"})
 SETS_ANCHOR: frozenset[str] = frozenset({"verified", "accepted", "replaced", "unchecked"})
 
 
-# Tolerances that grow with what separates two estimates: rotation per step between them (rad), translation
-# per metre the two robots travelled between them (odometers summed), translation per metre between the
-# cameras (an error in rotation or scale moves a far camera further).
-ROT_DRIFT_PER_STEP = 0.005
-TRANS_DRIFT_FRAC = 0.1
-TRANS_REL = 0.2
+# Tolerances that grow with what separates two estimates.
+ROT_DRIFT_PER_STEP = 0.005  # rotation per step between them (rad)
+TRANS_DRIFT_FRAC = 0.1  # translation per metre the two robots travelled between them (m/m; odometers summed)
+TRANS_REL = 0.2  # translation per metre between the cameras (m/m; rotation or scale errors move a far camera more)
 # Two registrations of one step through different own views verify each other within these (rad, m; the
 # translation tolerance also grows by TRANS_REL per metre between the cameras).
 AGREE_ROT_RAD = 0.15
@@ -64,10 +63,11 @@ AGREE_TRANS_M = 0.3
 class AnchorConfig(Group):
     """When a direct estimate becomes the pair's anchor (see the module docstring).
 
-    Two estimates ``k`` steps apart, between which the robots travelled ``d`` metres together, agree
-    when the rotation between them is at most ``rot_tol_rad + ROT_DRIFT_PER_STEP * k`` and their
-    translations differ by at most ``trans_tol_m + TRANS_DRIFT_FRAC * d + TRANS_REL * |t|`` (``|t|``
-    the newer estimate's distance between the cameras).
+    Take two estimates ``k`` steps apart, between which the robots travelled ``d`` metres together.
+    They agree when the rotation between them is at most ``rot_tol_rad + ROT_DRIFT_PER_STEP * k``
+    and their translations differ by at most
+    ``trans_tol_m + TRANS_DRIFT_FRAC * d + TRANS_REL * |t|``
+    (``|t|`` the newer estimate's distance between the cameras).
     """
 
     verify: bool = knob(True, "a direct estimate becomes the anchor only when something independent agrees "
@@ -173,9 +173,9 @@ def consensus(conf: AnchorConfig, pool: Sequence[Anchor]) -> list[int] | None:
     the one with the newest member; None when another as large shares no member
     with it: two hypotheses). It verifies when it has ``verify_support`` + 1
     members or more, and the estimates that agree in rotation with all of it
-    (members included) are at least ``verify_fraction`` of the others: an estimate
-    off in translation but with the right rotation neither joins the group nor
-    blocks it; one off in rotation counts against it.
+    (members included) are at least ``verify_fraction`` of the others. So an
+    estimate off in translation but with the right rotation neither joins the
+    group nor blocks it; one off in rotation counts against it.
     """
     n = len(pool)
     full, rot = np.eye(n, dtype=bool), np.eye(n, dtype=bool)
@@ -251,7 +251,7 @@ class PairAnchors:
         fewer than ``min_inliers`` known inliers: the anchor stays), else rejected (or, the
         ``replace_after``-th agreeing rejection, it replaces the anchor). Without:
         verified when one of ``others`` agrees with it or it is the newest of the
-        group the recent candidates verify (:func:`consensus`); rejected when that
+        group the recent candidates verify (:func:`consensus`). Rejected when that
         group leaves it out (its newest member becomes the anchor); else kept as a
         candidate (unverified).
         """

@@ -71,8 +71,8 @@ def intrinsics_tuple(K: CameraIntrinsics | None) -> tuple[float, float, float, f
 
 
 #: Largest distance of a reply's principal point from the image centre, as a fraction of the
-#: image size, before the image counts as being of another size than its intrinsics (the reply
-#: carries ``fx, fy, cx, cy`` but no size; a 2x resize moves ``cx`` by a quarter of the width).
+#: image size, before the image counts as being of another size than its intrinsics. The reply
+#: carries ``fx, fy, cx, cy`` but no size; a 2x resize moves ``cx`` by a quarter of the width.
 MAX_PRINCIPAL_OFFSET = 0.2
 
 
@@ -94,11 +94,13 @@ def received_view(other: str, reply: ImageReply) -> tuple[View | None, str]:
     The key differs from the owner's ``(other, step)`` because the pixels do:
     plug-ins shared by a simulated team may cache per key and must not mix the
     raw and the decoded image. Faults (counted as ``msg:<fault>`` by the robot):
-    ``unknown-reply-codec`` (a codec id this version does not know), ``truncated-jpeg``
-    (no end marker), ``undecodable-jpeg`` (the image, JPEG or WebP, does not decode),
-    ``image-size-mismatch`` (the principal point of the reply's intrinsics lies
-    more than :data:`MAX_PRINCIPAL_OFFSET` of the size off the decoded image's
-    centre, or the image is smaller than 8x8 pixels).
+
+    * ``unknown-reply-codec``: a codec id this version does not know;
+    * ``truncated-jpeg``: no end marker;
+    * ``undecodable-jpeg``: the image (JPEG or WebP) does not decode;
+    * ``image-size-mismatch``: the principal point of the reply's intrinsics lies more than
+      :data:`MAX_PRINCIPAL_OFFSET` of the size off the decoded image's centre, or the image
+      is smaller than 8x8 pixels.
     """
     if reply.codec not in REPLY_CODECS:  # a codec of another version: cannot be decoded here
         return None, "unknown-reply-codec"

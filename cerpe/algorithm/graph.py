@@ -8,13 +8,13 @@ pose graph under a robust kernel, so a wrong estimate is down-weighted, not foll
 
 Formulation. Robot i's odometry poses ``X_i`` live in its own frame ``o_i``, robot j's
 broadcast poses ``X_j`` in ``o_j``; the unknown offset ``O = T_oj_oi`` relates them:
-``T_cj_ci(t) = X_j(t)^-1 O X_i(t)``. With exact odometry ``O`` is constant; an odometry
+``T_cj_ci(t) = X_j(t)^-1 O X_i(t)``. With exact odometry ``O`` is constant. An odometry
 error ``eps`` (body frame of the new camera) of one increment moves it by a right
 perturbation ``Ad(O^-1 X_j) eps_j - Ad(X_i) eps_i``, so ``O`` is a random walk whose
 steps both odometries' noise models give (:func:`odometry_cov`). The graph has one
-variable ``O_k`` per step with a direct estimate (a *node*): between consecutive nodes a
-``BetweenFactorPose3`` (identity, the walk accumulated since), on each node a
-``PriorFactorPose3`` at ``O_meas = X_j z X_i^-1`` from the direct estimate ``z`` with its
+variable ``O_k`` per step with a direct estimate (a *node*). Between consecutive nodes sits a
+``BetweenFactorPose3`` (identity, the walk accumulated since). On each node sits a
+``PriorFactorPose3`` at ``O_meas = X_j z X_i^-1`` from the direct estimate ``z``, with its
 noise model (:func:`direct_cov`) under a Cauchy kernel. Between nodes nothing is
 solved: the estimate at step t is the newest node's estimate moved by both odometries, its
 covariance the node's marginal plus the walk since (a filter's prediction). Poses are
@@ -24,9 +24,9 @@ Solved incrementally with GTSAM's ``IncrementalFixedLagSmoother`` (iSAM2 over th
 nodes, older ones marginalised): an update costs the same after an hour as after a minute. Covariances
 are ``[6,6]`` over ``[rotation, translation]`` of a right perturbation (:mod:`cerpe.geometry`).
 
-Bad input never raises out of :meth:`PairGraph.step`: a degenerate covariance, a direct estimate whose
-poses the graph does not have (out of order), a solver that throws or does not converge are returned as
-degradation names (:data:`GRAPH_DEGRADATIONS`) and the last good estimate is kept.
+Bad input never raises out of :meth:`PairGraph.step`. A degenerate covariance, a direct estimate whose
+poses the graph does not have (out of order), or a solver that throws or does not converge come back
+as degradation names (:data:`GRAPH_DEGRADATIONS`), and the last good estimate is kept.
 """
 from __future__ import annotations
 
@@ -197,7 +197,7 @@ class PairGraph:
     def _speed_change(self, which: int, inc: np.ndarray, s0: int, s1: int) -> float:
         """The acceleration (m/s^2) increment ``inc`` (steps ``s0 -> s1``) implies beyond odometry noise:
         its length against the robot's previous speed kept, less ``odo_accel_noise_sigmas`` times the
-        per-step translation sigma, over its duration squared; 0 where a stamp is missing (then the
+        per-step translation sigma, over its duration squared. 0 where a stamp is missing (then the
         next increment is not judged either). Keeps the new speed."""
         t0, t1 = self._stamps.get(s0), self._stamps.get(s1)
         if t0 is None or t1 is None or not t1 > t0:

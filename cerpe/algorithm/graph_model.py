@@ -1,10 +1,10 @@
 """The pose graph's configuration and noise models (``cerpe-graph``): no solver here.
 
 :class:`GraphConfig` (the knobs of ``backend.graph``), :class:`GraphModel` (the calibrated noise
-model: constants, not knobs; development studies replay other values), the direct estimate and the
-estimate the graph returns, and the ``[6,6]`` covariances over ``[rotation, translation]`` of a
-right perturbation (:mod:`cerpe.geometry`) of an odometry increment (:func:`odometry_cov`) and of
-a direct estimate (:func:`direct_cov`). :mod:`cerpe.algorithm.graph` solves with them.
+model: constants, not knobs; lab studies replay other values), the direct estimate and the
+estimate the graph returns. :func:`odometry_cov` and :func:`direct_cov` give the ``[6,6]``
+covariances of an odometry increment and of a direct estimate, over ``[rotation, translation]``
+of a right perturbation (:mod:`cerpe.geometry`). :mod:`cerpe.algorithm.graph` solves with them.
 """
 from __future__ import annotations
 
@@ -48,43 +48,42 @@ class GraphModel:
 
     Odometry: one increment of ``n`` steps, ``d`` metres and ``a`` radians gets standard
     deviations ``sqrt(n s0^2 + (s_m d)^2 / n + (s_rad a)^2 / n)`` per axis (rotation:
-    ``odo_rot_per_step``, ``odo_rot_per_m``, ``odo_rot_per_rad``; translation likewise), plus
-    ``odo_lost_*`` per step whose own odometry failed (``X`` kept for want of an estimate). An
+    ``odo_rot_per_step``, ``odo_rot_per_m``, ``odo_rot_per_rad``; translation likewise). Each step
+    whose own odometry failed (``X`` kept for want of an estimate) adds ``odo_lost_*``. An
     increment turning more than ``odo_jump_rad`` per step (0: never) is an odometry failure, not a
-    motion: its standard deviations grow by its own angle and distance (plus ``odo_lost_trans``),
-    so the graph lets the offset jump with it and the next direct estimates re-anchor it. An
-    increment whose length differs from the one the previous speed predicts by more than
-    ``odo_max_accel_mps2`` times its duration squared plus ``odo_accel_noise_sigmas`` per-step
-    translation sigmas (0: never; needs the steps' stamps) is a failed step too (``odo_lost_*``):
-    on the dev data a vehicle's odometry behind a co-moving car reported 0.38, 0.19, 0.37 m in
-    three 0.1 s steps, and the short one was 0.07 rad wrong, far under ``odo_jump_rad``. On a
-    *sensor-like* depth source (the ego's reports ``r <= sensor_max_rel``: a depth sensor, a
+    motion. Its standard deviations grow by its own angle and distance (plus ``odo_lost_trans``),
+    so the graph lets the offset jump with it and the next direct estimates re-anchor it.
+
+    An increment is a failed step too (``odo_lost_*``) when its length differs from the one the
+    previous speed predicts by more than ``odo_max_accel_mps2`` times its duration squared, plus
+    ``odo_accel_noise_sigmas`` per-step translation sigmas (0: never; needs the steps' stamps).
+    This catches an odometry that reports one step much too short (e.g. confused by a co-moving
+    vehicle) while its rotation error stays far under ``odo_jump_rad``.
+
+    On a *sensor-like* depth source (the ego's reports ``r <= sensor_max_rel``: a depth sensor, a
     dataset's depth; :func:`sensor_like`) the noise part (not the failure terms) is scaled by
-    ``odo_sensor_scale``: on the development runs the odometry's observed RMS error was about
-    0.2-0.27 of the model's on sensor depth and 0.4-0.74 on the monocular prior (the odometry
-    table of ``lab/graph_calibrate.py``, ``shipped_*_ratio``, windows of 1-20 steps): one
-    model for both was about 2.5 times too loose on a sensor (with the scale: 0.49-0.69 rotation,
-    0.56-0.62 translation, as on the prior; TUM fr1's dataset depth, 60-112 steps, reads 1.4-2.3 in
-    rotation: tight, its graph estimates unchanged).
-    Direct estimates: rotation ``direct_rot_rad``, translation ``direct_trans_m +
+    ``odo_sensor_scale``. Odometry on sensor depth is much more accurate than on a monocular
+    prior, so one model for both would be too loose on a sensor (the odometry table of
+    ``lab/graph_calibrate.py`` measures the ratio).
+
+    Direct estimates: rotation ``direct_rot_rad``; translation ``direct_trans_m +
     direct_trans_rel |t|`` across the line between the cameras (``|t|`` their distance) and
-    ``direct_along_factor`` times that along it (metric depth errors move the other camera
-    mostly along the line of sight). The metric depth the estimate stands on adds its own part:
-    with ``r`` its relative scale sigma (:attr:`DirectEstimate.depth_rel_sigma`, reported by the
-    depth source; ``direct_depth_rel_unknown`` when it reports none), ``direct_depth_rot r`` to the
-    rotation, ``direct_depth_across r |t|`` across and ``g r |t|`` along the line (each added in
-    quadrature), so a monocular prior (5-10 %) and a depth sensor (< 1 %) get their own sigmas from
-    one model. The along gain ``g`` is per depth kind (:func:`along_gain`): ``direct_depth_along``
-    when the source reports ``r`` (sensor 0, dataset 0.01, monocular prior), ``direct_depth_along_unknown``
-    when it reports none (no metric depth: the distance is the backbone's own scale). With
-    ``direct_inliers_ref > 0``, an estimate placed on depth whose ``r`` is at most
-    ``sensor_max_rel`` (a depth sensor, a dataset's depth) has all its standard
-    deviations scaled by ``sqrt(direct_inliers_ref / inliers)`` clipped to
-    ``[1/direct_inliers_clip, direct_inliers_clip]``: there the registration is the error,
-    and it falls with its support (synthetic indoor development runs: median rotation error
-    0.022 rad at <= 30 inliers, 0.0015 above 200), whereas on a monocular prior the depth's
-    own distortion is, and inliers hardly rank the estimates (CAD: 0.0092 and 0.0055 rad,
-    along-line error flat). Estimates that anchor
+    ``direct_along_factor`` times that along it. Metric depth errors move the other camera
+    mostly along the line of sight. The metric depth the estimate stands on adds its own part,
+    each term added in quadrature. With ``r`` its relative scale sigma
+    (:attr:`DirectEstimate.depth_rel_sigma`, reported by the depth source;
+    ``direct_depth_rel_unknown`` when it reports none), it adds ``direct_depth_rot r`` to the
+    rotation, ``direct_depth_across r |t|`` across and ``g r |t|`` along the line. So a monocular
+    prior (5-10 %) and a depth sensor (< 1 %) get their own sigmas from one model. The along gain
+    ``g`` is per depth kind (:func:`along_gain`): ``direct_depth_along`` when the source reports
+    ``r`` (sensor 0, dataset 0.01, monocular prior), ``direct_depth_along_unknown`` when it
+    reports none (no metric depth: the distance is the backbone's own scale).
+
+    With ``direct_inliers_ref > 0``, an estimate placed on sensor-like depth (``r <=
+    sensor_max_rel``) has all its standard deviations scaled by ``sqrt(direct_inliers_ref /
+    inliers)``, clipped to ``[1/direct_inliers_clip, direct_inliers_clip]``. On such depth the
+    registration is the error, and it falls with its support. On a monocular prior the depth's
+    own distortion dominates, and inliers hardly rank the estimates. Estimates that anchor
     verification left unverified or rejected are scaled by ``unverified_scale`` /
     ``rejected_scale`` (1: only the kernel judges them). ``kernel_k``: the kernel's width in
     standard deviations of the whitened error.
@@ -95,36 +94,36 @@ class GraphModel:
 
     Uninformative: a propagated estimate whose predicted rotation sigma (``sqrt`` of the rotation
     block's trace) exceeds ``max_sigma_rot_rad`` (0: never) is not reported (``uninformative``; its
-    covariance still is): after an odometry failure the walk's covariance says the pose may be
-    anywhere, and a pose that may be anywhere is a guess, which the switch does not report either
-    (it drops its anchor at an odometry jump). A direct estimate that became a node is always reported.
+    covariance still is). After an odometry failure the walk's covariance says the pose may be
+    anywhere. Such a pose is a guess, which the switch does not report either (it drops its anchor
+    at an odometry jump). A direct estimate that became a node is always reported.
 
     Consensus: a robust kernel started at the old estimate keeps it (a non-convex cost has its
-    minimum where it starts), so when a new direct estimate fails the chi-square gate
+    minimum where it starts). So when a new direct estimate fails the chi-square gate
     ``consensus_gate_chi2`` (6 dof) against the graph's estimate, the window's direct estimates
-    vote: if ``consensus_ratio`` times as many of them (and at least ``consensus_min_support``; 0
-    disables it) agree with the new one as with the graph's estimate (those agreeing with both do
-    not vote), the window is solved afresh from the new one.
+    vote. Those agreeing with both do not vote. If ``consensus_ratio`` times as many agree with the
+    new one as with the graph's estimate (and at least ``consensus_min_support``; 0 disables it),
+    the window is solved afresh from the new one.
 
     Silent odometry drift: an odometry that under-reports the motion without flagging it moves the
-    true offset between the odometry frames step after step, so the innovations of the confirmed
+    true offset between the odometry frames step after step. The innovations of the confirmed
     direct estimates (translation of the measured offset against the graph's before the update, in
-    the ego's odometry frame) grow one way, whereas estimates sharing a correlated error stay a
-    constant distance off. When ``drift_after`` of them in a row (0: never; unconfirmed ones neither
-    count nor break the run) each point within ``drift_cos`` (cosine) of the one before and are
-    longer than it, and the newest one's chi-square (6 dof, its covariance plus the graph's marginal
-    and walk) exceeds ``drift_chi2``, the walk into each of them gets ``drift_inflate`` times the
-    growth of its innovation as translation sigma and the window is solved afresh from the newest
-    one; the next confirmed estimate off the same way (cosine, chi-square) is followed at once.
+    the ego's odometry frame) then grow one way. Estimates sharing a correlated error instead stay a
+    constant distance off. The rule fires when ``drift_after`` innovations in a row (0: never;
+    unconfirmed ones neither count nor break the run) each point within ``drift_cos`` (cosine) of
+    the one before and are longer than it. The newest one's chi-square (6 dof, its covariance plus
+    the graph's marginal and walk) must also exceed ``drift_chi2``. Then the walk into each of them
+    gets ``drift_inflate`` times the growth of its innovation as translation sigma, and the window
+    is solved afresh from the newest one. The next confirmed estimate off the same way (cosine,
+    chi-square) is followed at once.
 
     Without metric depth (``metric`` False: a depth source that never has any) every pass has a unit
-    of its own, so neither the direct estimates' translations nor the odometry's share a scale: their
-    translation blocks get :data:`UNSCALED_TRANS_SIGMA` (no information) and the graph fuses rotations
-    only; the agent reports the switch's translation direction with the graph's rotation.
+    of its own, so neither the direct estimates' translations nor the odometry's share a scale.
+    Their translation blocks get :data:`UNSCALED_TRANS_SIGMA` (no information) and the graph fuses
+    rotations only. The agent reports the switch's translation direction with the graph's rotation.
     """
 
-    # calibrated on development data only (lab/graph_calibrate.py: `cerpe dev` runs of the real
-    # dev-* sets and synthetic seed 1); the figures and the data are in the commit that set them
+    # odometry noise model: calibrated on development data only (lab/graph_calibrate.py)
     odo_rot_per_step: float = 0.0035
     odo_rot_per_m: float = 0.0
     odo_rot_per_rad: float = 0.0244
@@ -134,20 +133,15 @@ class GraphModel:
     odo_lost_trans: float = 0.15
     odo_jump_rad: float = 1.0
     odo_sensor_scale: float = 0.4  # the ratio of the two kinds' observed/modelled RMS (see above)
-    # ~1 g: no wheeled robot speeds up or brakes faster (tyre friction); 2 sigmas of odometry noise on top,
-    # without which TUM fr1's 30 Hz odometry jitter read as acceleration (its graph e_rot 0.0069 -> 0.0071).
-    # Graph replays of the synthetic dev-* runs of e671352 and runs of the real ones: cad-s2002 e_pos
-    # 0.523 -> 0.492, e_rot 0.0580 -> 0.0483; indoor-s1 0.0584 -> 0.0556; the others unchanged
-    # (1 sigma: as 2 and cad-s2001 0.719 -> 0.716; 3: less of the gain; without the margin 8 m/s^2 made cad-s1
-    # worse and 20 changed nothing)
+    # about 1 g (m/s^2): no wheeled robot speeds up or brakes faster (tyre friction). A margin of
+    # odometry noise sigmas on top keeps a high-rate odometry's jitter from reading as acceleration.
     odo_max_accel_mps2: float = 10.0
     odo_accel_noise_sigmas: float = 2.0
-    # direct estimates: the floors (all a depth sensor's estimates get) as calibrated before depth kinds; the
-    # gains on the depth source's rel_sigma per depth kind from dev runs (see the commits that set them)
-    # direct_rot_rad with kernel_k (chosen together, graph replays of the eight dev-* runs): at 0.004
-    # and k 3 the dev direct rotation errors (median 0.005, p90 0.026 rad) made every estimate a 10-30 sigma
-    # outlier to every other, so the Cauchy kernel kept whichever it started from (indoor-s1: a first,
-    # unverified estimate 0.69 m off held for nine steps); 0.006 with k 2 lets them pull on each other
+    # direct estimates: the floors (what a depth sensor's estimates get) and the gains on the depth
+    # source's rel_sigma per depth kind, calibrated on development data (lab/graph_calibrate.py).
+    # direct_rot_rad goes with kernel_k: a rotation sigma far under the estimates' real errors makes
+    # every estimate an outlier to every other, and the Cauchy kernel then keeps whichever it started
+    # from. These two let the estimates pull on each other (lab/graph_replay.py replays other values).
     direct_rot_rad: float = 0.006
     direct_trans_m: float = 0.001
     direct_trans_rel: float = 0.0275
@@ -157,9 +151,8 @@ class GraphModel:
     direct_depth_along: float = 0.1
     direct_depth_along_unknown: float = 1.5
     direct_depth_rel_unknown: float = 0.3
-    # inlier weighting (sensor-like depth only): ref about the median inliers of the synthetic indoor dev
-    # runs' direct estimates (69, 118, 110 for seeds 1, 2001, 2002); graph replays of the dev runs in the
-    # commit that set it
+    # inlier weighting (sensor-like depth only): ref about a typical direct estimate's inlier count on
+    # sensor depth, so a typical estimate keeps the floors
     direct_inliers_ref: float = 100.0
     direct_inliers_clip: float = 3.0
     # depth kinds with r at most this are sensor-like (sensor 0, dataset 0.01; mono-sim 0.094, none: unknown)
@@ -171,7 +164,7 @@ class GraphModel:
     consensus_min_support: int = 2
     consensus_gate_chi2: float = 22.46
     consensus_ratio: float = 1.5
-    # silent odometry drift: chosen on the dev-* runs (graph replays of all eight; only cad-s2002 changes)
+    # silent odometry drift: set on development runs (lab/graph_replay.py replays other values)
     drift_after: int = 3
     drift_cos: float = 0.8
     drift_chi2: float = 12.59

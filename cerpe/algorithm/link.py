@@ -63,10 +63,10 @@ class Inbox:
 class Link(Protocol):
     """One robot's end of the team's medium.
 
-    Frames carry their step; a link files what arrives by (step, kind, sender),
-    keeps frames of later steps for later, drops (counts) those of steps it has
-    left, and answers image requests through the handler given to :meth:`serve`
-    while it waits (so no phase has to wait for requests).
+    Frames carry their step. A link files what arrives by (step, kind, sender),
+    keeps frames of later steps for later and drops (counts) those of steps it has
+    left. It answers image requests through the handler given to :meth:`serve`
+    while it waits, so no phase has to wait for requests.
     """
 
     robot_id: str

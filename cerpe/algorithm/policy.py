@@ -14,31 +14,34 @@ The paper requests an image whenever the gate opens (``mode="gate"``, the defaul
   then, whatever the model says);
 * ``recheck_rot_rad``: the image that set the anchor disagreed in rotation by more than
   this with what it was checked against (the previous anchor propagated, or the candidate
-  that verified it): one of the two is wrong, so the pair asks again at the next open gate,
-  until two estimates in a row agree within it, at most ``recheck_limit`` times in a row;
+  that verified it). One of the two is wrong, so the pair asks again at the next open gate.
+  It does so until two estimates in a row agree within it, at most ``recheck_limit`` times
+  in a row;
 
-unless the pair is backing off: after ``miss_limit`` requests in a row whose image placed
+unless the pair is backing off. After ``miss_limit`` requests in a row whose image placed
 nothing (the gate opened on views that do not overlap enough), it asks only every
 ``miss_backoff_steps`` steps (``unanchored_backoff_steps`` for a pair without an anchor), until
-an image places again; with ``backoff_pending_exempt`` a pair whose estimates wait to be
+an image places again. With ``backoff_pending_exempt`` a pair whose estimates wait to be
 verified (``pending``) does not back off.
 
 How hard to try on an image that came through an open gate (:func:`try_hard`, whatever the mode):
 a pair without an anchor asks the backbone for its costliest registration (``View.try_hard``: the
-offline backbone's learned matcher on RGB-D passes) at every request while at most
+offline backbone's learned matcher on RGB-D passes). It does so at every request while at most
 :data:`HARD_TRIES` requests placed nothing since the pair's last anchor-setting estimate
-(``hard_misses``), then at the requests after ``HARD_TRIES - 1`` plus 2, 4, 8 ... of those misses, at
-most :data:`HARD_BACKOFF_MAX_STEPS` apart: first contact and wide viewpoints get it, a pair whose
-images never place (a repetitive room) pays for it ever more rarely. A placement that sets no anchor
-(rejected or unverified) neither counts nor restarts the schedule.
+(``hard_misses``). After that it tries at the requests after ``HARD_TRIES - 1`` plus 2, 4, 8 ...
+of those misses, at most :data:`HARD_BACKOFF_MAX_STEPS` apart. So first contact and wide
+viewpoints get it, while a pair whose images never place (a repetitive room) pays for it ever
+more rarely. A placement that sets no anchor (rejected or unverified) neither counts nor
+restarts the schedule.
 
-With ``messages.share_estimates`` (our extension) one more rule, in every mode but ``always``: a robot
-whose last :data:`SHARED_SKIP_MISSES` requests to a peer were misses (the image placed nothing, or gave
-only a weaker estimate than the peer's shared one, which was offered instead), while that peer's
-estimates of the pair keep arriving (one at the previous step), skips the request (``peer-shares``)
-and asks again only every :data:`SHARED_RETRY_STEPS` steps: registration is not symmetric (a robot
-places a peer's image through its own keyframes), so the image it cannot place costs the peer a reply
-for nothing while the peer's own registration gives the pair its estimate.
+With ``messages.share_estimates`` (our extension) one more rule applies, in every mode but
+``always``. A robot skips the request (``peer-shares``) when its last :data:`SHARED_SKIP_MISSES`
+requests to a peer were misses, while that peer's estimates of the pair keep arriving (one at
+the previous step). A miss is an image that placed nothing, or gave only a weaker estimate than
+the peer's shared one (which was offered instead). It then asks again only every
+:data:`SHARED_RETRY_STEPS` steps. Registration is not symmetric (a robot places a peer's image
+through its own keyframes). So the image it cannot place costs the peer a reply for nothing,
+while the peer's own registration gives the pair its estimate.
 
 ``mode="always"`` asks every peer at every step, gate or not (the "always send
 images" reference of the Pareto figure). Pure: reads a :class:`PairView`, returns a
@@ -186,7 +189,7 @@ def backoff_steps(conf: PolicyConfig, misses: int, anchored: bool = True) -> int
 
 def try_hard(view: PairView) -> bool:
     """Whether a pair asks the backbone for its costliest registration of this step's image (see the
-    module docstring): never with an anchor; else when ``n = view.hard_misses - HARD_TRIES + 1`` (requests that
+    module docstring): never with an anchor. Without one, when ``n = view.hard_misses - HARD_TRIES + 1`` (requests that
     placed nothing since the last anchor-setting estimate) is at most 0, a power of two up to
     ``HARD_BACKOFF_MAX_STEPS``, or a multiple of it beyond."""
     if view.anchored:
@@ -205,9 +208,11 @@ def _backing_off(conf: PolicyConfig, view: PairView) -> bool:
 
 
 def skip_for_shared(view: PairView) -> bool:
-    """Whether a robot that shares estimates skips this request (see the module docstring): its last
-    :data:`SHARED_SKIP_MISSES` requests placed nothing, the peer shared an estimate of the pair at the previous
-    step, and fewer than :data:`SHARED_RETRY_STEPS` steps passed since it last asked."""
+    """Whether a robot that shares estimates skips this request (see the module docstring).
+
+    It skips when its last :data:`SHARED_SKIP_MISSES` requests placed nothing, the peer shared an
+    estimate of the pair at the previous step, and fewer than :data:`SHARED_RETRY_STEPS` steps
+    passed since it last asked."""
     return bool(view.misses >= SHARED_SKIP_MISSES and view.steps_since_shared <= 1
                 and view.steps_since_ask < SHARED_RETRY_STEPS)
 

@@ -72,7 +72,7 @@ class Relative:
     # ---------------------------------------------------------------- 7b. shared estimates (our extension)
     def estimate_frame(self, index_of: Mapping[str, int]) -> bytes:
         """The ``estimate`` frame of this step (``CerpeConfig.share_estimates``): the best own direct
-        estimate of each peer (wire index ``index_of``) whose image this pass held; sent even when it
+        estimate of each peer (wire index ``index_of``) whose image this pass held. Sent even when it
         holds none, so that a peer waiting for it need not wait out its deadline."""
         st = self.s.step_state()
         best = {}
@@ -84,9 +84,10 @@ class Relative:
 
     def note_estimates(self, other: str, msg: EstimateMessage) -> None:
         """Keep robot ``other``'s estimate of this robot from its ``estimate`` frame of this step, unless
-        it stands on fewer than ``anchor_min_inliers`` registration inliers (where this robot placed
-        nothing itself, the peer's estimates stood on a median of 24 inliers in the synthetic indoor
-        development runs, with 4-10 times the median rotation error of the robot's own)."""
+        it stands on fewer than ``anchor_min_inliers`` registration inliers.
+
+        Where this robot placed nothing itself, the peer's estimates tend to stand on few inliers
+        and to be much less accurate than the robot's own: the bar keeps the weakest out."""
         st = self.s.step_state()
         if int(msg.step) != st.step:
             self.s.degrade("msg:stale-estimate")
@@ -142,9 +143,9 @@ class Relative:
         it). ``source`` is ``direct`` when that estimate became a node, ``propagated``
         otherwise, ``none`` before the first node; ``anchor_step`` is the newest node's step.
         ``switch``: the switch's ``(source, T, reason, anchor_step)`` of this step. Without metric
-        depth (the depth source's ``metric`` False) the graph fuses rotations only: it reports where
+        depth (the depth source's ``metric`` False) the graph fuses rotations only. It reports where
         the switch does, with the switch's translation direction and its own rotation (translation
-        covariance unknown: NaN), so it is never worse than the estimates it fuses.
+        covariance unknown: NaN). So it is never worse than the estimates it fuses.
         """
         metric = bool(getattr(self.depth, "metric", True))
         t0 = time.perf_counter()

@@ -44,16 +44,16 @@ class DenseConfig(Group):
 
 
 # Why CrossConfig's defaults:
-# enabled "without-depth" (the default): on only for passes whose own views have no depth (RGB-only
-# data, where the joint pass places few collaborators); on RGB-D the learned stage cost several times
-# the step and placed no more on development data. fallback: on passes where it is off (RGB-D), a
-# collaborator the joint pass did not place is registered apart, both stages, when the robot asks
-# (View.try_hard: it holds no anchor of the sender; tries that failed back off), so the costly stage
-# runs for pairs not anchored yet, and ever more rarely while nothing places. min_inliers 65 (learned
-# stage, essential matrix): ALIKED at 640 px with 1024 keypoints; on the wide-baseline development
-# pairs wrong registrations reached fewer inliers, and 2048 keypoints placed no more at a safe
-# threshold and cost 4x per pair. min_inliers_pnp 50: a wrong P3P pose on metric depth must also fit
-# the depths; half turns on streets whose two sides look alike reached fewer.
+# enabled "without-depth": on only for passes whose own views have no depth. On RGB-only data the joint
+# pass places few collaborators; on RGB-D the learned stage costs several times a step and places no more.
+# fallback: where registration is off (RGB-D), a collaborator the joint pass did not place is registered
+# apart, both stages, when the robot asks (View.try_hard: it holds no anchor of the sender; failed tries
+# back off). So the costly stage runs for pairs not anchored yet, and ever more rarely while nothing places.
+# min_inliers (learned stage, essential matrix) goes with ALIKED at max_side_px and max_keypoints: wrong
+# registrations of wide-baseline pairs stay under it. More keypoints cost more per pair and place no more
+# at a safe threshold.
+# min_inliers_pnp is lower: a wrong P3P pose on metric depth must also fit the depths. A half turn on a
+# street whose two sides look alike (the typical wrong pose) stays under it.
 @dataclass(frozen=True)
 class CrossConfig(Group):
     """Cross-robot registration of collaborator views against single own views (:mod:`.offline.cross`)."""
@@ -84,7 +84,7 @@ class CrossConfig(Group):
 class OfflineConfig(Group):
     """The offline plug-ins: XFeat, the SALAD-style descriptor and the classical multi-view backbone."""
 
-    # 1024: `cerpe bench --all-encounters` shows the latency/accuracy trade-off against 2048; the
+    # `cerpe bench --all-encounters` measures the latency/accuracy trade-off of more keypoints; the
     # descriptor aggregates the best 1024 either way
     keypoints: int = knob(1024, "XFeat keypoints per image (shared by descriptor and backbone), count", low=1)
     descriptor: DescriptorConfig = group(DescriptorConfig, "the SALAD-style global descriptor over XFeat")

@@ -2,9 +2,10 @@
 
 Implements :class:`cerpe.protocols.DescriptorEncoder` for the offline profile. The
 paper aggregates DINOv2 patch features with a *trained* SALAD head; no such weights
-exist here, so this keeps SALAD's aggregation (Sinkhorn transport of the local
-features onto ``m`` clusters plus a dustbin, per-cluster sums and L2 normalisation, a
-global token, L2 normalisation of the whole) and replaces the learned parts:
+exist here. So this keeps SALAD's aggregation and replaces the learned parts. The
+aggregation is Sinkhorn transport of the local features onto ``m`` clusters plus a
+dustbin, per-cluster sums and L2 normalisation, a global token, and L2 normalisation
+of the whole. The learned parts become:
 
 * local features: the XFeat keypoint descriptors (the ones the pose backbone
   matches, the best :data:`MAX_KEYPOINTS`);
@@ -21,8 +22,8 @@ global token, L2 normalisation of the whole) and replaces the learned parts:
   few repeated textures differ in colour;
 * centring (``mean``): the mean descriptor of development renders (``cerpe/data/xfeat_salad_mean.npz``,
   made by ``cerpe fit descriptor --descriptor-mean``) is subtracted and the result
-  re-normalised, as NetVLAD's PCA whitening removes its training mean: what every view
-  of these worlds shares (road, walls, sky) no longer counts as overlap
+  re-normalised, as NetVLAD's PCA whitening removes its training mean. What every view
+  of these worlds shares (road, walls, sky) then no longer counts as overlap
   (``cerpe fit thresholds`` measures the co-visibility ROC AUC). ``mean: none``
   is the plain aggregate.
 
@@ -32,16 +33,16 @@ by :func:`cerpe.pipeline.evaluate.gate_quality` for every run.
 
 Thresholds ``tau``, ``tau_m``, ``tau_k`` come from
 ``cerpe/data/xfeat_salad_thresholds.json``, written by
-``cerpe fit thresholds`` on encounters of a development seed: ``tau``
-maximises F1 of ``similarity >= tau`` against "overlap >= 0.2", ``tau_m`` and
+``cerpe fit thresholds`` on encounters of a development seed. ``tau``
+maximises F1 of ``similarity >= tau`` against "overlap >= 0.2". ``tau_m`` and
 ``tau_k`` are low quantiles of the similarity of consecutive frames and of frames
 ``Delta_k`` apart.
 
 Images without usable texture (grey-level std below :data:`cerpe.protocols.BLANK_STD`: blank,
 black, constant grey; or no more keypoints than clusters) get no content
-descriptor: :meth:`describe` returns a unit vector drawn from a generator seeded by
+descriptor. :meth:`describe` returns a unit vector drawn from a generator seeded by
 the view key, nearly orthogonal to every other descriptor, so it can never open the
-gate, and :meth:`flags` says ``{"low-texture"}`` for the algorithm to act on and
+gate. :meth:`flags` says ``{"low-texture"}`` for the algorithm to act on and
 count. Malformed or too small images raise
 :class:`~cerpe.backbones.xfeat.ImageInputError`.
 """
@@ -240,7 +241,7 @@ class XFeatSaladDescriptor:
         return d, flags
 
     def centre(self, d: np.ndarray) -> np.ndarray:
-        """``[dim]`` unit descriptor minus the development mean, re-normalised (unchanged with ``mean: none``)."""
+        """``[dim]`` unit descriptor minus the fitted mean, re-normalised (unchanged with ``mean: none``)."""
         if self.descriptor_mean is None:
             return d
         c = d - self.descriptor_mean

@@ -16,7 +16,7 @@ read from the package files, never downloaded):
 
 Dict in, dict out, numpy at the boundary (LightGlue's style): a feature dict is
 ``{"keypoints": [N,2] float32 (x, y) pixels of the input image, "descriptors": [N,D]
-float32, "scores": [N] float32, "image_size": (W, H)}``; :class:`LightGlueMatcher` takes
+float32, "scores": [N] float32, "image_size": (W, H)}``. :class:`LightGlueMatcher` takes
 two of them and returns ``{"matches": [M,2] int64 (index in 0, index in 1),
 "scores": [M] float32}``. Images too flat to have texture, and feature sets with fewer
 than :data:`MIN_KEYPOINTS` keypoints, give no matches (never an exception).

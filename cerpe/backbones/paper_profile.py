@@ -3,8 +3,8 @@
 None of the three models' weights ship with any package, so this profile needs
 user-supplied files (see ``docs/PAPER_MODELS.md``). Everything that can be
 checked before work starts is checked at once by :func:`check_paper_requirements`
-and reported in ONE :class:`PaperModelError` by :func:`require_paper`: missing
-packages, missing / truncated weight files, a local Metric3D clone, and whether
+and reported in ONE :class:`PaperModelError` by :func:`require_paper`. It checks for
+missing packages, missing / truncated weight files, a local Metric3D clone, and whether
 the device has memory enough for VGGT-1B. :func:`build_paper` calls it first.
 
 Where files are looked up: ``<weights_dir>/<release file name>`` (``dino_salad.ckpt``,

@@ -1,31 +1,34 @@
 """Dense RGB-D alignment: refine a relative pose on every pixel instead of a few hundred keypoints.
 
 A pose from 2D-3D keypoint correspondences is limited by keypoint localisation
-(XFeat: about 0.5 px) and, with a narrow field of view, by the near-ambiguity of a
-small rotation and a sideways translation (0.03 deg of yaw looks like 2 mm of
-translation at 4 m). Consecutive frames of a robot with a depth source carry far
+(XFeat: about 0.5 px). With a narrow field of view it is also limited by the
+near-ambiguity of a small rotation and a sideways translation (0.03 deg of yaw looks
+like 2 mm of translation at 4 m). Consecutive frames of a robot with a depth source carry far
 more evidence: every pixel of the reference with a metric depth predicts the grey
 level and the depth the current frame should see there. This module minimises both
-residuals over the rigid motion, in the manner of dense visual odometry (Kerl et
-al., "Robust odometry estimation for RGB-D cameras", ICRA 2013) with a depth term
-(as in their DVO-SLAM follow-up):
+residuals over the rigid motion. It works in the manner of dense visual odometry (Kerl
+et al., "Robust odometry estimation for RGB-D cameras", ICRA 2013), with a depth term
+as in their DVO-SLAM follow-up:
 
     r_I(p) = I_cur(pi(T X_p)) - I_ref(p)            grey levels (0-255)
     r_Z(p) = Z_cur(pi(T X_p)) - [T X_p]_z           metres
 
-with ``X_p`` the reference pixel ``p`` back-projected with its depth, Gauss-Newton
-on a left perturbation of ``T = T_cur_ref``, Tukey biweights on residuals normalised
-by their robust (MAD) spread, so a moving object or an occlusion is down-weighted
+with ``X_p`` the reference pixel ``p`` back-projected with its depth. It runs Gauss-Newton
+on a left perturbation of ``T = T_cur_ref``, with Tukey biweights on residuals normalised
+by their robust (MAD) spread. So a moving object or an occlusion is down-weighted
 rather than averaged in. It only *refines*: the caller gives a pose that is already
-right to well within a pixel (the P3P motion chosen by the vote), and the result is
+right to well within a pixel (the P3P motion chosen by the vote). The result is
 refused (the caller keeps its own) when it moves far from it, when too few pixels
 take part, or when it does not lower the robust cost.
 
 Pure numpy + OpenCV (remap, blur, Sobel); no files, no models.
-Conventions: images ``[H,W]`` or ``[H,W,C]`` (any dtype, grey = mean of the channels),
-depth ``[h,w]`` metres (0 / non-finite = no depth; resized to the image by nearest
-neighbour when its size differs), ``K`` ``[3,3]`` pinhole, pixel centres at integer
-coordinates, ``T_cur_ref`` ``[4,4]`` maps reference-camera points into the current camera.
+Conventions:
+
+* images ``[H,W]`` or ``[H,W,C]`` (any dtype, grey = mean of the channels);
+* depth ``[h,w]`` metres (0 / non-finite = no depth; resized to the image by nearest
+  neighbour when its size differs);
+* ``K`` ``[3,3]`` pinhole, pixel centres at integer coordinates;
+* ``T_cur_ref`` ``[4,4]`` maps reference-camera points into the current camera.
 """
 
 from __future__ import annotations
@@ -135,9 +138,10 @@ def _robust_w(x: np.ndarray, k: float) -> np.ndarray:
 
 
 def _robust_cost(x: np.ndarray, k: float) -> np.ndarray:
-    """Tukey's biweight: a residual beyond ``k`` sigmas costs the same as any other, so a
-    moving object that covers a third of the image adds a constant instead of pulling
-    the pose its way (Huber's linear tail still lets it pull)."""
+    """Tukey's biweight: a residual beyond ``k`` sigmas costs the same as any other.
+
+    So a moving object that covers a third of the image adds a constant instead of
+    pulling the pose its way (Huber's linear tail still lets it pull)."""
     a = np.minimum((x / k) ** 2, 1.0)
     return (k * k / 6.0) * (1.0 - (1.0 - a) ** 3)
 

@@ -17,11 +17,11 @@ dim, ``g`` token dim):
   cluster scores, ``token [B,g]`` global token -> descriptor ``[B, g + m*l]``.
 
 Optimal transport (the paper's Sec. 3.2 of SALAD): the score matrix gets one
-extra "dustbin" row filled with the scalar ``dust_bin``; the source marginal is
+extra "dustbin" row filled with the scalar ``dust_bin``. The source marginal is
 ``1/(n+m)`` per cluster and ``(n-m)/(n+m)`` for the dustbin, the target marginal
-``1/(n+m)`` per feature (both carry the same mass ``n/(n+m)``); three log-space Sinkhorn iterations.
-The plan is then multiplied by ``n+m`` so that each feature distributes a mass
-of one, the dustbin row is dropped, and per cluster a weighted sum of features
+``1/(n+m)`` per feature (both carry the same mass ``n/(n+m)``). Three log-space Sinkhorn
+iterations follow. The plan is then multiplied by ``n+m`` so that each feature distributes
+a mass of one, the dustbin row is dropped, and per cluster a weighted sum of features
 is taken.
 
 Descriptor layout (identical to upstream, element order matters for checkpoints

@@ -1,11 +1,14 @@
 """The paper's place-recognition descriptor: DINOv2 ViT-B/14 + trained SALAD head.
 
 Implements :class:`cerpe.protocols.DescriptorEncoder` with the official SALAD
-model (serizba/salad, ``dino_salad.ckpt``): image -> resize to 322x322 (bilinear,
-antialiased, aspect not kept, as SALAD's evaluation does) -> ImageNet
-normalisation -> DINOv2 ViT-B/14 (all 12 blocks, final LayerNorm) -> patch tokens
-``[B,768,23,23]`` + CLS ``[B,768]`` -> :class:`~cerpe.backbones.salad.SALADHead`
--> ``[8448]`` float32, L2-normalised (64 clusters x 128 + 256-d token).
+model (serizba/salad, ``dino_salad.ckpt``). The pipeline:
+
+1. resize the image to 322x322 (bilinear, antialiased, aspect not kept, as SALAD's
+   evaluation does), then ImageNet normalisation;
+2. DINOv2 ViT-B/14 (all 12 blocks, final LayerNorm) -> patch tokens ``[B,768,23,23]``
+   + CLS ``[B,768]``;
+3. :class:`~cerpe.backbones.salad.SALADHead` -> ``[8448]`` float32, L2-normalised
+   (64 clusters x 128 + 256-d token).
 
 Checkpoint layout (upstream ``VPRModel``): ``backbone.model.<dinov2 hub key>``
 and ``aggregator.<SALAD key>``, either at the top level (the released file) or

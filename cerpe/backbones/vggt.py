@@ -1,8 +1,8 @@
 """VGGT (Wang et al., CVPR 2025) as the paper's :class:`~cerpe.protocols.PoseBackbone`.
 
 The model code comes from the upstream ``vggt`` package (not on PyPI; install
-it from its repository, see ``docs/PAPER_MODELS.md``) and is imported lazily;
-weights are a user-supplied local file (``model.pt`` or ``model.safetensors``
+it from its repository, see ``docs/PAPER_MODELS.md``) and is imported lazily.
+Weights are a user-supplied local file (``model.pt`` or ``model.safetensors``
 of VGGT-1B / VGGT-1B-Commercial). Everything this adapter *converts* is a pure
 numpy function below with no ``vggt`` import, so it is tested without the model.
 

@@ -7,10 +7,10 @@ with ``net.load_state_dict`` (never ``from_pretrained``, which downloads).
 One network pass per image gives both what the geometry backbone needs (top-k
 keypoints, their 64-d L2-normalised descriptors and scores) and what the global
 descriptor aggregates (the dense ``[64, H'/8, W'/8]`` map). Results are cached by
-the pixels' content key (:func:`cerpe.backbones.cache.content_key`) in a bounded LRU,
-so the keyframe memory never re-encodes an image and a cache hit is what encoding
-the same pixels again gives (a JPEG-decoded copy of an image under its original's key
-is another entry).
+the pixels' content key (:func:`cerpe.backbones.cache.content_key`) in a bounded LRU.
+So the keyframe memory never re-encodes an image, and a cache hit is what encoding
+the same pixels again gives. A JPEG-decoded copy of an image under its original's key
+is another entry.
 
 Conventions: keypoints are ``(x, y)`` pixels of the *input* image (OpenCV,
 pixel centres at integers); XFeat internally resizes to multiples of 32, and the
@@ -117,9 +117,9 @@ class XFeatEncoder:
     in x and y (XFeat's NMS gives integer pixels; the half-pixel quantisation visibly biases
     two-view translation directions at 640x480). The network that runs is a copy with every
     batch norm folded into the convolution before it (:func:`fold_batchnorm`; exact algebra,
-    outputs differ by float rounding) in channels-last memory layout, which oneDNN's CPU
-    convolutions prefer; :attr:`model` keeps the original. glibc's allocator is asked to keep
-    freed memory for reuse (:func:`keep_freed_memory`): each pass allocates tens of MB of
+    outputs differ by float rounding). It uses the channels-last memory layout, which oneDNN's
+    CPU convolutions prefer; :attr:`model` keeps the original. glibc's allocator is asked to keep
+    freed memory for reuse (:func:`keep_freed_memory`). Each pass allocates tens of MB of
     feature maps, which glibc would otherwise unmap when freed and fault in again, zeroed, on
     the next pass.
 
@@ -216,10 +216,11 @@ _HEAP_KEPT = False
 
 
 def keep_freed_memory(mmap_threshold: int = 256 << 20, trim_threshold: int = 512 << 20) -> bool:
-    """Raise glibc malloc's mmap and trim thresholds (``mallopt``) once per process, so freed
-    blocks up to ``mmap_threshold`` bytes stay in the heap for the next allocation instead
-    of being unmapped and faulted in again (the ``MALLOC_MMAP_THRESHOLD_`` /
-    ``MALLOC_TRIM_THRESHOLD_`` environment variables do the same at process start). Returns
+    """Raise glibc malloc's mmap and trim thresholds (``mallopt``) once per process.
+
+    Freed blocks up to ``mmap_threshold`` bytes then stay in the heap for the next allocation
+    instead of being unmapped and faulted in again. The ``MALLOC_MMAP_THRESHOLD_`` /
+    ``MALLOC_TRIM_THRESHOLD_`` environment variables do the same at process start. Returns
     whether the setting is in effect (False off Linux/glibc)."""
     global _HEAP_KEPT
     if _HEAP_KEPT:

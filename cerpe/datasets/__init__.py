@@ -6,12 +6,18 @@ Public API::
     load_setting(path_or_manifest) -> Setting       # validate, read the data with its adapter, check it
     find_manifests(folder) -> list[Manifest]        # every manifest in a folder, enabled or not
 
-Adapters: ``mocap`` (image folders + TUM/EuRoC/CSV trajectories; also what
-``cerpe synth`` writes), ``openmars`` (nuScenes-format multi-agent tables),
-``synthetic`` (generate a suite on demand, then ``mocap``), ``tum-rgbd`` (TUM RGB-D
-sequences), ``frames`` (7-Scenes / 3DMatch / SUN3D frame folders), ``pairs``
-(SuperGlue / LoFTR pair lists), ``example`` (a KITTI-odometry-style template); more
-through the ``cerpe.adapters`` entry points. Ground-truth co-visibility from depth
+Adapters:
+
+* ``mocap``: image folders + TUM/EuRoC/CSV trajectories (also what ``cerpe synth`` writes);
+* ``openmars``: nuScenes-format multi-agent tables;
+* ``synthetic``: generate a suite on demand, then ``mocap``;
+* ``tum-rgbd``: TUM RGB-D sequences;
+* ``frames``: 7-Scenes / 3DMatch / SUN3D frame folders;
+* ``pairs``: SuperGlue / LoFTR pair lists;
+* ``example``: a KITTI-odometry-style template;
+* more through the ``cerpe.adapters`` entry points.
+
+Ground-truth co-visibility from depth
 and poses: :mod:`cerpe.datasets.covisibility`; downloads: ``cerpe data``.
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Validate dataset manifests, load them and summarise them; list every problem at once.
 
-For each MANIFEST: the schema is validated; an enabled manifest is then loaded
+For each MANIFEST: the schema is validated. An enabled manifest is then loaded
 with its adapter (trajectories, intrinsics, synchronisation) and every image and
 depth file is decoded and compared with the intrinsics (`cerpe run` makes the
 same checks on a few frames per robot). A summary follows:

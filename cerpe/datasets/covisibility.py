@@ -12,7 +12,7 @@ no depth or no ground-truth pose at that step.
 The result is cached under ``<cache>/covisibility/<setting>/<encounter>-<key>.npy``
 (``<cache>`` = ``$CERPE_CACHE`` or ``build/`` in the checkout; key = hash of the
 depth files' names, sizes and times, the poses, the intrinsics and the parameters),
-written atomically; the run folders then carry it per step as ``overlap_gt``.
+written atomically. The run folders then carry it per step as ``overlap_gt``.
 Manifest field ``covisibility: auto`` (default) or ``off``.
 """
 from __future__ import annotations

@@ -6,9 +6,9 @@
 NAME is a TUM RGB-D sequence (``fr1/desk``, ``freiburg1_desk`` or
 ``rgbd_dataset_freiburg1_desk``) or a 7-Scenes scene (``7-scenes/chess``). The
 archive comes from the dataset's official address (``--url`` for a mirror),
-with a progress bar; an interrupted download resumes when the same command is
-run again; the size is checked against what the server announced and, with
-``--sha256`` (the publishers give none), the checksum; the archive is unpacked
+with a progress bar. An interrupted download resumes when the same command is
+run again. The size is checked against what the server announced, and with
+``--sha256`` (the publishers give none) the checksum too. The archive is unpacked
 next to it (7-Scenes: the per-sequence zips too) and deleted unless
 ``--keep-archive``. Finally the manifest lines to use are printed. Each
 dataset's licence is printed before anything is fetched: read it.

@@ -2,15 +2,15 @@
 
 Pure mechanics (no catalogue; see :mod:`cerpe.datasets.data_cli`):
 
-* :func:`fetch` downloads ``url`` to ``dest`` through ``dest.part``; an interrupted
+* :func:`fetch` downloads ``url`` to ``dest`` through ``dest.part``. An interrupted
   transfer keeps the ``.part`` file and the next call resumes it with an HTTP
   ``Range`` request (a server that ignores ranges sends the whole file again).
   The size is checked against the server's ``Content-Length``/``Content-Range``
-  (and ``size`` when given), the SHA-256 against ``sha256`` when given; a file that
+  (and ``size`` when given), the SHA-256 against ``sha256`` when given. A file that
   fails either is deleted, never renamed to ``dest``.
-* :func:`extract` unpacks a ``.tar[.gz|.bz2|.xz]``/``.tgz`` or ``.zip`` (optionally the
-  ``.zip`` files inside it, as 7-Scenes ships one per sequence) into a hidden
-  ``.partial`` folder, refusing members that would land outside it, then renames
+* :func:`extract` unpacks a ``.tar[.gz|.bz2|.xz]``/``.tgz`` or ``.zip`` into a hidden
+  ``.partial`` folder, optionally with the ``.zip`` files inside it (7-Scenes ships one
+  per sequence). It refuses members that would land outside the folder, then renames
   the result into place with a completion marker inside. A truncated or corrupt
   archive is an error that leaves nothing behind.
 """

@@ -1,8 +1,8 @@
 """Readers for the small text files datasets come with; every error names file, field and line.
 
-* trajectories: TUM (``stamp_s tx ty tz qx qy qz qw``; a first row of column names is skipped), EuRoC ground truth CSV
-  (``#timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z, q_RS_w, q_RS_x, q_RS_y, q_RS_z, ...``)
-  and plain CSV with a header naming at least ``stamp_s,tx,ty,tz,qx,qy,qz,qw``;
+* trajectories: TUM (``stamp_s tx ty tz qx qy qz qw``; a first row of column names is skipped);
+  EuRoC ground truth CSV (``#timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z, q_RS_w, q_RS_x,
+  q_RS_y, q_RS_z, ...``); plain CSV with a header naming at least ``stamp_s,tx,ty,tz,qx,qy,qz,qw``;
 * camera intrinsics YAML (``width height fx fy cx cy [distortion]``, or EuRoC's
   ``sensor.yaml`` with ``resolution`` / ``intrinsics`` / ``distortion_coefficients``);
 * small matrix text files (3x3 ``camera-intrinsics.txt``, 4x4 ``frame-*.pose.txt``);

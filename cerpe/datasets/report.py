@@ -1,8 +1,8 @@
 """What an adapter found while loading: fatal problems, counted degradations and warnings.
 
-Adapters never print and never silently drop data: every frame they cannot use
+Adapters never print and never silently drop data. Every frame they cannot use
 (no ground-truth pose within tolerance, no partner frame within the sync
-tolerance, no depth) is counted here under a named reason, and every fatal
+tolerance, no depth) is counted here under a named reason. Every fatal
 problem is collected so that ``cerpe check`` lists them all at once. Warnings are
 what is legal but probably wrong (a median depth a camera rarely sees). ``cerpe
 check`` prints counts and warnings; a run logs them (:meth:`LoadReport.log`).

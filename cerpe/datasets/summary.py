@@ -15,13 +15,15 @@ OVERLAP_THRESHOLD = 0.2
 def summarise(setting: Setting) -> dict:
     """Counts and ground-truth statistics of a setting.
 
-    Returns a dict with ``encounters``, ``robots`` (distinct ids), ``frames``
-    (robot-frames), ``steps``, ``pairs`` (ordered pairs x evaluated steps),
-    ``pairs_with_gt``, ``sync_max_abs_s`` (stamp sync residual),
-    ``index_sync_max_offset_s`` (stamp offset between index-synchronised robots), ``overlap_mean``,
-    ``overlap_frac_ge_0_2`` (NaN without ground-truth overlap),
-    ``view_angle_min_deg`` / ``view_angle_max_deg`` (NaN without ground truth)
-    and ``per_encounter`` rows.
+    Returns a dict with:
+
+    * ``encounters``, ``robots`` (distinct ids), ``frames`` (robot-frames), ``steps``;
+    * ``pairs`` (ordered pairs x evaluated steps), ``pairs_with_gt``;
+    * ``sync_max_abs_s`` (stamp sync residual), ``index_sync_max_offset_s`` (stamp offset
+      between index-synchronised robots);
+    * ``overlap_mean``, ``overlap_frac_ge_0_2`` (NaN without ground-truth overlap);
+    * ``view_angle_min_deg`` / ``view_angle_max_deg`` (NaN without ground truth);
+    * ``per_encounter`` rows.
     """
     every = int(setting.meta.get("evaluation_every", 1))
     rows = []

@@ -14,7 +14,7 @@ The world's generator arguments come from the suite preset of ``cerpe.synth``
 (``SUITES[suite]``) with ``seed`` replaced. The suite is rendered once into
 ``<cache>/<suite>/<world>-seed<N>/`` by ``cerpe.synth.generate_suite`` (cached on
 its arguments; written to a ``.partial`` folder and renamed, so an interrupted
-generation never looks finished); that folder holds a ``manifest.yaml`` in the
+generation never looks finished). That folder holds a ``manifest.yaml`` in the
 mocap layout, which is then loaded unchanged by the ``mocap`` adapter. The
 setting keeps this manifest's ``name``, ``metric_depth`` and ``evaluation``.
 """

@@ -1,19 +1,19 @@
 """The checks every loaded setting goes through, for ``cerpe check`` and ``cerpe run`` alike.
 
 :func:`load_setting <cerpe.datasets.load_setting>` runs :func:`check_setting` after the
-adapter, whatever the adapter: ``cerpe check`` decodes every frame (or ``--frames N``), a
-run decodes :data:`SAMPLE_FRAMES` evenly spaced frames per robot and encounter, so a
+adapter, whatever the adapter. ``cerpe check`` decodes every frame (or ``--frames N``); a
+run decodes :data:`SAMPLE_FRAMES` evenly spaced frames per robot and encounter. So a
 dataset ``cerpe check`` refuses is refused when a run loads it too. Checked:
 
 * ids that name files of a run (encounter names, robot ids): letters, digits, ``_ . -``,
   not starting with a dot, whichever adapter made them;
 * intrinsics against the image size (principal point inside the image);
 * every depth PNG's header: fewer than 16 bits cannot hold depth (26 bytes read per file);
-* decoded frames: image size against the intrinsics, depth size against the image, a frame's
-  median valid depth outside :data:`DEPTH_PLAUSIBLE_M` (an error naming the robot's
-  ``depth_units_per_m``), a depth map without any valid pixel (counted), and a robot whose
-  median depth lies outside :data:`DEPTH_TYPICAL_M` or its depth sensor's range (a warning
-  with the figure, naming ``depth_units_per_m``).
+* decoded frames: image size against the intrinsics, depth size against the image;
+* a frame's median valid depth outside :data:`DEPTH_PLAUSIBLE_M` (an error naming the robot's
+  ``depth_units_per_m``), and a depth map without any valid pixel (counted);
+* a robot whose median depth lies outside :data:`DEPTH_TYPICAL_M` or its depth sensor's range
+  (a warning with the figure, naming ``depth_units_per_m``).
 """
 from __future__ import annotations
 

@@ -1,11 +1,14 @@
 """One robot of a team, online: its :class:`~cerpe.algorithm.StepEngine` over a :class:`ZenohLink`.
 
-The phases of a step are the engine's, the same as in :class:`~cerpe.algorithm.Team`;
-this module adds what a robot process needs around them: waiting for the peers
-before step 0, pacing the replay, a deadline per wait (``step_timeout_s``),
-publishing each step's relative-pose estimates for ROS 2
-(:class:`~cerpe.online.ros.EstimatePublisher`, on the link's Zenoh session) and
-leaving (bye, then answering late image requests for at most ``linger_s``).
+The phases of a step are the engine's, the same as in :class:`~cerpe.algorithm.Team`.
+This module adds what a robot process needs around them:
+
+* waiting for the peers before step 0, and pacing the replay;
+* a deadline per wait (``step_timeout_s``);
+* publishing each step's relative-pose estimates for ROS 2
+  (:class:`~cerpe.online.ros.EstimatePublisher`, on the link's Zenoh session);
+* leaving: bye, then answering late image requests for at most ``linger_s``.
+
 What the link counts is listed in :mod:`cerpe.online.zenoh_link`.
 """
 from __future__ import annotations

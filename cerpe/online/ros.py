@@ -2,7 +2,7 @@
 
 Topic ``/cerpe/<team>/<i>/relative_pose/<j>``, pose ``T_cj_ci`` (camera ``i`` in camera
 ``j``, optical axes, metres), frame id ``<team>/<j>/camera_optical``, stamp = capture
-time, covariance all zeros when unknown (the ROS convention); CDR-encoded with
+time, covariance all zeros when unknown (the ROS convention). CDR-encoded with
 ``rosbags`` and put on rmw_zenoh's data key (with its 33-byte attachment) or on the
 key ``zenoh-bridge-ros2dds`` uses. The keys and bytes are described once, in
 ``docs/ARCHITECTURE.md``, "Online transport", "Wire format"; this module builds them.

@@ -7,38 +7,41 @@ handed out in its :class:`~cerpe.algorithm.link.Inbox`:
 
 * :meth:`ZenohLink.broadcast` puts a frame on ``cerpe/<team>/<robot>/<kind>``;
   the bytes counted are the frame's, once (as :class:`cerpe.transport.Channel`).
-* Frames of the team arrive through one subscriber into a per-step store;
+* Frames of the team arrive through one subscriber into a per-step store.
   :meth:`ZenohLink.gather` returns when every peer's frame of a step is there or
-  the deadline passes. A peer is not waited for when its frame cannot come: it
-  left (said bye, or its liveliness token went), it already sent that kind for a
-  later step (Zenoh keeps a publisher's order on a key), or it is more than
-  ``max_lag_steps`` behind (a robot never seen: from step ``max_lag_steps`` on).
+  the deadline passes. A peer is not waited for when its frame cannot come. That is
+  when it left (said bye, or its liveliness token went), or already sent that kind for
+  a later step (Zenoh keeps a publisher's order on a key). It is also when the peer is
+  more than ``max_lag_steps`` behind (a robot never seen: from step ``max_lag_steps`` on).
 * Image requests are Zenoh queries on the owner's ``image`` key, all of a step
   at once (:meth:`ZenohLink.request`), answered by the owner's queryable. Valid
-  queries are queued and answered by the handler given to :meth:`ZenohLink.serve`
-  on the thread that calls the link (inside ``begin``, ``gather``, ``request``,
-  ``wait_peers``, ``poll``, ``close``), once the owner has begun the query's step,
-  so the handler reads the robot's state without locks. One thread
-  calls a link.
-* Presence: the session and its subscribers open in the constructor (a bad
-  endpoint fails there, before a robot loads its models); the liveliness token
+  queries are queued and answered by the handler given to :meth:`ZenohLink.serve`.
+  It runs on the thread that calls the link (inside ``begin``, ``gather``, ``request``,
+  ``wait_peers``, ``poll``, ``close``), once the owner has begun the query's step.
+  So the handler reads the robot's state without locks. One thread calls a link.
+* Presence: the session and its subscribers open in the constructor, so a bad
+  endpoint fails there, before a robot loads its models. The liveliness token
   that tells the peers this robot is up is declared by :meth:`ZenohLink.announce`
   (or the first :meth:`ZenohLink.wait_peers`), once the robot is ready to step.
 
-Counting (one entry per event in the next :class:`Inbox`'s ``degradations``;
-:meth:`ZenohLink.take_degradations` drains what no inbox delivered yet):
-``msg:lost`` (an expected frame or reply not there at the deadline),
-``msg:garbled`` (a payload on our keys that does not decode, a missing or foreign
-header, a frame whose type is not its key's kind), ``msg:unknown-sender`` (a key
-robot not in the roster, a frame whose sender index is not its key robot's),
-``msg:image-not-held`` (the owner answered that it no longer holds that image),
-``net:peer-lost`` (a peer's session ended without bye, none within ``BYE_GRACE_S``),
-``link:protocol-mismatch`` and ``link:team-mismatch`` (once per robot and version/team, with a warning naming
-both), ``link:duplicate-robot`` (another session uses this robot's id). Late,
-duplicate and far-ahead frames, refused queries and the bytes really sent (frame
+Counting: one entry per event in the next :class:`Inbox`'s ``degradations``;
+:meth:`ZenohLink.take_degradations` drains what no inbox delivered yet.
+
+* ``msg:lost``: an expected frame or reply not there at the deadline;
+* ``msg:garbled``: a payload on our keys that does not decode, a missing or foreign
+  header, a frame whose type is not its key's kind;
+* ``msg:unknown-sender``: a key robot not in the roster, a frame whose sender index
+  is not its key robot's;
+* ``msg:image-not-held``: the owner answered that it no longer holds that image;
+* ``net:peer-lost``: a peer's session ended without bye, none within ``BYE_GRACE_S``;
+* ``link:protocol-mismatch`` and ``link:team-mismatch``: once per robot and
+  version/team, with a warning naming both;
+* ``link:duplicate-robot``: another session uses this robot's id.
+
+Late, duplicate and far-ahead frames, refused queries and the bytes really sent (frame
 + header) go to :attr:`ZenohLink.stats`.
 
-Every wait has a deadline; a session that cannot open is one
+Every wait has a deadline. A session that cannot open is one
 :class:`~cerpe.online.zenoh_session.ZenohSessionError` naming mode and endpoints;
 nothing else raises on bad input.
 """

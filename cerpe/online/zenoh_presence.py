@@ -18,9 +18,8 @@ if TYPE_CHECKING:  # the attributes the mixin reads, owned by ZenohLink
 
 log = logging.getLogger(__name__)
 
-#: seconds a peer whose liveliness token went has to say bye before it counts as lost: its bye and
-#: the token's end travel apart, and under load the end came first (a peer that closed at once was
-#: counted lost about once in 8 runs of the bye test)
+#: seconds a peer whose liveliness token went has to say bye before it counts as lost. Its bye and
+#: the token's end travel apart, and under load the end can come first.
 BYE_GRACE_S = 0.5
 
 

@@ -1,6 +1,7 @@
-"""Answering the peers' image requests: queries checked on Zenoh's threads (a bad one refused at
-once, a good one queued), answered by the robot's handler on the thread that calls the link, inside
-its waits, once the robot has begun the query's step.
+"""Answering the peers' image requests: queries checked on Zenoh's threads, answered on the robot's.
+
+A bad query is refused at once and a good one queued. The robot's handler answers it on the thread
+that calls the link, inside its waits, once the robot has begun the query's step.
 
 A mixin of :class:`~cerpe.online.zenoh_link.ZenohLink` (it reads the link's roster, mailbox step and
 counters, under the link's lock); apart so that the link module stays the engine's link protocol.

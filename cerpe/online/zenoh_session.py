@@ -11,7 +11,7 @@ Options (``default_conf``; ``cerpe online`` maps ``--connect``/``--listen``/... 
 * ``zenoh``: further Zenoh settings ``{json5 path: value}``, applied last.
 
 A peer whose ``connect`` endpoint is not up yet keeps retrying in the
-background (robots start in any order); a client whose router cannot be
+background (robots start in any order). A client whose router cannot be
 reached, an endpoint that does not parse, or a ``listen`` address that is not
 this machine's fails at once with :class:`ZenohSessionError`.
 """

@@ -121,9 +121,10 @@ def _facade(rng: np.random.Generator, seed: int, shop: bool) -> Material:
 
 
 def _car(rng: np.random.Generator, seed: int, size=(4.4, 1.8, 1.5), color=None, van: bool | None = None) -> FaceSet:
-    """A vehicle in its own frame (x forward, z up, base at z=0): a car (body box plus
-    a glass cabin box) or, with ``van`` (default: 20 % of draws, always for height > 2 m),
-    a single box with a glass band."""
+    """A vehicle in its own frame (x forward, z up, base at z=0).
+
+    A car is a body box plus a glass cabin box. With ``van`` (default: 20 % of draws,
+    always for height > 2 m) it is a single box with a glass band."""
     color = tuple(color if color is not None else np.clip(rng.choice(
         [[0.75, 0.1, 0.08], [0.1, 0.2, 0.55], [0.85, 0.85, 0.85], [0.12, 0.12, 0.13], [0.5, 0.52, 0.55],
          [0.9, 0.75, 0.1], [0.15, 0.4, 0.2], [0.95, 0.95, 0.95]]) * rng.uniform(0.9, 1.1, 3), 0, 1))

@@ -1,12 +1,12 @@
 """Ground truth between rendered frames: visual-overlap ratio and viewing angle.
 
 Overlap of an ordered pair ``(i, j)``: the fraction of image i's *surface* pixels
-(depth > 0; sky is not counted: it has no position to be co-visible) whose 3D point,
-back-projected with i's exact depth and re-projected into camera j, lands inside
-image j in front of it and agrees with j's own depth there (no occluder in
-between) within ``abs_tol_m + rel_tol * z_j``. Pixels of i are sampled on a
-regular grid with ``stride`` (the ratio is a fraction, so this only trades noise
-for speed).
+(depth > 0) that j sees. Sky is not counted: it has no position to be co-visible. A
+pixel's 3D point is back-projected with i's exact depth and re-projected into camera j.
+It counts when it lands inside image j in front of it and agrees with j's own depth
+there (no occluder in between) within ``abs_tol_m + rel_tol * z_j``. Pixels of i are
+sampled on a regular grid with ``stride`` (the ratio is a fraction, so this only trades
+noise for speed).
 """
 from __future__ import annotations
 

@@ -2,8 +2,8 @@
 
 Noise is band-limited value noise: a few fixed ``256x256`` tiles of Gaussian-
 filtered white noise sampled bilinearly (``cv2.remap``, wrapping) at several
-octaves, each octave rotated and offset by a hash of the face seed so that no two
-faces (and no two octaves) share a period. Octaves finer than the pixel's
+octaves. Each octave is rotated and offset by a hash of the face seed, so that no
+two faces (and no two octaves) share a period. Octaves finer than the pixel's
 footprint on the surface are faded out (a cheap mip-map), which keeps far
 surfaces from aliasing into flickering noise that no detector could match.
 Edges are anti-aliased analytically (:func:`coverage`). Everything here is

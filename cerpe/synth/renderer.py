@@ -13,9 +13,9 @@ coordinates) with unit z, so the ray parameter *is* the z-depth along the optica
 axis, in metres. Pixels that hit nothing show a sky gradient (outdoor) and have
 depth 0, which everywhere in ``cerpe`` means "no surface / unknown".
 
-There is no supersampling (it quadruples the cost and would break the 5-minute
-budget of the paper-default suite); textures are instead footprint-filtered in
-:mod:`cerpe.synth.noise` and texture edges are anti-aliased analytically.
+There is no supersampling: it quadruples the cost and would break the 5-minute
+budget of the paper-default suite. Textures are instead footprint-filtered in
+:mod:`cerpe.synth.noise`, and texture edges are anti-aliased analytically.
 Object silhouettes remain aliased at one pixel.
 """
 from __future__ import annotations
@@ -256,7 +256,7 @@ def render(faces: FaceSet, T_world_cam: np.ndarray, K: CameraIntrinsics, ctx: tx
         z = depth.ravel()[idx]
         r_px = rays_flat[idx]
         R32 = R_wc.astype(np.float32)
-        # float32 [N,3] x [3,3]: numpy's float64 path for this shape is ~50x slower
+        # float32 [N,3] x [3,3]: numpy's float64 path for this shape is far slower
         xw = ((r_px * z[:, None]) @ R32.T).astype(np.float64) + C
         ray_len = np.sqrt((r_px * r_px).sum(1))
         cos_t = np.abs((r_px * n_c[f_px].astype(np.float32)).sum(1)) / ray_len

@@ -14,9 +14,8 @@ On disk (one *setting* folder per world; see docs/ARCHITECTURE.md "Dataset manif
 
 Generation is cached: the same arguments (and the same generator source, by
 hash) find ``OUT/meta.json`` equal and render nothing; different ones raise
-:class:`SynthError` unless ``force``. Work
-goes into ``.OUT.partial`` (finished encounters there are reused after an
-interruption) and is renamed to ``OUT`` at the end. A lock file ``.OUT.lock``
+:class:`SynthError` unless ``force``. Work goes into ``.OUT.partial`` and is renamed
+to ``OUT`` at the end; finished encounters there are reused after an interruption. A lock file ``.OUT.lock``
 makes processes that ask for the same ``OUT`` at once take turns.
 """
 from __future__ import annotations
@@ -62,8 +61,8 @@ DEFAULT_CONF: dict = {
 
 SETTING_OF_WORLD = {"cad-intersection": "synthetic-cad", "indoor-team": "synthetic-indoor"}
 
-# A 0.3-10 m RGB-D range sees little of a street: most keypoints of the CAD world lie farther,
-# and scale alignment then starves (measured: 0-23 usable depth pixels per keyframe).
+# An indoor RGB-D range (0.3-10 m) sees little of a street: most keypoints of the CAD world lie
+# farther, and scale alignment then starves for lack of depth pixels.
 SENSOR_OPTIONS_BY_WORLD: dict[str, dict[str, float]] = {"cad-intersection": OUTDOOR_SENSOR}
 
 
@@ -314,7 +313,7 @@ def _render_parallel(jobs: list[tuple], workers: int, bar) -> list[tuple[str, in
     """Render ``jobs`` in ``workers`` spawned processes; ``[]`` if processes cannot be started.
 
     Spawn, not fork: a forked child inherits the parent's OpenCV/BLAS thread pools in a
-    broken state and can hang (seen here). Spawn would re-run a calling *script*
+    broken state and can hang. Spawn would re-run a calling *script*
     (an unguarded one would render again in every child); the jobs only need
     :mod:`cerpe.synth.writer`, so the script path is hidden while the workers start.
     If processes still cannot start, everything is rendered in this process (logged).
@@ -347,7 +346,7 @@ def suite_lock(out: Path):
 
     Two processes asked for the same suite (two robots started on one host from one
     synthetic manifest, or ``cerpe bench`` beside ``make paper``) would otherwise render
-    into the same ``.partial`` folder; the second now waits for the first and then finds
+    into the same ``.partial`` folder. The second now waits for the first and then finds
     the suite made. The lock is released when its holder exits, even by a crash (``flock``).
     """
     import fcntl

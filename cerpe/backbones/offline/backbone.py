@@ -1,10 +1,10 @@
 """The offline backbone: classical multi-view geometry behind :class:`cerpe.protocols.PoseBackbone`.
 
-The stand-in for VGGT's joint pass over ``[current] + memory + collaborators``:
-XFeat features (cached by content), mutual-nearest-neighbour matches (cached by
-both images' content), then a metric reconstruction on the views' depth priors
-(:mod:`.reconstruction`), and an image-only one (:mod:`.two_view`) where no prior
-anchors or to add views the metric one left out. Per view: the pose in the current
+The stand-in for VGGT's joint pass over ``[current] + memory + collaborators``.
+It computes XFeat features (cached by content) and mutual-nearest-neighbour matches
+(cached by both images' content). Then it builds a metric reconstruction on the views'
+depth priors (:mod:`.reconstruction`). An image-only one (:mod:`.two_view`) serves where
+no prior anchors, or adds views the metric one left out. Per view: the pose in the current
 camera's frame (``T_frame_cam[0] = I``), sparse depth of its inlier points and
 confidence ``n_obs / (1 + reprojection error px)``.
 
@@ -56,13 +56,15 @@ class OfflineGeometryBackbone:
         learned: the cross-robot learned matcher to use (default: a :class:`.cross.LearnedMatcher`
             of ``conf.cross``, built on first use).
 
-    ``counts`` accumulates events over passes (``dense-refined``, ``dense-refused:<why>``,
-    ``merged``, ``merge-refused:<why>``, ``cross-registered``, ``cross-none``,
-    ``cross-learned`` (collaborator views the learned stage ran for),
-    ``cross-learned-pairs``, ``cross-unscaled``, ``cross-bad-image``, ``cross-fallback-placed``,
-    ``cross-fallback-none`` (collaborators asked for with ``try_hard`` that the joint pass left, placed
-    or not apart),
-    ``cross-image-size-mismatch``, ``cross-appearance-checked``, ``cross-appearance-rejected``); statistics only, they change no result.
+    ``counts`` accumulates events over passes; they are statistics only and change no result:
+
+    * ``dense-refined``, ``dense-refused:<why>``, ``merged``, ``merge-refused:<why>``;
+    * ``cross-registered``, ``cross-none``, ``cross-learned-pairs``, ``cross-unscaled``,
+      ``cross-bad-image``, ``cross-image-size-mismatch``;
+    * ``cross-learned``: collaborator views the learned stage ran for;
+    * ``cross-fallback-placed``, ``cross-fallback-none``: collaborators asked for with
+      ``try_hard`` that the joint pass left, placed apart or not;
+    * ``cross-appearance-checked``, ``cross-appearance-rejected``.
     """
 
     def __init__(self, conf: OfflineConfig | None = None, encoder: XFeatEncoder | None = None,
@@ -90,7 +92,7 @@ class OfflineGeometryBackbone:
 
         With ``cross.enabled``, views whose role is ``"collaborator"`` stay out of the
         own reconstruction and are registered against single own views
-        (``BackboneOutput.registrations``); a collaborator without intrinsics is left
+        (``BackboneOutput.registrations``). A collaborator without intrinsics is left
         unplaced (``no-intrinsics``) rather than refused, as is one whose image this backbone
         refuses (``bad-image``) or whose size is not its intrinsics' (``image-size-mismatch``)."""
         S = len(views)

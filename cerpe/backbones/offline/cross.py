@@ -6,47 +6,43 @@ views, never inside the own reconstruction:
 * with depth priors: against every own view that has one (current, previous frame,
   keyframes) by P3P RANSAC on that view's keypoint depths -> ``T_via_k`` in metres;
 * without (an RGB-only robot, or a pass whose unit is not the metre): against every own
-  view by its essential matrix, the translation put in the pass's unit by the points the
-  pass triangulated in that view (unit length where it has none, counted ``cross-unscaled``:
-  its rotation and direction still hold).
+  view by its essential matrix. The translation is put in the pass's unit by the points the
+  pass triangulated in that view. Where it has none it keeps unit length, counted
+  ``cross-unscaled``: its rotation and direction still hold.
 
-A cascade keeps the cost down: the XFeat mutual-NN matches the pass already has come
-first; the learned matcher (:class:`LearnedMatcher`) runs only when none of them reaches
+A cascade keeps the cost down. The XFeat mutual-NN matches the pass already has come
+first. The learned matcher (:class:`LearnedMatcher`) runs only when none of them reaches
 ``min_inliers``, against the ``max_views`` own views with most mutual-NN matches. A
 registration needs ``min_inliers_mnn`` verified inliers from the mutual-NN stage (the
-evidence the joint pass asks of a view it places by PnP) or ``min_inliers`` from the
-learned one (and, for the essential matrix, an inlier ratio of :data:`MIN_INLIER_RATIO`); a
-learned one replaces the mutual-NN one of its view when it has more. Most inliers first.
+evidence the joint pass asks of a view it places by PnP), or ``min_inliers`` from the
+learned one. For the essential matrix it also needs an inlier ratio of
+:data:`MIN_INLIER_RATIO`. A learned registration replaces the mutual-NN one of its view
+when it has more inliers. Registrations come most inliers first.
 
-The fallback (``fallback``): on passes where collaborators join the joint reconstruction (RGB-D),
-one the joint pass left unplaced is registered here when the robot asks (``View.try_hard``: no
-anchor of its sender yet), more strictly than above, since the joint pass's own evidence already
-failed: both stages need ``min_inliers_pnp`` inliers, the learned one tries :data:`FALLBACK_MAX_VIEWS`
-own views, and every placement, whatever its inliers, must pass the appearance check. On
-development runs the fallback without those rules carried half turns placed on 20-45 keypoints
-(streets whose two sides look alike, synthetic CAD) and a 96-inlier placement of a view that saw
-nothing the robot saw (indoor); with them, none.
+The fallback (``fallback``) serves passes where collaborators join the joint reconstruction
+(RGB-D). A collaborator the joint pass left unplaced is registered here when the robot asks
+(``View.try_hard``: no anchor of its sender yet). Since the joint pass's own evidence already
+failed, the rules are stricter than above. Both stages need ``min_inliers_pnp`` inliers, the
+learned one tries :data:`FALLBACK_MAX_VIEWS` own views, and every placement, whatever its
+inliers, must pass the appearance check. Without these rules the fallback places wrong poses:
+half turns on streets whose two sides look alike, or a view that saw nothing the robot saw.
 
 A metric placement of a collaborator on fewer than :data:`APPEARANCE_MAX_INLIERS` inliers, in the
-joint pass or here, must also pass the **appearance check** (:func:`check_appearance`): the own
+joint pass or here, must also pass the **appearance check** (:func:`check_appearance`). The own
 view's depth pixels, moved into the collaborator's camera by the placement, must look like what
-the collaborator saw there (normalised cross-correlation of the grey levels at least
-``appearance_min_ncc``, and of their texture alone: see below). Repeated or mirrored structure
-gives a handful of consistent keypoint inliers for a pose that no surface supports (the
-collaborator put about where the robot stands, turned alike, while it is metres away or facing
-elsewhere); such a placement is dropped (reason :data:`cerpe.protocols.REASON_APPEARANCE`).
+the collaborator saw there. The normalised cross-correlation of the grey levels must reach
+``appearance_min_ncc``, and that of their texture alone its own threshold (see below). Repeated
+or mirrored structure gives a handful of consistent keypoint inliers for a pose that no surface
+supports. The collaborator is then put about where the robot stands, turned alike, while it is
+metres away or facing elsewhere. Such a placement is dropped (reason
+:data:`cerpe.protocols.REASON_APPEARANCE`).
 
-Why also a high pass (:data:`APPEARANCE_HIGHPASS_PX`, ``appearance_min_ncc_highpass``): of plain grey
-levels, any two upright cameras share the layout (bright sky or ceiling above, dark road or floor
-below), so a placement turned half a turn, or moved metres along a street, still correlated 0.5-0.67
-on development scenes. Less their 12 px blur, only texture and edges count; but a half turn on a
-street whose two sides look alike can correlate there, where the plain levels disagree, so a
-placement must pass both. On the judged placements of synthetic development data (CAD seeds 1, 2001,
-2002, indoor seed 1 and part of 2001; right: < 0.1 rad and < 2 m CAD / 0.3 m indoor; wrong: > 0.3
-rad or > 4 m / 0.6 m) the high-passed correlation ranks right above wrong better (ROC AUC CAD 0.87
--> 0.89, indoor 0.88 -> 0.96); both tests together keep 111 of 156 right CAD placements and 2 of 63
-wrong ones (the plain test alone: 130 and 14), 83 of 89 right indoor ones and 2 of 6 wrong (alone:
-84 and 4).
+Why also a high pass (:data:`APPEARANCE_HIGHPASS_PX`, ``appearance_min_ncc_highpass``): in plain
+grey levels any two upright cameras share the layout (bright sky or ceiling above, dark road or
+floor below). So a placement turned half a turn, or moved metres along a street, still
+correlates well. Less their blur, only texture and edges count, and the high-passed correlation
+ranks right placements above wrong ones better. But a half turn on a street whose two sides
+look alike can correlate there while the plain levels disagree, so a placement must pass both.
 """
 from __future__ import annotations
 
@@ -64,7 +60,7 @@ from .matching import keypoint_depths, pixels_to_rays, pose_to_T
 from .two_view import MIN_SCALE_POINTS, relative_pose, triangulate_pair
 from .vote import photometric_agreements
 
-FALLBACK_MAX_VIEWS = 1  # own views the fallback's learned stage tries (ALIKED and LightGlue cost ~0.7 s each)
+FALLBACK_MAX_VIEWS = 1  # own views the fallback's learned stage tries (ALIKED and LightGlue are costly)
 MIN_INLIER_RATIO = 0.2  # an essential-matrix registration needs this fraction of its matches as inliers
 PNP_PX = 3.0  # P3P RANSAC threshold of a registration on an own view's depth, px
 EPIPOLAR_PX = 1.0  # essential-matrix RANSAC threshold (Sampson error), px
@@ -271,10 +267,11 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, j
     A placement on at least :data:`APPEARANCE_MAX_INLIERS` inliers is not judged: the keypoints alone
     support it (and an imprecise but right placement over a wide baseline can look unlike the
     collaborator's image pixel by pixel). Below, view ``a``'s depth-prior pixels (the vote grid)
-    moved into camera ``k`` (:func:`.vote.photometric_agreement`): when at least
-    :data:`APPEARANCE_MIN_PIXELS` land inside, the normalised cross-correlation of both images' grey levels
-    there must reach ``appearance_min_ncc``, and that of the same levels less their blur of
-    :data:`APPEARANCE_HIGHPASS_PX` (texture, not layout; 0: not asked) ``appearance_min_ncc_highpass``. Not
+    are moved into camera ``k`` (:func:`.vote.photometric_agreement`). When at least
+    :data:`APPEARANCE_MIN_PIXELS` land inside, the normalised cross-correlation of both images' grey
+    levels there must reach ``appearance_min_ncc``. That of the same levels less their blur of
+    :data:`APPEARANCE_HIGHPASS_PX` (texture, not layout; 0: not asked) must reach
+    ``appearance_min_ncc_highpass``. Not
     judged (``""``) either: the check off, ``a`` without a depth prior, either view blank, too few
     pixels inside. Counted ``cross-appearance-<checked|rejected>``. ``judge_all``: whatever the inliers
     (a fallback placement, :func:`register_collaborators`).
@@ -301,7 +298,7 @@ def check_appearance(p: Pass, a: int, k: int, T_a_k: np.ndarray, inliers: int, j
 def check_joint_placements(p: Pass, rec: Any, collab: Sequence[int], reasons: list[str]) -> None:
     """The appearance check of the collaborator views ``collab`` that the joint (metric)
     reconstruction ``rec`` placed, against the current view (0), on the points it observes
-    (``rec.obs``; none for a two-view placement scaled by the current view's prior); a view that fails leaves
+    (``rec.obs``; none for a two-view placement scaled by the current view's prior). A view that fails leaves
     ``rec`` (in place) with reason :data:`~cerpe.protocols.REASON_APPEARANCE`. An image-only
     reconstruction (unit not the metre) is not checked."""
     if rec is None or not rec.metric or 0 not in rec.T:

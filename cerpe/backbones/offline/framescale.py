@@ -1,32 +1,33 @@
 """A running per-frame depth scale for depth priors whose metric scale wanders from frame to frame.
 
 A monocular metric-depth network's map of a frame is off by a scale factor of its own
-(~8 %, independent from frame to frame). Every metric result of a pass takes the scale of
-the prior it was placed on: the current view's translation (P3P on the reference view's
-points) and a collaborator's direct estimate (P3P on the robot's points), whose error
-along the line between the cameras is then about that factor. This module keeps, per
-robot and through the memos alone (a backbone keeps no state), a log depth scale of each
-frame relative to the robot's recent frames, and brings every own view of a pass onto one
-common scale before the metric reconstruction:
+(several per cent, independent from frame to frame). Every metric result of a pass takes the
+scale of the prior it was placed on. That holds for the current view's translation (P3P on
+the reference view's points) and for a collaborator's direct estimate (P3P on the robot's
+points), whose error along the line between the cameras is then about that factor.
 
-* a memo carries ``log_scale = (a, m)`` of its frame: ``a`` the frame's prior's log
-  scale in the robot's running reference, ``m`` the running mean of ``a`` over its recent
+This module keeps a log depth scale of each frame relative to the robot's recent frames,
+per robot and through the memos alone (a backbone keeps no state). It brings every own
+view of a pass onto one common scale before the metric reconstruction:
+
+* a memo carries ``log_scale = (a, m)`` of its frame. ``a`` is the frame's prior's log
+  scale in the robot's running reference. ``m`` is the running mean of ``a`` over its recent
   frames (an exponential mean, rate :data:`FRAME_SCALE_RATE`) when it was the current view;
 * a pass takes ``m_ref`` from its previous frame's memo (else its newest keyframe's) and
   multiplies the prior of each own view ``k`` with a memo by ``exp(m_ref - a_k)``;
 * once the current view is placed on the (corrected) reference view ``d``, the median log
   ratio ``r`` of the current prior to ``d``'s prior moved into the current camera is its
-  scale relative to ``m_ref``: its memo gets ``a = m_ref + r``, ``m = m_ref + rate r``, and
-  its prior is multiplied by ``exp(-r)`` for the rest of the pass (dense refinement, the
+  scale relative to ``m_ref``. Its memo gets ``a = m_ref + r``, ``m = m_ref + rate r``. Its
+  prior is multiplied by ``exp(-r)`` for the rest of the pass (dense refinement, the
   moving mask, the points collaborators are placed on).
 
-A ratio needs no translation to be measured (rotation alone moves ``d``'s points into the
-current camera), and with a pure scale error it is exact: P3P on points scaled by ``s_d``
+A ratio needs no translation to be measured: rotation alone moves ``d``'s points into the
+current camera. With a pure scale error it is exact. P3P on points scaled by ``s_d``
 gives the translation scaled by ``s_d``, so ``d``'s moved depths are ``s_d z`` where the
-current prior reads ``s_0 z``. Applied only when the current view's depth source reports a
-scale sigma ``depth_rel_sigma >= FRAME_SCALE_MIN_REL_SIGMA`` (a depth sensor's 0 leaves
-every pass bit for bit as it was) and ``frame_scale`` is on; the backbone never asks which
-source made the depth.
+current prior reads ``s_0 z``. The correction applies only when ``frame_scale`` is on and
+the current view's depth source reports a scale sigma ``depth_rel_sigma >=
+FRAME_SCALE_MIN_REL_SIGMA``. A depth sensor's 0 leaves every pass bit for bit as it was;
+the backbone never asks which source made the depth.
 """
 from __future__ import annotations
 
@@ -100,11 +101,12 @@ def correct_views(views: list[View], memos: Sequence[Mapping[str, Any] | None], 
 
 
 def log_ratio(p: Pass, d: int, T_0_d: np.ndarray) -> tuple[float, int]:
-    """Median log ratio of the current view's prior to view ``d``'s prior moved into the
-    current camera by ``T_0_d`` (camera-``d`` points into the current camera), over the
-    vote grid pixels of ``d`` (its moving ones left out) that land inside the current view
-    with a grey level within ``VOTE_GREY_TOL`` and a ratio within a factor
-    ``1 + FRAME_SCALE_MAX``: ``(r, n)``, ``r = 0`` when ``n < FRAME_SCALE_MIN_PIXELS``."""
+    """``(r, n)``: the median log ratio ``r`` of the current view's prior to view ``d``'s prior
+    moved into the current camera by ``T_0_d`` (camera-``d`` points into the current camera).
+
+    It is taken over the ``n`` vote grid pixels of ``d`` (its moving ones left out) that land
+    inside the current view with a grey level within ``VOTE_GREY_TOL`` and a ratio within a
+    factor ``1 + FRAME_SCALE_MAX``. ``r = 0`` when ``n < FRAME_SCALE_MIN_PIXELS``."""
     D0 = np.asarray(p.views[0].depth_m, np.float64)
     H0, W0 = p.feats[0].image_hw
     grey = blurred_greys(p, (d, 0), VOTE_BLUR_SIGMA)

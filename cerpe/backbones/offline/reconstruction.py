@@ -2,11 +2,11 @@
 
 The view sharing most matches with the current one whose depth prior gives enough
 keypoint depths (:data:`MIN_DEPTH_POINTS`) anchors the pass (the current view's own prior only when no other
-view can). The current view is placed on its points by P3P RANSAC: up to
-``motion_hypotheses`` rigid motions (each on the previous ones' outliers: the static
+view can). The current view is placed on its points by P3P RANSAC. Its candidates are up
+to ``motion_hypotheses`` rigid motions (each on the previous ones' outliers: the static
 scene, a moving object, a facade matched one window off) plus the memo's previous
-motion (constant velocity), decided by the dense vote (:mod:`.vote`), then refined by
-dense RGB-D alignment (:func:`cerpe.backbones.rgbd_align.align_rgbd`). This is how
+motion (constant velocity). The dense vote (:mod:`.vote`) decides between them, and
+dense RGB-D alignment (:func:`cerpe.backbones.rgbd_align.align_rgbd`) refines the winner. This is how
 RGB-D odometry uses depth: over short baselines it is far better conditioned than an
 essential matrix, and it handles pure rotation. Other views are placed by absolute
 pose on the points they share (:func:`place_pnp`).

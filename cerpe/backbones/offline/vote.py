@@ -2,11 +2,11 @@
 
 RANSAC on keypoints can be won by whatever holds most keypoints: a textured object
 that moves, or a facade of repeated windows matched one period off. The vote counts
-surfaces instead: every :data:`VOTE_STRIDE`-th pixel of the depth-prior view, moved by
-each candidate motion into the current view, counts for the motions under which it
-lands on a consistent depth *and* grey level (depth alone cannot tell forward motion
+surfaces instead. Every :data:`VOTE_STRIDE`-th pixel of the depth-prior view is moved by
+each candidate motion into the current view. It counts for the motions under which it
+lands on a consistent depth *and* grey level. Depth alone cannot tell forward motion
 over a flat floor from standing still; grey level alone cannot tell motions apart
-over blank walls). Older keyframes reached through the memos' motion chains vote
+over blank walls. Older keyframes reached through the memos' motion chains vote
 too: an object that moved with the camera agrees with a wrong motion in the newest
 frame only. Pixels a view's own motion did not explain (its memo's ``moving`` mask)
 do not vote.
@@ -25,9 +25,9 @@ VOTE_STRIDE = 4  # every VOTE_STRIDE-th pixel (both directions) of a view's dept
 VOTE_DEPTH_TOL = 0.05  # a moved pixel's depth agrees within this fraction of the other prior's
 VOTE_GREY_TOL = 6.0  # ... and its grey level within this (0-255), both images blurred with VOTE_BLUR_SIGMA px
 VOTE_BLUR_SIGMA = 1.0
-# one depth scale per motion and frame pair (a prior whose scale wanders per frame): fitted on the
-# pixels whose depths agree within a factor 1 + VOTE_DEPTH_SCALE_SEARCH, bounded to a factor
-# 1 + VOTE_DEPTH_SCALE_MAX (about a monocular prior's per-frame scale noise; 0: off)
+# one depth scale per motion and frame pair, for a prior whose scale wanders per frame. It is fitted
+# on the pixels whose depths agree within a factor 1 + VOTE_DEPTH_SCALE_SEARCH, and bounded to a
+# factor 1 + VOTE_DEPTH_SCALE_MAX (about a monocular prior's per-frame scale noise; 0: off)
 VOTE_DEPTH_SCALE_MAX = 0.08
 VOTE_DEPTH_SCALE_SEARCH = 0.15
 # the moving mask's depth tolerance widens to VOTE_MOVING_SPREAD_K robust sigmas of the chosen
@@ -39,8 +39,8 @@ VOTE_VIEWS = 2  # older views (reached through the memos' motion chains) that vo
 
 def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
                 exclude: np.ndarray | None = None, spread_k: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """View ``a``'s prior depth pixels on the :data:`VOTE_STRIDE` grid, moved into view ``b``
-    by each ``T_b_a[h]``: ``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool.
+    """``(inside, consistent)``, both ``[len(T_b_a), n_grid]`` bool: view ``a``'s prior depth
+    pixels on the :data:`VOTE_STRIDE` grid, moved into view ``b`` by each ``T_b_a[h]``.
 
     ``inside``: in front of ``b`` and within its image; ``consistent``: also ``b``'s prior
     depth there within :data:`VOTE_DEPTH_TOL` (relative) of the moved depth times the motion's
@@ -48,8 +48,8 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
     :data:`VOTE_BLUR_SIGMA`) within :data:`VOTE_GREY_TOL`. Grid pixels without a prior depth, or
     set in ``exclude`` (``[n_grid]`` bool), are neither. ``spread_k`` > 0 widens the depth
     tolerance of each motion to ``spread_k`` robust sigmas of its log depth residuals
-    (:func:`depth_scale`), at most :data:`VOTE_DEPTH_TOL_MAX`: for one motion already chosen
-    (the moving mask), never between motions (a wrong one would widen its own)."""
+    (:func:`depth_scale`), at most :data:`VOTE_DEPTH_TOL_MAX`. That is for one motion already
+    chosen (the moving mask), never between motions (a wrong one would widen its own)."""
     Db = np.asarray(p.views[b].depth_m, np.float64)
     grey = blurred_greys(p, (a, b), VOTE_BLUR_SIGMA)
     Hb, Wb = p.feats[b].image_hw
@@ -78,21 +78,22 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
 
 def depth_scale(z_pred: np.ndarray, z_meas: np.ndarray, grey_ok: np.ndarray, tol: float,
                 scale_max: float, search: float | None = None) -> tuple[float, float]:
-    """One depth scale ``s`` of a motion: ``s * z_pred`` (``[n]``, depths moved by the motion)
-    best matches ``z_meas`` (``[n]``, the other view's prior there), the median ratio over
-    the pixels whose grey level agrees (``grey_ok``) and whose depths agree within
-    ``(1 + search) * (1 + tol)`` (``search`` defaults to ``scale_max``), clipped to a factor
-    ``1 + scale_max`` either way; 1 with fewer than 3 such pixels or ``scale_max`` <= 0 (off).
-    Also the robust sigma (1.4826 MAD) of the log ratios about it over those pixels (0
-    without any): what is left of the prior's error within a frame (a network's smooth
-    distortion) once the scale is fitted. The bound is about the prior's own per-frame
-    scale noise: a wider one lets a motion fit away part of a real depth change (moving
-    forward towards a scene looks much like a scale).
+    """One depth scale ``s`` of a motion, and the robust sigma of the log ratios about it.
+
+    ``s * z_pred`` (``[n]``, depths moved by the motion) best matches ``z_meas`` (``[n]``, the
+    other view's prior there). ``s`` is the median ratio over the pixels whose grey level
+    agrees (``grey_ok``) and whose depths agree within ``(1 + search) * (1 + tol)`` (``search``
+    defaults to ``scale_max``). It is clipped to a factor ``1 + scale_max`` either way, and is 1
+    with fewer than 3 such pixels or ``scale_max`` <= 0 (off). The robust sigma (1.4826 MAD)
+    over those pixels (0 without any) is what is left of the prior's error within a frame (a
+    network's smooth distortion) once the scale is fitted. The bound is about the prior's own
+    per-frame scale noise. A wider one lets a motion fit away part of a real depth change
+    (moving forward towards a scene looks much like a scale).
 
     Why: a depth prior whose metric scale wanders from frame to frame (a monocular depth
-    network, ~8 % per frame) fails a tight relative depth test over the whole static
-    scene, which then counts as moving. The scale is one number per motion and frame pair,
-    so an object moving in the scene still disagrees with the static part it is fitted on."""
+    network) fails a tight relative depth test over the whole static scene, which then
+    counts as moving. The scale is one number per motion and frame pair, so an object
+    moving in the scene still disagrees with the static part it is fitted on."""
     smax = np.log1p(max(scale_max, 0.0))
     window = np.log1p(max(scale_max if search is None else search, 0.0)) + np.log1p(tol)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -163,13 +164,15 @@ def moving_pixels(p: Pass, d: int, T_d_0: np.ndarray) -> np.ndarray | None:
 def photometric_agreement(p: Pass, a: int, b: int, T_b_a: np.ndarray,
                           blur_px: float | None = None, highpass_px: float = 0.0) -> tuple[int, float]:
     """How well view ``b``'s image agrees with view ``a``'s, moved by ``T_b_a`` (camera-``a``
-    points into camera ``b``) on ``a``'s depth prior: ``(n, ncc)``, the grid pixels of ``a``
-    that land inside ``b`` and the normalised cross-correlation of both blurred grey levels
-    there (gain and offset of either camera do not matter). ``(n, nan)`` below 2 such pixels.
-    ``blur_px``: the Gaussian blur of both images (default :data:`VOTE_BLUR_SIGMA`); a wider one
-    forgives the few pixels a right but imprecise placement is off by. ``highpass_px`` > 0: both
-    images less their Gaussian blur of that sigma first, so that only texture and edges count,
-    not the layout (bright sky above, dark ground below) that any two cameras held alike share.
+    points into camera ``b``) on ``a``'s depth prior: ``(n, ncc)``.
+
+    ``n`` counts the grid pixels of ``a`` that land inside ``b``. ``ncc`` is the normalised
+    cross-correlation of both blurred grey levels there (gain and offset of either camera do
+    not matter). ``(n, nan)`` below 2 such pixels. ``blur_px``: the Gaussian blur of both
+    images (default :data:`VOTE_BLUR_SIGMA`); a wider one forgives the few pixels a right but
+    imprecise placement is off by. ``highpass_px`` > 0: both images less their Gaussian blur of
+    that sigma first. Then only texture and edges count, not the layout (bright sky above,
+    dark ground below) that any two cameras held alike share.
 
     Keypoint inliers say only that some features agree; a placement from repeated or
     mirrored structure agrees there and nowhere else, while a true one makes the whole
