@@ -43,7 +43,8 @@ def _frame(method: str, step: int, source: str, e_rot: float, metric: bool) -> d
 def test_summary_table_counts_and_means() -> None:
     frames = pd.DataFrame([_frame("cerpe", 0, "none", 0, True), _frame("cerpe", 1, "direct", 0.1, True),
                            _frame("cerpe", 2, "propagated", 0.2, True), _frame("cerpe", 3, "propagated", 0.5, True),
-                           _frame("sift-ransac", 0, "direct", 1.0, False), _frame("sift-ransac", 1, "direct", 0.0, False)])
+                           _frame("sift-ransac", 0, "direct", 1.0, False),
+                           _frame("sift-ransac", 1, "direct", 0.0, False)])
     t = summary_table(frames).set_index("method")
     c, s = t.loc["CERPE"], t.loc["SIFT+RANSAC"]
     assert (c["frames"], c["estimates"], c["direct"], c["propagated"]) == (4, 3, 1, 2)
