@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import io
-import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +43,6 @@ import pandas as pd
 from .atomicio import atomic_write_bytes, atomic_write_json, atomic_write_text, ensure_dir
 from .errors import CerpeError
 
-log = logging.getLogger(__name__)
 
 DEFAULT_OUT = Path("build") / "demo"
 SETTING = "demo"
@@ -97,12 +95,13 @@ class DemoResult:
 
 
 def _check(conf: DemoConfig) -> None:
+    """Every option, before anything is written (a bad world argument raises the generator's own error)."""
     from .pipeline.methods import BASELINE_METHODS
+    from .synth.writer import full_conf
 
     if conf.baseline not in BASELINE_METHODS:
         raise DemoError(f"--baseline {conf.baseline!r}: choose one of {', '.join(BASELINE_METHODS)}")
-    if conf.frames < 2:
-        raise DemoError(f"--frames {conf.frames}: the demo needs at least 2 frames")
+    full_conf(conf.world, conf.synth_conf())
 
 
 def _claim(out: Path, conf: DemoConfig) -> None:
@@ -196,15 +195,9 @@ def run_demo(out: Path | str = DEFAULT_OUT, conf: DemoConfig = DemoConfig(), pro
 
 
 # --------------------------------------------------------------------------- CLI
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = text.lower().split("x")
-        return int(w), int(h)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 320x240, got {text!r}") from None
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from .synth.cli import _size  # `cerpe synth --size`'s parser: WxH
+
     d = DemoConfig()
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"demo folder (default {DEFAULT_OUT})")
     p.add_argument("--world", choices=("cad-intersection", "indoor-team"), default=d.world,
