@@ -14,9 +14,10 @@ export MPLBACKEND := Agg
 export PYTHONHASHSEED := 0
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-fast paper bench clean distclean
+.PHONY: help setup test test-fast paper bench demo clean distclean
 
 help:
+	@echo "make demo    - a first minute: one small encounter, CERPE and a baseline, a table and build/demo/demo.png"
 	@echo "make paper   - every table and figure (sets itself up first; JOBS=N worker processes, default 2)"
 	@echo "make test    - every test, notebooks included (sets itself up first)"
 	@echo "make bench   - latency / memory / bytes benchmark, 2 and 3 robots (prints figures; renders its suite once)"
@@ -49,6 +50,9 @@ paper: setup
 
 bench: setup
 	$(PY) -m cerpe.cli bench
+
+demo: setup
+	$(PY) -m cerpe.cli demo
 
 clean:
 	rm -rf tables/*.csv tables/*.md tables/*.tex figures/*.png figures/*.pdf build/

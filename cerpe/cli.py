@@ -31,6 +31,8 @@ def _register(name: str, module: str, help_: str) -> None:
     SUBCOMMANDS[name] = (module, help_)
 
 
+_register("demo", "cerpe.demo", "a first minute: render one small encounter, run CERPE and a baseline, print a "
+          "table and draw one picture (what `make demo` runs)")
 _register("synth", "cerpe.synth.cli", "render a synthetic encounter world to a mocap-style dataset")
 _register("check", "cerpe.datasets.cli", "validate a dataset manifest, load it and summarise it")
 _register("config", "cerpe.config_show", "print the method's configuration tree: every knob, its meaning and unit")
