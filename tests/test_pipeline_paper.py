@@ -55,16 +55,46 @@ def test_main_results_table(ctx):
 def test_markdown_and_latex_layout(ctx, tmp_path):
     df = table1.main_results(ctx)
     paths = table1.write_main_results(df, ctx.tables_dir)
-    assert [p.name for p in paths] == ["main_results.csv", "main_results.md", "main_results.tex"]
+    assert [p.name for p in paths] == ["main_results.csv", "main_results.md", "main_results.tex",
+                                       "main_results_notes.md"]
     md = paths[1].read_text()
-    assert "not supplied" in md and "n/a" in md and "SuperGlue stand-in (ALIKED+LightGlue)" in md
-    assert md.splitlines()[0].count("toy:") == 3 and "covis" not in md  # the paper's layout only
+    assert "n/a" in md and "SuperGlue stand-in (ALIKED+LightGlue)" in md
+    head = next(line for line in md.splitlines() if line.startswith("| Method"))
+    assert head.count("toy:") == 3 and "openmars" not in head and "covis" not in md  # supplied settings only
+    assert head.count("|") == 1 + 1 + 3  # Method and the three columns of the one setting
+    # the unsupplied setting: one line under the table, its name and why
+    assert md.rstrip().splitlines()[-1] == ("Not shown: openmars (not supplied: fill datasets_manifest/<name>.yaml "
+                                            "and set enabled: true).")
     tex = paths[2].read_text()
     for token in (r"\toprule", r"\midrule", r"\bottomrule", r"\multicolumn{3}{c}{toy}", r"\cmidrule(lr){2-4}",
-                  "SuperGlue"):
+                  "SuperGlue", r"Not shown: openmars"):
         assert token in tex
-    back = pd.read_csv(paths[0])
-    assert len(back) == len(df)
+    assert tex.count(r"\multicolumn{3}") == 1 and r"\begin{tabular}{lccc}" in tex
+    back = pd.read_csv(paths[0])  # the long form keeps every setting and its columns
+    assert len(back) == len(df) and (back[back.setting == "openmars"].status.str.startswith("not supplied")).all()
+    assert list(back.columns) == list(df.columns)
+
+
+def test_caption_is_short_and_the_rest_is_in_the_notes():
+    """At most 80 words; what the rows are goes to tables/README.md (committed) and the notes file."""
+    assert len(table1.CAPTION.split()) <= 80
+    readme = (Path(paper.ROOT) / "tables" / "README.md").read_text()
+    for text in ("ALIKED+LightGlue", "NOPE", "Co-VisNet", "our extension", "GTSAM iSAM2", "main_results_notes.md"):
+        assert text in readme
+
+
+def test_settings_left_out_share_one_line_by_reason():
+    rows = [("a", "ok"), ("a", "not available offline"), ("b", "error: run missing (see log)"),
+            ("c", "not supplied: fill datasets_manifest/c.yaml and set enabled: true"),
+            ("d", "not supplied: fill datasets_manifest/d.yaml and set enabled: true"),
+            ("e", "skipped: real datasets are not run in the fixture suite"),
+            ("f", "error: f.yaml: data_root not found")]
+    df = pd.DataFrame(rows, columns=["setting", "status"])
+    assert table1.shown_settings(df) == ["a", "b"]  # a supplied setting whose run is missing shows as error
+    assert table1.not_shown_line(df) == (
+        "Not shown: c, d (not supplied: fill datasets_manifest/<name>.yaml and set enabled: true); "
+        "e (skipped: real datasets are not run in the fixture suite); f (error: <name>.yaml: data_root not found).")
+    assert table1.not_shown_line(df[df.setting == "a"]) == ""
 
 
 def test_figures_written(ctx):
@@ -99,8 +129,8 @@ def test_run_is_current(ctx):
     assert not runcheck.run_is_current(out, man, "sift-ransac", "offline")
 
 
-def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
-    """Table I's caption reads the CERPE runs' recorded config: no scale step (metric passes), previous frame."""
+def test_notes_say_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
+    """Table I's notes read the CERPE runs' recorded config: no scale step (metric passes), previous frame."""
     recorded = {"tree": {"scale": {"metric_unit": True}, "odometry": {"track_previous": True},
                          "anchors": {"verify": True, "min_inliers": 40}}, "preset": "paper"}
     monkeypatch.setattr(rp, "prepare_method", fake_prepare(recorded))
@@ -111,13 +141,16 @@ def test_caption_says_what_the_default_cerpe_row_is(tmp_path, monkeypatch):
     c.settings = [paper.SettingEntry("toy", m, "ok", run_manifest=m, setting=_setting(n_steps=4))]
     c.run_dirs[("toy", "cerpe")] = rp.run_method(m, "cerpe", c.runs_root / "toy" / "cerpe",
                                                  setting=c.settings[0].setting, progress=False)
-    md_path, tex_path = table1.write_main_results(table1.main_results(c), c.tables_dir)[1:]
-    md, tex = md_path.read_text(), tex_path.read_text()
-    for text in (md, tex):
-        assert "skips the scale step" in text and "metric_unit" in text.replace("\\_", "_")
-        assert "previous frame" in text and "track_previous" in text.replace("\\_", "_")
+    df = table1.main_results(c)
+    md_path, tex_path, notes_path = table1.write_main_results(df, c.tables_dir)[1:]
+    notes = notes_path.read_text()
+    for text in (notes, df.attrs["cerpe_row_note"]):
+        assert "skips the scale step" in text and "metric_unit" in text
+        assert "previous frame" in text and "track_previous" in text
         assert "offline models" in text
         assert "only when verified" in text and "fewer than 40 registration inliers" in text
+    for text in (md_path.read_text(), tex_path.read_text()):  # not in the caption: it stays short
+        assert "skips the scale step" not in text and "tables/README.md" in text
     other = table1.cerpe_row_note("paper", [{"scale": {"metric_unit": True}, "odometry": {"track_previous": False},
                                              "anchors": {"verify": False, "min_inliers": 40}}])
     assert "skips the scale step" not in other and "keyframes, as in the paper" in other

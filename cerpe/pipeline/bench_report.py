@@ -1,5 +1,5 @@
-"""`cerpe bench`'s printed report: the latency, bytes and accuracy table of each team size, and the
-graph update's line.
+"""`cerpe bench`'s report: the printed latency, bytes and accuracy table of each team size, the graph
+update's line, and the report's latencies as rows for the paper's communication figure.
 """
 from __future__ import annotations
 
@@ -34,6 +34,13 @@ def format_accuracy(a: dict[str, Any]) -> list[str]:
                      f"{g['roc_auc_ceiling']:.3f}; descriptor AUC on pairs whose directions agree "
                      f"{g['roc_auc_consistent']:.3f}")
     return lines
+
+
+def latency_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """A ``cerpe bench --out`` report as latency rows ``n_robots, stage, seconds``: each stage's mean per
+    robot-step times the team size, i.e. per team step (what the paper's communication figure stacks)."""
+    return [{"n_robots": int(r["n_robots"]), "stage": st, "seconds": float(v["mean"]) * int(r["n_robots"]) / 1000}
+            for r in report.get("results", []) for st, v in r.get("stage_ms", {}).items()]
 
 
 def format_graph(g: dict[str, Any]) -> str:

@@ -45,3 +45,17 @@ def gate_tau(meta: Mapping[str, Any]) -> float | None:
     """The gate threshold a CERPE run used, from its ``run.json`` (None for a baseline's)."""
     tau = (meta.get("config", {}).get("method_config", {}).get("tree", {}).get("gate", {}).get("tau"))
     return None if tau is None else float(tau)
+
+
+def timing_note(meta: Mapping[str, Any], cpu_count: int | None) -> str:
+    """How a run's timings were taken, from the command its ``run.json`` recorded: ``cerpe paper --jobs N``
+    (N > 1; 2 by default) ran N runs side by side on the machine's cores, so their timings are contended."""
+    tokens = str(meta.get("command", "")).split()
+    if "paper" not in tokens:
+        return "timed while the runs were made, not by `cerpe bench`"
+    rest = tokens[tokens.index("paper") + 1:]
+    jobs = int(rest[rest.index("--jobs") + 1]) if "--jobs" in rest[:-1] else 2  # `cerpe paper`'s default
+    if "fixture" in rest or jobs <= 1:  # the fixture suite runs one run at a time whatever --jobs says
+        return "timed during `cerpe paper`, one run at a time"
+    return (f"contended: timed during `cerpe paper --jobs {jobs}`, {jobs} runs side by side on "
+            f"{cpu_count or '?'} CPU cores")

@@ -1,10 +1,13 @@
 """Table I of the paper: one row per (setting, method) with the paper's metrics, in long form
-(CSV) and in the paper's layout (Markdown, LaTeX), with a caption that says what the rows are.
+(CSV, every setting) and in the paper's layout (Markdown, LaTeX: the supplied settings, a short
+caption, one line naming the settings left out and why), with this build's notes on the CERPE rows
+beside it (``main_results_notes.md``; ``tables/README.md`` says what the rows are).
 
 Reads finished run folders only (:func:`cerpe.pipeline.evaluate.evaluate_runs`); never runs a method.
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Protocol, Sequence
 
@@ -17,7 +20,8 @@ from .methods import CERPE_METHODS, EXTENSION_METHODS, METHOD_LABELS, UNAVAILABL
 
 TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe",
                                   "cerpe-graph")  # the last: our extension, not the paper's
-EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex")
+EXPECTED_TABLES: tuple[str, ...] = ("main_results.csv", "main_results.md", "main_results.tex",
+                                    "main_results_notes.md")
 
 
 class TableRuns(Protocol):
@@ -43,7 +47,8 @@ def main_results(ctx: TableRuns) -> pd.DataFrame:
     :func:`~cerpe.pipeline.evaluate.e_pos_on_reference_frames`) are not in the paper's layout
     (Markdown, LaTeX). ``status`` is ``ok``, ``not available offline``,
     ``not supplied`` or ``error``; metrics are NaN unless ``ok``. ``df.attrs["caption"]``
-    is the caption (:func:`table_caption`) the Markdown and LaTeX layouts print.
+    is the caption the Markdown and LaTeX layouts print (:data:`CAPTION`), ``df.attrs["cerpe_row_note"]``
+    what this build's CERPE rows ran (:func:`cerpe_row_note` of their ``run.json``).
     """
     ok = [p for p in ctx.run_dirs.values() if (p / "run.json").exists()]
     summ, same = pd.DataFrame(), pd.Series(dtype=float)
@@ -72,7 +77,8 @@ def main_results(ctx: TableRuns) -> pd.DataFrame:
                 row["status"] = "error: run missing (see log)"
             rows.append(row)
     df = pd.DataFrame(rows)
-    df.attrs["caption"] = table_caption(ctx)
+    df.attrs["caption"] = CAPTION
+    df.attrs["cerpe_row_note"] = cerpe_row_note(ctx.models, recorded_cerpe_configs(ctx))
     return df
 
 
@@ -97,13 +103,13 @@ def _cells(r: pd.Series) -> tuple[str, str, str]:
     return pos, _fmt(r["e_rot_rad"]), _fmt(r["success_pct"], 1)
 
 
-CAPTION = ("Relative pose accuracy per setting (means over evaluated frames with an estimate; "
-           "a frame without an estimate counts as a failure in Succ.). † translation with ground-truth "
-           "scale; CERPE rows show predicted / GT-scale. The SuperGlue row of the paper is replaced by "
-           "ALIKED+LightGlue (SuperPoint/SuperGlue weights exist nowhere offline). NOPE and Co-VisNet: "
-           "not available offline (no code/weights). The last row, CERPE + pose graph, is our extension, not the "
-           "paper's: the same messages as CERPE, each pair's direct estimates (whatever anchor verification said) and both "
-           "odometries in a robust pose graph (GTSAM iSAM2, Cauchy kernel) instead of switching.")
+# Table I's caption (at most 80 words: tests count them). What the rows are at length, the stand-ins and
+# the extension, is in tables/README.md; what this build's CERPE rows ran, in main_results_notes.md.
+CAPTION = ("Relative pose accuracy on the supplied settings: e_pos (m) and e_rot (rad) are means over the "
+           "evaluated frames with an estimate; Succ. (%) counts a frame without one as a failure. "
+           "† translation at ground-truth scale; CERPE rows show predicted / GT scale. n/a: not available "
+           "offline. The SuperGlue row is a stand-in and the last row is our extension, not the paper's "
+           "(tables/README.md).")
 MODELS_NOTES = {
     "offline": "CERPE here uses the offline models (XFeat + SALAD-style descriptor + multi-view "
                "geometry), not VGGT.",
@@ -162,8 +168,8 @@ def cerpe_row_note(models: str, cerpe_configs: Sequence[dict]) -> str:
     return " ".join(note)
 
 
-def table_caption(ctx: TableRuns) -> str:
-    """Table I's caption for the runs of ``ctx``: :data:`CAPTION` and :func:`cerpe_row_note`."""
+def recorded_cerpe_configs(ctx: TableRuns) -> list[dict]:
+    """The configuration trees the CERPE runs of ``ctx`` recorded (``run.json``), unreadable ones left out."""
     configs = []
     for (_, m), p in sorted(ctx.run_dirs.items()):
         if m in CERPE_METHODS and (p / "run.json").is_file():
@@ -173,60 +179,105 @@ def table_caption(ctx: TableRuns) -> str:
                 continue
             if isinstance(mc, dict) and isinstance(mc.get("tree"), dict):
                 configs.append(mc["tree"])
-    return CAPTION + " " + cerpe_row_note(ctx.models, configs)
+    return configs
+
+
+def shown_settings(df: pd.DataFrame) -> list[str]:
+    """The settings Table I's layouts show: those supplied and run here (a missing run shows as ``error``)."""
+    here = df["status"].isin(["ok", "not available offline"]) | df["status"].str.startswith("error: run missing")
+    return list(dict.fromkeys(df.loc[here, "setting"]))
+
+
+def not_shown_line(df: pd.DataFrame) -> str:
+    """One line naming every setting the layouts leave out and why (settings with the same reason share it),
+    e.g. ``Not shown: a, b (not supplied: fill datasets_manifest/<name>.yaml and set enabled: true).``"""
+    shown = set(shown_settings(df))
+    why: dict[str, list[str]] = {}
+    for s, st in df.drop_duplicates("setting")[["setting", "status"]].itertuples(index=False):
+        if s not in shown:
+            why.setdefault(re.sub(rf"(?<![\w-]){re.escape(str(s))}(?![\w-])", "<name>", str(st)), []).append(str(s))
+    if not why:
+        return ""
+    return "Not shown: " + "; ".join(f"{', '.join(names)} ({reason})" for reason, names in why.items()) + "."
 
 
 def _caption(df: pd.DataFrame, caption: str | None) -> str:
     return caption if caption is not None else df.attrs.get("caption", CAPTION)
 
 
-def main_results_markdown(df: pd.DataFrame, caption: str | None = None) -> str:
-    """Table I in Markdown: settings as column groups (e_pos, e_rot, Succ. each), then the caption."""
-    settings = list(dict.fromkeys(df["setting"]))
-    head = "| Method | " + " | ".join(f"{s}: e_pos (m) | {s}: e_rot (rad) | {s}: Succ. (%)" for s in settings) + " |"
-    sep = "|---|" + "---|" * (3 * len(settings))
-    lines = [head, sep]
+def _layout_rows(df: pd.DataFrame, settings: Sequence[str]) -> list[tuple[str, list[str]]]:
+    """``(method, cells)`` per row of the paper's layout: three cells per shown setting."""
+    rows = []
     for m in TABLE_METHODS:
         cells = []
         for s in settings:
             r = df[(df["setting"] == s) & (df["method"] == m)]
             cells += list(_cells(r.iloc[0])) if len(r) else ["", "", ""]
-        lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
-    notes = [f"- {s}: {df[df['setting'] == s]['status'].iloc[0]}" for s in settings
-             if not df[df["setting"] == s]["status"].iloc[0] in ("ok", "not available offline")
-             and not (df[df["setting"] == s]["status"] == "ok").any()]
-    return "\n".join(lines) + "\n\n" + _caption(df, caption) + "\n" + ("\n".join(notes) + "\n" if notes else "")
+        rows.append((m, cells))
+    return rows
+
+
+def main_results_markdown(df: pd.DataFrame, caption: str | None = None) -> str:
+    """Table I in Markdown: the caption, the supplied settings as column groups (e_pos, e_rot, Succ. each),
+    then one line naming the settings left out (:func:`not_shown_line`)."""
+    settings = shown_settings(df)
+    head = "| Method | " + " | ".join(f"{s}: e_pos (m) | {s}: e_rot (rad) | {s}: Succ. (%)" for s in settings) + " |"
+    lines = [f"**Table I.** {_caption(df, caption)}", "", head, "|---|" + "---|" * (3 * len(settings))]
+    lines += [f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |" for m, cells in _layout_rows(df, settings)]
+    left_out = not_shown_line(df)
+    return "\n".join(lines) + "\n" + (f"\n{left_out}\n" if left_out else "")
 
 
 def main_results_latex(df: pd.DataFrame, caption: str | None = None) -> str:
-    """Table I in LaTeX (booktabs), the paper's layout."""
-    settings = list(dict.fromkeys(df["setting"]))
-    esc = lambda s: str(s).replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")
-    cols = "l" + "ccc" * len(settings)
-    out = [r"\begin{table*}[t]", r"\centering",
-           r"\caption{" + esc(_caption(df, caption)).replace("†", r"$^{\dagger}$") + r"}", r"\label{tab:main_results}",
-           r"\resizebox{\textwidth}{!}{%", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+    """Table I in LaTeX (booktabs), the paper's layout: supplied settings only, the others named under it."""
+    settings = shown_settings(df)
+    esc = lambda s: (str(s).replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")  # noqa: E731
+                     .replace("<", r"\textless{}").replace(">", r"\textgreater{}").replace("†", r"$^{\dagger}$"))
+    out = [r"\begin{table*}[t]", r"\centering", r"\caption{" + esc(_caption(df, caption)) + r"}",
+           r"\label{tab:main_results}", r"\resizebox{\textwidth}{!}{%",
+           rf"\begin{{tabular}}{{l{'ccc' * len(settings)}}}",
+           r"\toprule",
            "Method & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{esc(s)}}}" for s in settings) + r" \\",
            " ".join(rf"\cmidrule(lr){{{2 + 3 * k}-{4 + 3 * k}}}" for k in range(len(settings))),
-           " & " + " & ".join([r"$e_{\mathrm{pos}}$ (m) $\downarrow$ & $e_{\mathrm{rot}}$ (rad) $\downarrow$ & Succ. (\%) $\uparrow$"] * len(settings)) + r" \\",
+           " & " + " & ".join([r"$e_{\mathrm{pos}}$ (m) $\downarrow$ & $e_{\mathrm{rot}}$ (rad) $\downarrow$ & "
+                               r"Succ. (\%) $\uparrow$"] * len(settings)) + r" \\",
            r"\midrule"]
-    for m in TABLE_METHODS:
-        cells = []
-        for s in settings:
-            r = df[(df["setting"] == s) & (df["method"] == m)]
-            cells += [esc(c).replace("†", r"$^{\dagger}$") for c in (_cells(r.iloc[0]) if len(r) else ("", "", ""))]
+    for m, cells in _layout_rows(df, settings):
         if m == "cerpe-wo-em" or m in EXTENSION_METHODS:
             out.append(r"\midrule")
-        out.append(esc(METHOD_LABELS[m]) + " & " + " & ".join(cells) + r" \\")
-    out += [r"\bottomrule", r"\end{tabular}%", "}", r"\end{table*}"]
+        out.append(esc(METHOD_LABELS[m]) + " & " + " & ".join(esc(c) for c in cells) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}%", "}"]
+    left_out = not_shown_line(df)
+    if left_out:
+        out.append(r"\par\smallskip{\footnotesize " + esc(left_out) + "}")
+    out.append(r"\end{table*}")
     return "\n".join(out) + "\n"
 
 
+def main_results_notes(df: pd.DataFrame) -> str:
+    """``main_results_notes.md``: what this build's rows ran (the part of Table I's notes that depends on
+    the runs; ``tables/README.md`` has the rest and points here)."""
+    lines = ["# Table I: notes on this build", "",
+             "Written by `make paper` (cerpe.pipeline.table1) from the runs' `run.json`; "
+             "tables/README.md says what the rows and columns are.", "",
+             f"**CERPE rows.** {df.attrs.get('cerpe_row_note', '(no CERPE run)')}", "",
+             f"**Settings shown:** {', '.join(shown_settings(df)) or 'none'}."]
+    left_out = not_shown_line(df)
+    if left_out:
+        lines += ["", left_out]
+    bad = df[df["setting"].isin(shown_settings(df)) & df["status"].str.startswith("error")]
+    for s, m, st in bad[["setting", "method", "status"]].itertuples(index=False):
+        lines += ["", f"- {s} / {METHOD_LABELS.get(m, m)}: {st}"]
+    return "\n".join(lines) + "\n"
+
+
 def write_main_results(df: pd.DataFrame, tables_dir: Path) -> list[Path]:
-    """``main_results.csv`` (long form), ``.md`` and ``.tex`` (paper layout), atomically."""
+    """``main_results.csv`` (long form, every setting), ``.md`` and ``.tex`` (paper layout) and
+    ``main_results_notes.md`` (this build's notes), atomically."""
     tables_dir = Path(tables_dir)
     paths = [tables_dir / n for n in EXPECTED_TABLES]
     atomic_write_text(paths[0], df.to_csv(index=False, float_format="%.6g"))
     atomic_write_text(paths[1], main_results_markdown(df))
     atomic_write_text(paths[2], main_results_latex(df))
+    atomic_write_text(paths[3], main_results_notes(df))
     return paths
