@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from ..geometry import e_pos, e_rot_quat, gt_scale_translation, se3_from_tq_xyzw
-from ..runfolder.layout import FRAME_KEY, PEER_OVERLAP_CSV, POSE, REQUIRED_STEP_COLS  # noqa: F401
+from ..runfolder.layout import FRAME_KEY, POSE
 from ..runfolder.read import EvalError, Run, load_run  # noqa: F401  (the metrics read run folders through them)
 from ..runfolder.team import merge_teams
 from .gatequality import (COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP, best_f1, covis_gate_quality,  # noqa: F401

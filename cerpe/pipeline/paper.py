@@ -34,7 +34,6 @@ import argparse
 import logging
 import sys
 import time
-from pathlib import Path
 
 from ..methods import UNAVAILABLE
 from .figure_data import PAPER_NUMBERS, calibration_data, communication_data, gate_data, qualitative_data  # noqa: F401

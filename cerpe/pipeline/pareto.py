@@ -25,7 +25,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from ..atomicio import AtomicIOError, read_json
+from ..atomicio import read_json
 from ..errors import CerpeError
 from ..runfolder.current import run_is_current
 from ..runfolder.read import load_run

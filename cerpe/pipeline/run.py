@@ -38,6 +38,7 @@ from ..methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, METHODS, U
 from ..records import StepResult
 from ..runfolder import write
 from ..runfolder.layout import RUN_FORMAT, RunError  # noqa: F401  (RUN_FORMAT: the format run folders are written in)
+from ..runfolder.lock import RunLock
 from ..runfolder.provenance import code_hash, config_dict, file_digest
 from ..transport import LossSpec
 from .setting import evaluation_every, load_manifest_setting
@@ -131,19 +132,23 @@ def run_methods(manifest: Path | str, outs: Mapping[str, Path | str], *, preset:
         _check_request(m, seed, loss, preset, sets)
     outs = {m: write.check_out(o) for m, o in outs.items()}
     manifest = Path(manifest).resolve()
-    setting = setting if setting is not None else load_manifest_setting(manifest)
-    every = evaluation_every(setting, manifest)
-    steps = {m: _prepare(m, manifest, setting, every, seed, loss, preset, sets) for m in outs}
+    if setting is None and not manifest.is_file():
+        raise RunError(f"manifest not found: {manifest}")
+    locks = {m: RunLock(outs[m], wait=wait) for m in sorted(outs, key=lambda m: str(outs[m].resolve()))}
     folders: dict[str, write.RunFolder] = {}
     try:
+        for lock in locks.values():  # before any data is loaded: a busy folder stops the run at once
+            lock.acquire()
+        setting = setting if setting is not None else load_manifest_setting(manifest)
+        every = evaluation_every(setting, manifest)
+        steps = {m: _prepare(m, manifest, setting, every, seed, loss, preset, sets) for m in outs}
         for m, out in outs.items():
-            mconf, _ = steps[m]
-            config, record = _run_json(m, manifest, setting, every, seed, loss, mconf, preset, sets)
-            folders[m] = write.open_run(out, config, record, overwrite=overwrite, wait=wait)
+            config, record = _run_json(m, manifest, setting, every, seed, loss, steps[m][0], preset, sets)
+            folders[m] = write.open_run(out, config, record, overwrite=overwrite, lock=locks[m])
         _write_encounters(setting, {m: s for m, (_, s) in steps.items()}, folders, progress)
     finally:
-        for f in folders.values():
-            f.close()
+        for lock in locks.values():
+            lock.release()
     return dict(outs)
 
 

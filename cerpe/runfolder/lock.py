@@ -42,6 +42,7 @@ class RunLock:
         self.path = self.folder / LOCK_FILE
         self.wait = bool(wait)
         self._fh: IO[str] | None = None
+        self._created = False
 
     @property
     def held(self) -> bool:
@@ -54,27 +55,38 @@ class RunLock:
             import fcntl
         except ImportError:  # not POSIX: no lock
             return self
-        self.folder.mkdir(parents=True, exist_ok=True)
-        fh = open(self.path, "a+")
-        try:
+        while True:
+            self._created = not self.folder.exists()
+            self.folder.mkdir(parents=True, exist_ok=True)
+            fh = open(self.path, "a+")
             try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = self._holder(fh)
-                if not self.wait:
-                    raise RunBusy(f"--out {self.folder} is busy: {holder} is writing it (lock {self.path}); "
-                                  f"wait for it to finish, or add --wait to start when it has") from None
-                log.warning("%s is busy (%s); waiting for it", self.folder, holder)
-                fcntl.flock(fh, fcntl.LOCK_EX)
-            fh.seek(0)
-            fh.truncate()
-            fh.write(holder_text() + "\n")
-            fh.flush()
-        except BaseException:
-            fh.close()
-            raise
-        self._fh = fh
-        return self
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    holder = self._holder(fh)
+                    if not self.wait:
+                        raise RunBusy(f"--out {self.folder} is busy: {holder} is writing it (lock {self.path}); "
+                                      f"wait for it to finish, or add --wait to start when it has") from None
+                    log.warning("%s is busy (%s); waiting for it", self.folder, holder)
+                    fcntl.flock(fh, fcntl.LOCK_EX)
+                if not self._same_file(fh):  # the holder removed the file it held: lock the new one
+                    fh.close()
+                    continue
+                fh.seek(0)
+                fh.truncate()
+                fh.write(holder_text() + "\n")
+                fh.flush()
+            except BaseException:
+                fh.close()
+                raise
+            self._fh = fh
+            return self
+
+    def _same_file(self, fh: IO[str]) -> bool:
+        try:
+            return os.stat(self.path).st_ino == os.fstat(fh.fileno()).st_ino
+        except FileNotFoundError:
+            return False
 
     @staticmethod
     def _holder(fh: IO[str]) -> str:
@@ -83,8 +95,17 @@ class RunLock:
         return text[0] if text else "another process"
 
     def release(self) -> None:
-        """Drop the lock (closing the file drops it; the file stays, holding nothing)."""
-        if self._fh is not None:
+        """Drop the lock (closing the file drops it; the file stays, holding nothing). A folder this lock
+        created that holds nothing else (the run failed before writing ``run.json``) is removed."""
+        if self._fh is None:
+            return
+        try:
+            if self._created and [p.name for p in self.folder.iterdir()] == [LOCK_FILE]:
+                self.path.unlink()
+                self.folder.rmdir()
+        except OSError:  # another process put something there meanwhile: leave it
+            pass
+        finally:
             self._fh.close()
             self._fh = None
 

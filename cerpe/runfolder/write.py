@@ -81,7 +81,7 @@ class RunFolder:
 
 
 def open_run(out: Path | str, config: Mapping[str, Any], record: Mapping[str, Any], *, overwrite: bool = False,
-             wait: bool = False) -> RunFolder:
+             wait: bool = False, lock: RunLock | None = None) -> RunFolder:
     """Open run folder ``out`` for writing the run of ``config``; returns it locked (close it when done).
 
     Args:
@@ -91,12 +91,13 @@ def open_run(out: Path | str, config: Mapping[str, Any], record: Mapping[str, An
         record: what ``run.json`` records beside it (label, manifest path, seed, setting...).
         overwrite: replace a folder of another configuration or run format instead of refusing.
         wait: wait for another process writing ``out`` instead of raising :class:`~cerpe.runfolder.lock.RunBusy`.
+        lock: ``out``'s lock, already held by the caller (taken before loading any data); else it is taken here.
     """
     out = check_out(out)
     config = {"format": RUN_FORMAT, **config}
     fp = fingerprint(config)
     ensure_dir(out, "--out")
-    lock = RunLock(out, wait=wait).acquire()
+    lock = (lock or RunLock(out, wait=wait)).acquire()
     try:
         check_out(out)  # the holder may have left something else behind
         run_json = out / RUN_JSON
