@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import IO
 
+from ..atomicio import ensure_dir
 from .layout import LOCK_FILE, RunError
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,7 @@ class RunLock:
             return self
         while True:
             self._created = not self.folder.exists()
-            self.folder.mkdir(parents=True, exist_ok=True)
+            ensure_dir(self.folder, "--out")
             fh = open(self.path, "a+")
             try:
                 try:
