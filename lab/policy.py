@@ -25,6 +25,7 @@ from cerpe.method_config import PRESETS
 from cerpe.atomicio import atomic_write_text
 from cerpe.errors import CerpeError
 from cerpe.pipeline import dev, pareto
+from cerpe.runfolder.current import run_is_current
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,7 +84,8 @@ def grid_runs(entries, runs_root: Path, names: list[str], only: list[str] | None
     """Run (or find) each GRID entry of ``names`` on every encounter of each set (``only``: those matching one
     of these shell patterns) into ``<runs_root>/<set>/pareto-<name>/``: :func:`cerpe.pipeline.pareto.scheme_runs`
     for settings that are a preset and dotted overrides. Returns ``(runs, error lines)``."""
-    from cerpe.pipeline.run import load_manifest_setting, run_method
+    from cerpe.pipeline.run import run_method
+    from cerpe.pipeline.setting import load_manifest_setting
 
     out, errors = [], []
     for e in entries:
@@ -97,7 +99,7 @@ def grid_runs(entries, runs_root: Path, names: list[str], only: list[str] | None
                 encs = [x for x in setting.encounters if not only or any(fnmatch.fnmatchcase(x.name, q) for q in only)]
                 if not encs:
                     continue
-                if not pareto.is_current(path, e.manifest, preset, sets, [x.name for x in encs]):
+                if not run_is_current(path, e.manifest, "cerpe", preset, sets, [x.name for x in encs]):
                     run_method(e.manifest, "cerpe", path, preset=preset, sets=sets, overwrite=True, progress=False,
                                setting=dataclasses.replace(setting, encounters=encs))
                 out.append(pareto.SchemeRun(e.name, name, path))

@@ -170,7 +170,7 @@ def run_step_lengths(run_dir: Path, min_true_m: float) -> tuple[list[float], lis
     import pandas as pd
 
     from cerpe.geometry import se3_from_tq_xyzw, se3_inverse
-    from cerpe.pipeline.run import load_manifest_setting
+    from cerpe.pipeline.setting import load_manifest_setting
 
     setting = load_manifest_setting(Path(json.loads((run_dir / "run.json").read_text())["manifest"]))
     pred, true, held = [], [], 0

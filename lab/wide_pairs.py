@@ -90,7 +90,7 @@ def synth_pairs(suite: Path, every: int, min_deg: float, max_deg: float,
     (so also a place one robot saw before the other), viewing directions ``min_deg`` .. ``max_deg`` apart,
     each camera seeing at least ``min_overlap`` of the other's surface (depth and ground truth, as
     ``cerpe synth``)."""
-    from cerpe.pipeline.run import load_manifest_setting
+    from cerpe.pipeline.setting import load_manifest_setting
     from cerpe.scene import load_depth_m
     from cerpe.synth.groundtruth import overlap_ratio
 

@@ -13,6 +13,7 @@ import pytest
 from cerpe import algorithm
 from cerpe.backbones.build import build_plugins
 from cerpe.pipeline import run as run_mod
+from cerpe.runfolder import write
 from cerpe.scene import Setting
 
 pytestmark = pytest.mark.slow
@@ -61,7 +62,7 @@ def test_killed_and_resumed_run_equals_uninterrupted(tmp_path, encounters, monke
     setting = Setting("fixture", list(encounters), metric_depth="mono-sim")
     whole = run_mod.run_method(manifest, "cerpe", tmp_path / "whole", setting=setting, progress=False)
 
-    real = run_mod.run_encounter_to_folder
+    real = write.run_encounter_to_folder
 
     def killed_in_second(enc, steps, *args, **kwargs):
         if enc.name != encounters[1].name:
@@ -74,11 +75,11 @@ def test_killed_and_resumed_run_equals_uninterrupted(tmp_path, encounters, monke
                 yield res
         return real(enc, dying, *args, **kwargs)
 
-    monkeypatch.setattr(run_mod, "run_encounter_to_folder", killed_in_second)
+    monkeypatch.setattr(write, "run_encounter_to_folder", killed_in_second)
     with pytest.raises(KeyboardInterrupt):
         run_mod.run_method(manifest, "cerpe", tmp_path / "resumed", setting=setting, progress=False)
     assert not (tmp_path / "resumed" / encounters[1].name / "DONE.json").exists()
-    monkeypatch.setattr(run_mod, "run_encounter_to_folder", real)
+    monkeypatch.setattr(write, "run_encounter_to_folder", real)
     resumed = run_mod.run_method(manifest, "cerpe", tmp_path / "resumed", setting=setting, progress=False)
 
     for enc in encounters:

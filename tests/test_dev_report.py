@@ -216,7 +216,7 @@ def test_dev_reuses_finished_runs(fixture_report, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("a finished run was run again")
 
-    monkeypatch.setattr(rp, "run_method", boom)
+    monkeypatch.setattr(rp, "run_methods", boom)
     again = dev.dev_report(tmp / "out", seeds=[2], synth="fixture", manifests_dir=tmp / "manifests",
                            sets=["dev-fixture-synthetic-indoor-*"], progress=False, echo=lambda s: None)
     pd.testing.assert_frame_equal(again["table"], res["table"])

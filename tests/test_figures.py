@@ -11,7 +11,7 @@ import pytest
 from cerpe import plotting
 from cerpe.pipeline import paper
 from cerpe.pipeline.bench_report import latency_rows
-from cerpe.pipeline.runcheck import timing_note
+from cerpe.runfolder.read import timing_note
 
 
 def test_gate_example_setting_is_the_one_whose_gate_works_best():
@@ -47,7 +47,8 @@ def test_gate_example_pair_shows_the_gate_both_open_and_shut():
                                                       "side on 2 CPU cores"),
     ("cerpe paper", "contended: timed during `cerpe paper --jobs 2`, 2 runs side by side on 2 CPU cores"),
     ("cerpe paper --jobs 1", "timed during `cerpe paper`, one run at a time"),
-    ("cerpe paper --suite fixture --jobs 4", "timed during `cerpe paper`, one run at a time"),
+    ("cerpe paper --suite fixture --jobs 4", "contended: timed during `cerpe paper --jobs 4`, 4 runs side by side "
+                                              "on 2 CPU cores"),
     ("cerpe run datasets_manifest/x.yaml cerpe", "timed while the runs were made, not by `cerpe bench`"),
 ])
 def test_timing_note_says_how_many_runs_shared_the_cores(command, note):

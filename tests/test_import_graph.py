@@ -1,98 +1,19 @@
 """cerpe's imports go one way: no circle between packages, none between modules.
 
-Walks every module with ``ast``. An edge A -> B means module A names module B in one of:
-
-- a module-level import (runs when A is imported; ``if`` / ``try`` blocks included);
-- a deferred import (inside a function or method): deferring hides a circle from Python,
-  not from the design;
-- a string: in a module that loads modules by name (calls ``importlib.import_module``), a
-  string literal naming a cerpe module, ``"cerpe.x.y"`` or ``"cerpe.x.y:Attr"`` as entry
-  points spell it (the CLI's sub-command table, the dataset adapters' registry).
-
-An edge names the most specific module: ``from . import writer`` is an edge to
-``cerpe.synth.writer``, ``from .registry import get_adapter`` one to ``cerpe.datasets.registry``;
-the parent package a submodule import loads first is not an edge. Two granularities: a
+The edges are :mod:`cerpe.importgraph`'s (module-level, deferred and by-name imports; the same
+parser gives a method's code fingerprint): deferring an import hides a circle from Python, not
+from the design. Two granularities: a
 "package" is ``cerpe.X`` for a sub-package and each top-level module on its own
 (``cerpe.geometry``, ``cerpe.depthsim``...), where module-level imports alone must not circle
 and neither must all of them; and modules, where no circle may pass through any kind of edge.
 """
 from __future__ import annotations
 
-import ast
-from pathlib import Path
-from typing import Iterator
-
-import cerpe
-
-PKG = Path(cerpe.__file__).resolve().parent
-
-
-def module_name(path: Path) -> str:
-    parts = path.relative_to(PKG.parent).with_suffix("").parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-MODULES: dict[str, Path] = {module_name(p): p for p in sorted(PKG.rglob("*.py"))}
-
-
-def _resolve(mod: str, is_pkg: bool, node: ast.ImportFrom) -> str:
-    if node.level == 0:
-        return node.module or ""
-    base = mod.split(".") if is_pkg else mod.split(".")[:-1]
-    base = base[: len(base) - (node.level - 1)]
-    return ".".join(base + ([node.module] if node.module else []))
-
-
-def _known(name: str) -> str:
-    """``name`` cut back to a module that exists (``cerpe.x.y.attr`` -> ``cerpe.x.y``)."""
-    while name not in MODULES and "." in name:
-        name = name.rsplit(".", 1)[0]
-    return name
-
-
-def _module_level(body: list[ast.stmt]) -> Iterator[ast.stmt]:
-    """The statements that run on import: the body, and the bodies of its ``if`` / ``try`` blocks."""
-    for node in body:
-        yield node
-        if isinstance(node, (ast.If, ast.Try)):
-            yield from _module_level(node.body)
-            yield from _module_level(node.orelse)
-            for handler in getattr(node, "handlers", []):
-                yield from _module_level(handler.body)
-            yield from _module_level(getattr(node, "finalbody", []))
-
-
-def _loads_by_name(tree: ast.Module) -> bool:
-    return any(isinstance(n, ast.Call) and (getattr(n.func, "attr", None) == "import_module"
-                                            or getattr(n.func, "id", None) == "import_module")
-               for n in ast.walk(tree))
-
-
-def imported_modules(path: Path, *, deferred: bool) -> set[str]:
-    """The cerpe modules ``path`` imports at module level, or (``deferred``) in any of the three ways."""
-    mod, is_pkg = module_name(path), path.name == "__init__.py"
-    tree = ast.parse(path.read_text(), str(path))
-    out: set[str] = set()
-    for node in ast.walk(tree) if deferred else _module_level(tree.body):
-        if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            target = _resolve(mod, is_pkg, node)
-            for alias in node.names:  # `from . import writer` names a module, `from .x import f` an attribute
-                out.add(f"{target}.{alias.name}" if f"{target}.{alias.name}" in MODULES else target)
-    if deferred and _loads_by_name(tree):
-        out.update(n.value.split(":")[0] for n in ast.walk(tree)
-                   if isinstance(n, ast.Constant) and isinstance(n.value, str)
-                   and n.value.split(":")[0] in MODULES)
-    return {_known(m) for m in out if m.startswith("cerpe.")} - {mod}
+from cerpe.importgraph import PKG, imported_modules, module_graph
 
 
 def package_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
-
-
-def module_graph(*, deferred: bool = True) -> dict[str, set[str]]:
-    return {mod: imported_modules(path, deferred=deferred) for mod, path in MODULES.items()}
 
 
 def package_graph(*, deferred: bool = False) -> dict[str, set[str]]:

@@ -9,9 +9,10 @@ import pytest
 
 from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.algorithm.bridge import PoseLog
+from cerpe.atomicio import read_json
 from cerpe.geometry import e_rot, interpolate_pose, random_se3
 from cerpe.messages import ImageReply, PoseMessage, decode
-from cerpe.pipeline import message_loss
+from cerpe.pipeline import cerpe_method, message_loss
 from cerpe.pipeline import run as rp
 from cerpe.scene import Setting
 from cerpe.transport import Channel, LossSpec, TransportError
@@ -240,7 +241,7 @@ def gt_plugins(monkeypatch):
                                  "depth": SensorDepthDouble()})
         return plugins, cfg, {"tree": knobs.as_dict(cfg), "preset": preset}
 
-    monkeypatch.setattr(rp, "cerpe_plugins_and_config", plugins_and_config)
+    monkeypatch.setattr(cerpe_method, "cerpe_plugins_and_config", plugins_and_config)
     return setting
 
 
@@ -258,7 +259,7 @@ def test_loss_option_reproduces_the_run_for_a_seed(tmp_path, gt_plugins):
     for f in ("steps.csv", "robots.csv"):
         pd.testing.assert_frame_equal(_table(a / "gt" / f), _table(b / "gt" / f))
     assert not _table(a / "gt" / "robots.csv").equals(_table(c / "gt" / "robots.csv"))
-    meta = rp.read_json(a / "run.json", "run.json")
+    meta = read_json(a / "run.json", "run.json")
     assert meta["channel"] == {"loss": 0.3, "garble": 0.1, "loss_seed": 5}
     assert meta["config"]["method_config"]["channel"] == meta["channel"]
     assert meta["label"] == "CERPE (loss 30%, garble 10%, seed 5)"  # what cerpe eval lists for the run
@@ -288,7 +289,7 @@ def test_sweep_step_on_a_tiny_fixture(tmp_path, gt_plugins, monkeypatch):
     assert set(message_loss.check(S)) == {"success_ratio", "e_rot_ratio", "passed"}
     assert "| cerpe | 30 % |" in message_loss.markdown(S)
     # cached: a second call runs nothing
-    monkeypatch.setattr(rp, "run_method", lambda *a, **k: pytest.fail("ran again"))
+    monkeypatch.setattr(rp, "run_methods", lambda *a, **k: pytest.fail("ran again"))
     assert message_loss.main(conf, paths, setting=gt_plugins) == out
 
 

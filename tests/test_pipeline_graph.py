@@ -15,7 +15,8 @@ from cerpe.algorithm import AlgorithmConfig, Team
 from cerpe.datasets.formats import read_trajectory
 from cerpe.geometry import pose_cov_in_parent, pose_cov_sigmas, se3_from_tq_xyzw
 from cerpe.pipeline import evaluate as ev
-from cerpe.pipeline import methods, paper, table1
+from cerpe import methods
+from cerpe.pipeline import paper, table1
 from cerpe.pipeline import run as rp
 from cerpe.scene import Setting
 from cerpe.tum import parse_tum_cov

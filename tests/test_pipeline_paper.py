@@ -8,8 +8,9 @@ import pandas as pd
 import pytest
 
 from cerpe import plotting
-from cerpe.pipeline import paper, runcheck, table1
+from cerpe.pipeline import notebooks, paper, table1
 from cerpe.pipeline import run as rp
+from cerpe.runfolder.current import run_is_current
 
 from test_pipeline_run_eval import _setting, fake_prepare
 
@@ -113,20 +114,20 @@ def test_figures_written(ctx):
 
 
 def test_notebook_fingerprint_changes_with_runs(ctx):
-    fp1 = paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
-    assert fp1 == paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
-    assert fp1 != paper._inputs_fingerprint(ctx, {"PROFILE": "paper-default"})
+    fp1 = notebooks.inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+    assert fp1 == notebooks.inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+    assert fp1 != notebooks.inputs_fingerprint(ctx, {"PROFILE": "paper-default"})
     done = ctx.run_dirs[("toy", "cerpe")] / "enc0" / "DONE.json"
     done.write_text(done.read_text().replace('"n_steps"', '"n_steps" ', 1))
-    assert fp1 != paper._inputs_fingerprint(ctx, {"PROFILE": "fixture"})
+    assert fp1 != notebooks.inputs_fingerprint(ctx, {"PROFILE": "fixture"})
 
 
 def test_run_is_current(ctx):
     out = ctx.run_dirs[("toy", "sift-ransac")]
     man = ctx.settings[0].run_manifest
-    assert runcheck.run_is_current(out, man, "sift-ransac", "offline")
+    assert run_is_current(out, man, "sift-ransac", "offline")
     man.write_text("name: toy\n# edited\n")
-    assert not runcheck.run_is_current(out, man, "sift-ransac", "offline")
+    assert not run_is_current(out, man, "sift-ransac", "offline")
 
 
 def test_notes_say_what_the_default_cerpe_row_is(tmp_path, monkeypatch):

@@ -12,6 +12,8 @@ from cerpe.datasets.formats import read_trajectory
 from cerpe.geometry import make_se3, paper_T_ij, random_se3, se3_to_tq_xyzw, so3_exp
 from cerpe.pipeline import evaluate as ev
 from cerpe.pipeline import run as rp
+from cerpe.runfolder import write
+from cerpe.runfolder.layout import PEER_OVERLAP_CSV
 from cerpe.records import PairRecord, RobotRecord, StepResult
 from cerpe.scene import CameraIntrinsics, Encounter, RobotStream, Setting
 
@@ -119,7 +121,7 @@ def test_csv_keeps_epoch_stamps_to_the_nanosecond():
     rounded to 10 s as 9 significant digits would; a missing stamp stays missing; other floats keep 9 digits."""
     import io
 
-    text = rp._csv_text([{"step": 0, "stamp_s": 1305031102.175303936, "x": 1 / 3},
+    text = write.csv_text([{"step": 0, "stamp_s": 1305031102.175303936, "x": 1 / 3},
                          {"step": 1, "stamp_s": float("nan"), "x": 2.0}])
     back = pd.read_csv(io.StringIO(text))
     assert abs(back["stamp_s"][0] - 1305031102.175303936) < 1e-6 and np.isnan(back["stamp_s"][1])
@@ -133,13 +135,13 @@ def test_resume_skips_finished_and_recomputes_unfinished(tmp_path, manifest, fak
     (out / "enc1" / "DONE.json").unlink()  # enc1 interrupted
     (out / "enc1" / "steps.csv").write_text("encounter,step\nenc1,0\nenc1,")  # half-written
     calls = []
-    real = rp.run_encounter_to_folder
+    real = write.run_encounter_to_folder
 
     def spy(enc, *a, **k):
         calls.append(enc.name)
         return real(enc, *a, **k)
 
-    monkeypatch.setattr(rp, "run_encounter_to_folder", spy)
+    monkeypatch.setattr(write, "run_encounter_to_folder", spy)
     with pytest.raises(ev.EvalError, match="enc1.*not finished"):
         ev.load_run(out)
     rp.run_method(manifest, "sift-ransac", out, setting=s, progress=False)
@@ -166,7 +168,7 @@ def test_a_run_folder_of_an_older_version_is_refused_with_how_to_rerun_it(tmp_pa
     with pytest.raises(rp.RunError, match=r"another version of cerpe \(run format 1, this one writes 2\); rerun "
                                           r"with --overwrite"):
         rp.run_method(manifest, "sift-ransac", out, setting=s, progress=False)
-    from cerpe.pipeline.runcheck import run_is_current
+    from cerpe.runfolder.current import run_is_current
 
     assert not run_is_current(out, manifest, "sift-ransac")  # never silently reused
     rp.run_method(manifest, "sift-ransac", out, setting=s, overwrite=True, progress=False)
@@ -231,7 +233,7 @@ def test_evaluation_every_and_missing_gt(manifest):
     for res in _fake_steps(fail_first=0, noise_rad=0.0)(s.encounters[0]):
         for pr in res.pairs:
             G = s.encounters[0].gt_T_cj_ci(pr.step, 0 if pr.ego == "r0" else 1, 1 if pr.ego == "r0" else 0)
-            r = {"encounter": "enc0", **pr.as_row(), **rp._gt_cols(G)}
+            r = {"encounter": "enc0", **pr.as_row(), **write.gt_cols(G)}
             rows.append(r)
     df = pd.DataFrame(rows)
     df.loc[df["step"] == 4, [f"gt_{c}" for c in ev.POSE]] = np.nan  # no GT at step 4
@@ -258,16 +260,6 @@ def test_e_rot_matches_roma():
     ours = ev.frame_errors(df, metric_scale=True)["e_rot_rad"].to_numpy()
     ref = roma.unitquat_geodesic_distance(torch.tensor(q1), torch.tensor(q2)).numpy()
     np.testing.assert_allclose(ours, ref, atol=1e-6)
-
-
-def test_code_hash_lists_name_existing_files():
-    """A renamed file must not fall silently out of (or into) a method's code hash."""
-    from cerpe.pipeline import provenance as pv
-
-    for rel in (*pv.NOT_RESULTS, *pv.BASELINE_CODE):
-        assert (pv.PACKAGE_ROOT / rel).is_file(), rel
-    assert pv.code_hash("cerpe") != pv.code_hash("sift-ransac")
-    assert pv.code_hash("cerpe") == pv.code_hash("cerpe-wo-em")
 
 
 def test_eval_counts_frames_without_gt_and_nonfinite_estimates(tmp_path, manifest, fake_method, caplog, capsys):
@@ -324,7 +316,7 @@ def _as_online_robots(run: Path, root: Path, team: str = "lab") -> dict[str, Pat
         rob = pd.read_csv(run / "enc0" / "robots.csv")
         rob[rob["robot"] == rid].to_csv(d / "enc0" / "robots.csv", index=False)
         steps.loc[steps["other"] == rid, ["encounter", "step", "ego", "other", "overlap_gt"]].to_csv(
-            d / "enc0" / ev.PEER_OVERLAP_CSV, index=False)
+            d / "enc0" / PEER_OVERLAP_CSV, index=False)
         (d / "enc0" / "DONE.json").write_text(json.dumps({"fingerprint": fp, "n_pair_rows": len(mine)}))
         out[rid] = d
     return out
@@ -348,7 +340,7 @@ def test_online_team_folders_evaluate_as_the_team(tmp_path, manifest, fake_metho
         mine = ev.summarise(frames[frames["ego"] == rid], ["setting", "method"]).iloc[0]
         assert alone["success_after_covis_pct"] == pytest.approx(mine["success_after_covis_pct"])
         assert alone["n_frames_after_covis"] == mine["n_frames_after_covis"] == 3
-    (robots["r0"] / "enc0" / ev.PEER_OVERLAP_CSV).unlink()  # what a robot's folder alone gave before
+    (robots["r0"] / "enc0" / PEER_OVERLAP_CSV).unlink()  # what a robot's folder alone gave before
     assert np.isnan(ev.evaluate([robots["r0"]]).iloc[0]["success_after_covis_pct"])
     import shutil
 

@@ -35,7 +35,7 @@ def test_loss_sweep_waits_for_the_lossless_runs_of_its_setting(tmp_path):
     jobs = {j.name: j for j in schedule.paper_jobs(ctx, lambda out, manifest, m, preset="paper", sets=None: m == "sift-ransac")}
     loss = jobs["message-loss"]
     assert loss.after == ("synthetic-indoor/cerpe+cerpe-wo-em+cerpe-graph",)
-    conf, paths = loss.args
+    conf, paths, _progress = loss.args
     assert paths["runs"] == ctx.runs_root / "synthetic-indoor" / "message-loss" and conf["models"] == "offline"
     assert set(paths["lossless"]) == {"cerpe", "cerpe-wo-em"}
     # lossless runs already current: it waits for nothing

@@ -8,6 +8,7 @@ import pytest
 
 from cerpe import algorithm
 from cerpe.pipeline import run as run_mod
+from cerpe.pipeline.views import without_propagation
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def fixture_encounter():
 def test_derived_wo_em_equals_real_run(fixture_encounter):
     conf_full, steps_full = run_mod.prepare_method("cerpe", seed=0, metric_depth="mono-sim")
     full = list(steps_full(fixture_encounter))
-    derived = [run_mod.without_propagation(r) for r in full]
+    derived = [without_propagation(r) for r in full]
 
     from cerpe.backbones.build import build_plugins
 

@@ -110,7 +110,7 @@ def main(conf: dict, paths: Paths) -> Path:
     if bool(paths.manifests) == bool(paths.images):
         raise FitError("give exactly one image source: --manifest or --images")
     from ..compress import DescriptorCodec, fit_projection, load_projection, save_projection
-    from ..pipeline.provenance import git_revision
+    from ..runfolder.provenance import git_revision
 
     t0 = time.perf_counter()
     X = _descriptors(conf, paths, _descriptor(conf))

@@ -133,7 +133,7 @@ def main(conf: dict, paths: Paths) -> Path | None:
 
     from ..atomicio import atomic_write_text
     from ..backbones.descriptor import XFeatSaladDescriptor
-    from ..pipeline.provenance import file_digest, git_revision
+    from ..runfolder.provenance import file_digest, git_revision
     from .calibrate import (consecutive_similarity, cross_scene_negatives, describe_encounter,
                             largest_tau_with_recall, pair_samples, set_figures)
 

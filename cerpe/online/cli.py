@@ -42,7 +42,7 @@ rmw_zenoh (default) puts it on rmw_zenoh's key <domain>/<topic>/<type>/<hash>
 off publishes nothing. --team and robot ids must then be ROS name tokens
 (a letter, then letters, digits, '_').
 
-Output: the run folder of `cerpe run` with only this robot as ego (run.json,
+Output: the run folder of `cerpe run` (cerpe.runfolder) with only this robot as ego (run.json,
 <encounter>/steps.csv, robots.csv, poses/, odometry/, DONE.json) plus
 <encounter>/online.json (link counters: frames and bytes sent per kind, losses,
 late frames, waits; per-step wall times; estimates published; the peers met) and
@@ -73,10 +73,12 @@ from pathlib import Path
 from typing import Any, Iterator, Mapping, NamedTuple
 
 from .. import knobs
-from ..atomicio import atomic_write_text, ensure_dir
+from ..atomicio import atomic_write_json, atomic_write_text, ensure_dir
 from ..config import merge_conf
-from ..pipeline import run as rp
-from ..pipeline.evaluate import PEER_OVERLAP_CSV
+from ..methods import CERPE_METHODS, METHOD_LABELS
+from ..runfolder import write
+from ..runfolder.layout import DONE_JSON, PEER_OVERLAP_CSV, RunError
+from ..runfolder.provenance import code_hash, config_dict
 from . import ros, zenoh_session, zenoh_wire
 from .node import ROS_KEYS, OnlineError, RobotNode
 from .node import default_conf as node_defaults
@@ -148,10 +150,12 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     A robot that never met any peer is logged as a warning (``OnlineRun.peers_met`` empty).
     """
     from ..algorithm import AlgorithmConfig, RobotAgent
+    from ..pipeline.cerpe_method import cerpe_plugins_and_config
+    from ..pipeline.setting import load_manifest_setting
     from ..protocols import FrameContext
 
-    if method not in rp.CERPE_METHODS:
-        raise OnlineError(f"--method {method!r}: online runs support {list(rp.CERPE_METHODS)}")
+    if method not in CERPE_METHODS:
+        raise OnlineError(f"--method {method!r}: online runs support {list(CERPE_METHODS)}")
     lconf, nconf = merge_conf(link_defaults, link_conf, "zenoh link conf"), dict(node_conf or {})
     zenoh_wire.check_chunk(lconf["team"], "--team")
     zenoh_session.zenoh_config({k: lconf[k] for k in zenoh_session.default_conf})  # bad options fail now
@@ -159,44 +163,44 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
     manifest = Path(manifest).resolve()
     if setting is None:
         with _machine_lock(manifest):
-            setting = rp.load_manifest_setting(manifest)
+            setting = load_manifest_setting(manifest)
     enc = _encounter(setting, encounter, manifest)
     if robot not in enc.robot_ids:
         raise OnlineError(f"--robot {robot!r}: encounter {enc.name} of {manifest} has robots {enc.robot_ids}")
     out = Path(out)
-    done = out / enc.name / "DONE.json"
+    done = out / enc.name / DONE_JSON
     if done.exists() and not overwrite:
-        raise rp.RunError(f"{done}: this robot already finished encounter {enc.name}; "
-                          f"use --overwrite to run it again (with its peers)")
-    ensure_dir(out, "--out")  # before the link opens: an --out that cannot be written fails now
+        raise RunError(f"{done}: this robot already finished encounter {enc.name}; "
+                       f"use --overwrite to run it again (with its peers)")
+    ensure_dir(write.check_out(out), "--out")  # before the link opens: an --out that cannot be written fails now
     link = ZenohLink(robot, enc.robot_ids, lconf)  # opens now: a bad endpoint fails before models load
     try:
         if plugins is None:
-            plugins, config, mconf = rp.cerpe_plugins_and_config(
+            plugins, config, mconf = cerpe_plugins_and_config(
                 method, getattr(setting, "metric_depth", None), getattr(setting, "metric_depth_options", None),
                 preset, dict(sets) if sets else None)
         else:
             config = config if config is not None else AlgorithmConfig()
-            mconf = {"tree": rp.config_dict(knobs.as_dict(config)), "preset": "given", "plugins": "given"}
+            mconf = {"tree": config_dict(knobs.as_dict(config)), "preset": "given", "plugins": "given"}
         k = enc.robot_ids.index(robot)
         agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth)
         node = RobotNode(agent, link, enc.robot_ids, conf=nconf)
     except BaseException:
         link.close(0.0)
         raise
-    with node:
-        run_conf = {"format": rp.RUN_FORMAT, "method": method, "preset": preset, "seed": int(seed),
-                    "setting": setting.name, "encounters": [enc.name], "method_config": mconf,
-                    "code": rp.code_hash(method),
-                    "online": {"robot": robot, "team": link.team, "robots": list(enc.robot_ids),
-                               "link": rp.config_dict(link.conf), "node": rp.config_dict(node.conf)}}
-        fp = rp.fingerprint(run_conf)
-        rp.atomic_write_json(out / "run.json", {
-            "method": method, "label": rp.METHOD_LABELS[method] + " (online)", "fingerprint": fp,
-            "config": run_conf, "metric_scale": getattr(setting, "metric_depth", None) != "none",
-            "manifest": str(manifest), "package_versions": rp.package_versions(),
-            "git_revision": rp.git_revision(), "seed": int(seed), "preset": preset, "setting": setting.name,
-            "command": " ".join(sys.argv), "zenoh_id": link.zid})
+    run_conf = {"method": method, "preset": preset, "seed": int(seed), "setting": setting.name,
+                "encounters": [enc.name], "method_config": mconf, "code": code_hash(method),
+                "online": {"robot": robot, "team": link.team, "robots": list(enc.robot_ids),
+                           "link": config_dict(link.conf), "node": config_dict(node.conf)}}
+    record = {"method": method, "label": METHOD_LABELS[method] + " (online)",
+              "metric_scale": getattr(setting, "metric_depth", None) != "none", "manifest": str(manifest),
+              "seed": int(seed), "preset": preset, "setting": setting.name, "zenoh_id": link.zid}
+    try:
+        folder = write.open_run(out, run_conf, record, overwrite=overwrite)
+    except BaseException:
+        link.close(0.0)
+        raise
+    with folder, node:
         stream = enc.robots[k]
 
         def frames() -> Iterator[tuple]:
@@ -206,9 +210,9 @@ def run_online(manifest: Path | str, encounter: str | None, robot: str, out: Pat
 
         atomic_write_text(out / enc.name / PEER_OVERLAP_CSV, peers_overlap_csv(enc, robot))
         t0 = time.perf_counter()
-        rp.run_encounter_to_folder(enc, lambda _enc: node.run(frames()), out / enc.name, fp, progress=progress)
+        folder.write_encounter(enc, lambda _enc: node.run(frames()), progress=progress)
         report = {**node.report(), "wall_time_s": time.perf_counter() - t0}
-        rp.atomic_write_json(out / enc.name / "online.json", report)
+        atomic_write_json(out / enc.name / "online.json", report)
         lost = {k: v for k, v in node.stats.items() if ":" in k}
         log.info("robot %s: %d steps, degradations %s", robot, report["n_steps"], lost or "none")
         if not node.met:
@@ -239,8 +243,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--manifest", required=True, type=Path, help="dataset manifest (the same on every robot)")
     g.add_argument("--encounter", default=None,
                    help="encounter name in the manifest (may be left out when it has only one)")
-    g.add_argument("--method", default="cerpe", choices=rp.CERPE_METHODS,
-                   help=" | ".join(rp.CERPE_METHODS) + " (default %(default)s; the same on every robot)")
+    g.add_argument("--method", default="cerpe", choices=CERPE_METHODS,
+                   help=" | ".join(CERPE_METHODS) + " (default %(default)s; the same on every robot)")
     g.add_argument("--preset", default="paper", metavar="P",
                    help="a named configuration (default: paper); `cerpe config show --presets` lists them")
     g.add_argument("--seed", type=int, default=0, help="random seed (the same on every robot)")
@@ -310,13 +314,15 @@ def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict]:
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..pipeline.run import parse_sets
+
     link, node = confs_from_args(args)
     out = args.out
     if out is None:
         out = Path("build") / "online" / Path(args.manifest).stem / args.method / args.robot
     done = run_online(args.manifest, args.encounter, args.robot, out, link_conf=link, node_conf=node,
                       method=args.method, preset=args.preset, seed=args.seed, overwrite=args.overwrite,
-                      progress=not args.no_progress, sets=rp.parse_sets(args.sets) or None)
+                      progress=not args.no_progress, sets=parse_sets(args.sets) or None)
     print(f"run folder: {out}")
     if not done.peers_met:
         print(f"cerpe online: warning: robot {args.robot} never met any peer of its team {args.team!r}; "

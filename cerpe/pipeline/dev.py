@@ -39,15 +39,15 @@ from typing import Sequence
 
 from ..atomicio import atomic_write_text
 from ..errors import CerpeError
-from .methods import CERPE_METHODS
-from .provenance import code_hash, git_revision
-from .runcheck import run_is_current
+from ..methods import CERPE_METHODS
+from ..runfolder.current import run_is_current
+from ..runfolder.provenance import code_hash, git_revision
 
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
 METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph", "sift-ransac",
-                             "aliked-lightglue")  # cerpe first: w/o EM reuses its pass
+                             "aliked-lightglue")
 DEFAULT_SEEDS: tuple[int, ...] = (1,)
 PAPER_SEED = 0
 # Development suite sizes per paper setting (the world and the rest come from the paper-default preset):
@@ -145,25 +145,29 @@ def synthetic_set(setting: str, seed: int, sizes: str, out: Path, progress: bool
 def run_set(s: DevSet, methods: Sequence[str], runs_root: Path, preset: str = "paper",
             progress: bool = True, knob_sets: dict | None = None) -> tuple[list[tuple[str, Path]], list[str]]:
     """Run (or reuse) every method on one set; ``(finished (set, run folder) pairs, errors)``.
-    ``preset``, ``knob_sets``: the cerpe methods' configuration (``cerpe dev --preset``, ``--set``)."""
-    from .run import load_manifest_setting, run_method
+    ``preset``, ``knob_sets``: the cerpe methods' configuration (``cerpe dev --preset``, ``--set``);
+    the stale cerpe methods run together (:func:`cerpe.pipeline.run.run_methods`: one pass per encounter)."""
+    from .run import run_methods
+    from .setting import load_manifest_setting
 
-    done, errors, setting = [], [], None
-    for m in methods:
-        path = runs_root / s.name / m
+    paths = {m: runs_root / s.name / m for m in methods}
+    knobs = {m: (preset, knob_sets) if m in CERPE_METHODS else ("paper", None) for m in methods}
+    stale = [m for m in methods if not run_is_current(paths[m], s.manifest, m, *knobs[m])]
+    ours = tuple(m for m in stale if m in CERPE_METHODS)
+    groups = ([ours] if ours else []) + [(m,) for m in stale if m not in CERPE_METHODS]
+    failed, errors, setting = set(), [], None
+    for group in groups:
         try:
-            ours = m in CERPE_METHODS
-            p, ov = (preset, knob_sets) if ours else ("paper", None)
-            if not run_is_current(path, s.manifest, m, p, ov):
-                setting = setting if setting is not None else load_manifest_setting(s.manifest)
-                t0 = time.perf_counter()
-                run_method(s.manifest, m, path, preset=p, sets=ov, overwrite=True, progress=progress, setting=setting)
-                log.info("%s/%s: %.0f s", s.name, m, time.perf_counter() - t0)
-            done.append((s.name, path))
+            setting = setting if setting is not None else load_manifest_setting(s.manifest)
+            t0 = time.perf_counter()
+            run_methods(s.manifest, {m: paths[m] for m in group}, preset=knobs[group[0]][0], sets=knobs[group[0]][1],
+                        overwrite=True, progress=progress, setting=setting)
+            log.info("%s/%s: %.0f s", s.name, "+".join(group), time.perf_counter() - t0)
         except CerpeError as exc:
-            errors.append(f"{s.name}/{m}: {exc}")
-            log.error("%s/%s: %s", s.name, m, exc)
-    return done, errors
+            failed.update(group)
+            errors.append(f"{s.name}/{'+'.join(group)}: {exc}")
+            log.error("%s/%s: %s", s.name, "+".join(group), exc)
+    return [(s.name, paths[m]) for m in methods if m not in failed], errors
 
 
 def _selected(name: str, patterns: Sequence[str] | None) -> bool:

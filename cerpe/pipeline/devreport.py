@@ -40,9 +40,8 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
-from .runcheck import gate_tau
-from .evaluate import (REFERENCE_METHOD, RIGHT_ROT_RAD, Run, e_pos_on_reference_frames, frame_errors, gate_quality,
-                       load_run, summarise)
+from ..runfolder.read import Run, gate_tau, load_run
+from .evaluate import REFERENCE_METHOD, RIGHT_ROT_RAD, e_pos_on_reference_frames, frame_errors, gate_quality, summarise
 from .textfmt import md_table, text_table
 
 WRONG_RAD = RIGHT_ROT_RAD  # an estimate farther off in rotation is "wrong"

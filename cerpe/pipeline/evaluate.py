@@ -1,6 +1,5 @@
-"""The paper's metrics (Section IV) over run folders written by ``cerpe run``.
-
-Usage: ``cerpe eval RUNDIR [RUNDIR ...] [--by encounter|setting] [--csv OUT.csv]``
+"""The paper's metrics (Section IV) over run folders written by ``cerpe run``
+(read by :mod:`cerpe.runfolder.read`; the command line is :mod:`cerpe.pipeline.eval_cli`).
 
 Per ordered pair ``(i, j)`` and evaluated step (every ``evaluation.every``-th
 step of the manifest), with ``T_hat`` the estimate of ``T_ij = T_cj_ci`` and ``T``
@@ -34,18 +33,17 @@ rows, co-visibility from the overlap ground truth it keeps of its peers' side.
 """
 from __future__ import annotations
 
-import argparse
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 import pandas as pd
 
-from ..atomicio import AtomicIOError, atomic_write_text, read_json
-from ..errors import CerpeError
 from ..geometry import e_pos, e_rot_quat, gt_scale_translation, se3_from_tq_xyzw
+from ..runfolder.layout import FRAME_KEY, POSE
+from ..runfolder.read import EvalError, Run, load_run  # noqa: F401  (the metrics read run folders through them)
+from ..runfolder.team import merge_teams
 from .gatequality import (COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP, best_f1, covis_gate_quality,  # noqa: F401
                           covisibility_label, covisibility_pairs, gate_quality, precision_recall, reverse_overlap,
                           roc_auc, roc_curve, symmetric_bound)
@@ -53,11 +51,6 @@ from .gatequality import (COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP, best_f1,
 log = logging.getLogger(__name__)
 
 RIGHT_ROT_RAD = 0.3  # an estimate farther off in rotation is wrong (``right_pct``)
-
-POSE = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
-REQUIRED_STEP_COLS = ("encounter", "step", "stamp_s", "ego", "other", "source",
-                      *(f"est_{c}" for c in POSE), *(f"gt_{c}" for c in POSE))
-
 
 def poses_from_columns(df: pd.DataFrame, prefix: str) -> np.ndarray:
     """``[N,4,4]`` poses of the ``<prefix>_tx .. <prefix>_qw`` columns of a results table (``est``, ``gt``,
@@ -70,121 +63,8 @@ def poses_from_columns(df: pd.DataFrame, prefix: str) -> np.ndarray:
     return out
 
 
-FRAME_KEY = ("encounter", "step", "ego", "other")
-PEER_OVERLAP_CSV = "peers_overlap.csv"  # an online robot's folder: its peers' overlap_gt rows about it (FRAME_KEY)
 SUMMARY_COLS = ("e_pos_m", "e_pos_gt_scale_m", "e_rot_rad", "success_pct", "n_frames", "success_after_covis_pct",
                 "right_pct")
-
-
-class EvalError(CerpeError, ValueError):
-    """Unusable run folder (unfinished, corrupt, mixed configurations)."""
-
-
-@dataclass
-class Run:
-    """One run folder, loaded.
-
-    Attributes:
-        path: the folder.
-        meta: ``run.json``.
-        steps: all encounters' ``steps.csv`` rows, concatenated.
-        robots: all encounters' ``robots.csv`` rows, concatenated.
-    """
-
-    path: Path
-    meta: dict
-    steps: pd.DataFrame
-    robots: pd.DataFrame
-    peer_overlap: pd.DataFrame | None = None  # online robot: ``overlap_gt`` of its peers' rows about it
-    paths: tuple[Path, ...] = ()  # an online team: every robot's folder
-
-    @property
-    def method(self) -> str:
-        return self.meta["method"]
-
-    @property
-    def setting(self) -> str:
-        return self.meta["setting"]
-
-    @property
-    def fingerprint(self) -> str:
-        return self.meta["fingerprint"]
-
-    @property
-    def metric_scale(self) -> bool:
-        return bool(self.meta.get("metric_scale", False))
-
-    @property
-    def every(self) -> int:
-        return int(self.meta.get("config", {}).get("evaluation_every", 1))
-
-
-def _read_csv(path: Path, required: Sequence[str] = ()) -> pd.DataFrame:
-    try:
-        df = pd.read_csv(path)
-    except FileNotFoundError:
-        raise EvalError(f"missing results file: {path}") from None
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise EvalError(f"corrupt or half-written results file {path}: {exc}") from None
-    except OSError as exc:
-        raise EvalError(f"cannot read results file {path}: {exc.strerror or exc}") from None
-    missing = [c for c in required if c not in df.columns]
-    if missing:
-        raise EvalError(f"{path}: missing columns {missing} (half-written or from another version?)")
-    return df
-
-
-def load_run(path: Path | str, allow_partial: bool = False) -> Run:
-    """Load a run folder; every encounter of its configuration must be finished.
-
-    Raises :class:`EvalError` naming the file for a missing/corrupt ``run.json``,
-    an unfinished encounter (unless ``allow_partial``), an encounter finished
-    under another fingerprint, or a corrupt CSV.
-    """
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise EvalError(f"{path}: a file, not a run folder (pass the folder `cerpe run --out` wrote)")
-    if not path.exists():
-        raise EvalError(f"{path}: run folder not found (no {path / 'run.json'})")
-    try:
-        meta = read_json(path / "run.json", "run.json")
-    except AtomicIOError as exc:
-        raise EvalError(f"{path}: not a run folder ({exc})") from None
-    for k in ("method", "setting", "fingerprint", "config"):
-        if k not in meta:
-            raise EvalError(f"{path / 'run.json'}: missing field {k!r}")
-    if not isinstance(meta["config"], dict):
-        raise EvalError(f"{path / 'run.json'}: field 'config' is not a mapping")
-    steps, robots, peers = [], [], []
-    for enc in meta["config"].get("encounters", []):
-        done = path / enc / "DONE.json"
-        if not done.exists():
-            if allow_partial:
-                continue
-            raise EvalError(f"{path}: encounter {enc!r} is not finished (no DONE.json); "
-                            f"rerun `cerpe run` with the same arguments to resume")
-        try:
-            d = read_json(done, "DONE.json")
-        except AtomicIOError as exc:
-            raise EvalError(str(exc)) from None
-        if d.get("fingerprint") != meta["fingerprint"]:
-            raise EvalError(f"{done}: encounter finished under configuration {d.get('fingerprint')}, "
-                            f"run.json says {meta['fingerprint']}: refusing to mix configurations")
-        s = _read_csv(path / enc / "steps.csv", REQUIRED_STEP_COLS)
-        if "n_pair_rows" in d and len(s) != int(d["n_pair_rows"]):
-            raise EvalError(f"{path / enc / 'steps.csv'}: {len(s)} rows, DONE.json says {d['n_pair_rows']}")
-        steps.append(s)
-        robots.append(_read_csv(path / enc / "robots.csv", ("encounter", "step", "robot")))
-        if (path / enc / PEER_OVERLAP_CSV).is_file():
-            peers.append(_read_csv(path / enc / PEER_OVERLAP_CSV, (*FRAME_KEY, "overlap_gt")))
-    if not steps:
-        raise EvalError(f"{path}: no finished encounter")
-    sdf = pd.concat(steps, ignore_index=True)
-    sdf["encounter"] = sdf["encounter"].astype(str)
-    rdf = pd.concat(robots, ignore_index=True)
-    rdf["encounter"] = rdf["encounter"].astype(str)
-    pdf = pd.concat(peers, ignore_index=True).astype({"encounter": str}) if peers else None
-    return Run(path, meta, sdf, rdf, pdf, (path,))
 
 
 def first_covisible_step(steps: pd.DataFrame, overlap: float = COVIS_POSITIVE,
@@ -403,7 +283,7 @@ def check_consistent(runs: Iterable[Run]) -> None:
 def evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Load run folders, check they may be aggregated, compute frame errors.
 
-    The folders of one ``cerpe online`` team are evaluated as one run (:mod:`cerpe.pipeline.teamruns`).
+    The folders of one ``cerpe online`` team are evaluated as one run (:mod:`cerpe.runfolder.team`).
 
     Returns:
         ``(frames, runs_table)``: all evaluated frames of all runs with ``setting``
@@ -416,8 +296,6 @@ def evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False) -> t
 def _evaluate_runs(paths: Sequence[Path | str], allow_partial: bool = False
                    ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """:func:`evaluate_runs`, and the rows left out for want of ground truth (:func:`no_gt_frames`)."""
-    from .teamruns import merge_teams
-
     runs = [load_run(p, allow_partial=allow_partial) for p in paths]
     # the same folder twice would double-count frames
     uniq = {r.path.resolve(): r for r in runs}
@@ -452,29 +330,3 @@ def evaluate(paths: Sequence[Path | str], by: str = "setting") -> pd.DataFrame:
         if row.n_no_gt:
             log.warning("%s: %d frame(s) without ground truth, left out of every metric (n_no_gt)", where, row.n_no_gt)
     return table
-
-
-# --------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rundirs", nargs="+", type=Path,
-                   help="run folders written by `cerpe run` (or by `cerpe online`: the robots of one team together)")
-    p.add_argument("--by", choices=("setting", "encounter"), default="setting",
-                   help="aggregate per setting (Table I) or per encounter")
-    p.add_argument("--csv", type=Path, default=None, help="also write the summary to this CSV file")
-
-
-def main(args: argparse.Namespace) -> int:
-    table = evaluate(args.rundirs, by=args.by)
-    with pd.option_context("display.width", 200, "display.max_columns", 20):
-        print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-    print("Errors are means over frames with an estimate; frames without one count as failures "
-          "(success_pct). e_pos_m is NaN for methods without metric scale. success_after_covis_pct: "
-          f"success over the frames at or after the pair's first step with GT overlap >= {COVIS_POSITIVE:g} "
-          f"both ways (NaN without overlap ground truth or such a step). right_pct: frames with an estimate "
-          f"within {RIGHT_ROT_RAD:g} rad of the true rotation (not the paper's metric).")
-    print("n_no_gt: evaluated frames without ground truth, left out. n_nonfinite: frames whose estimate in "
-          "steps.csv is not finite, counted as failures.")
-    if args.csv:
-        atomic_write_text(args.csv, table.to_csv(index=False))
-        print(f"written: {args.csv}")
-    return 0

@@ -41,8 +41,9 @@ from ..atomicio import atomic_write_text, ensure_dir
 from ..errors import CerpeError
 from ..geometry import is_finite_transform, matrix_to_quat_wxyz, se3_inverse
 from ..scene import CameraIntrinsics, Encounter, Setting
-from .evaluate import load_run, poses_from_columns
-from .provenance import file_digest
+from ..runfolder.provenance import file_digest
+from ..runfolder.read import load_run
+from .evaluate import poses_from_columns
 
 log = logging.getLogger(__name__)
 

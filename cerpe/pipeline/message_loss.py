@@ -5,8 +5,8 @@ and loss seed, ``cerpe run --loss P --loss-seed N`` on the first ``encounters``
 encounters of one setting (a small subset: the sweep must stay cheap inside
 ``make paper``), each a normal run folder (cached, resumed, fingerprinted); the
 lossless point reuses the setting's full lossless run when one is given and current
-(its frames of the same encounters). ``cerpe-wo-em`` costs nothing more: its runs
-reuse the full method's pass of the same process (``pipeline.run``). The summary
+(its frames of the same encounters). ``cerpe-wo-em`` costs nothing more: the methods of
+one loss and seed run together (:func:`cerpe.pipeline.run.run_methods`), one pass per encounter. The summary
 (one row per method and loss: success, success after co-visibility, e_rot, e_pos,
 the degradations per robot-step, and the ratios to lossless the issue checks) is
 written to ``summary.csv`` in the sweep folder and returned; the notebook
@@ -29,8 +29,8 @@ from ..atomicio import atomic_write_json, atomic_write_text, read_json
 from ..config import merge_conf
 from ..errors import CerpeError
 from ..transport import LossSpec
+from ..runfolder.current import run_is_current
 from .evaluate import evaluate_runs, summarise
-from .runcheck import run_is_current
 from .textfmt import md_table
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,8 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
             reused for loss 0 when current).
         setting: the loaded setting of ``manifest`` (loaded when a run must be made).
     """
-    from .run import load_manifest_setting, run_method
+    from .run import run_methods
+    from .setting import load_manifest_setting
 
     c = merge_conf(default_conf, conf or {}, "message_loss")
     losses = sorted({float(p) for p in c["losses"]})
@@ -102,6 +103,7 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
     plan: list[tuple[str, float, int, Path]] = []  # (method, loss, loss seed, run folder)
     for p in losses:
         for s in (c["loss_seeds"] if p > 0 else [0]):
+            stale: dict[str, Path] = {}
             for m in c["methods"]:
                 reuse = lossless.get(m)
                 if p == 0 and reuse is not None and run_is_current(reuse, manifest, m, sets=sets):
@@ -109,10 +111,11 @@ def main(conf: dict | None, paths: dict, setting: Any = None, progress: bool = F
                     continue
                 out = run_dir(runs, m, p, s)
                 if not run_is_current(out, manifest, m, sets=sets):
-                    run_method(manifest, m, out, sets=sets, seed=int(c["seed"]), overwrite=True,
-                               progress=progress, setting=sub_setting(),
-                               loss=LossSpec(p, float(c["garble"]) if p > 0 else 0.0, int(s)))
+                    stale[m] = out
                 plan.append((m, p, int(s), out))
+            if stale:  # the cerpe methods of one loss and seed share each encounter's pass
+                run_methods(manifest, stale, sets=sets, seed=int(c["seed"]), overwrite=True, progress=progress,
+                            setting=sub_setting(), loss=LossSpec(p, float(c["garble"]) if p > 0 else 0.0, int(s)))
     summary = runs / "summary.csv"
     key = _fingerprint(c, plan)
     stamp = runs / "summary.json"

@@ -25,10 +25,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from ..atomicio import AtomicIOError, read_json
+from ..atomicio import read_json
 from ..errors import CerpeError
-from .evaluate import frame_errors, load_run, summarise
-from .runcheck import run_is_current
+from ..runfolder.current import run_is_current
+from ..runfolder.read import load_run
+from .evaluate import frame_errors, summarise
 
 log = logging.getLogger(__name__)
 
@@ -65,16 +66,6 @@ def run_dir(runs_root: Path, setting: str, scheme: str) -> Path:
     return Path(runs_root) / setting / f"pareto-{scheme}"
 
 
-def is_current(path: Path, manifest: Path, preset: str, knob_sets: Mapping | None, encounters: Sequence[str]) -> bool:
-    """A finished run of the current code and manifest with this preset, these knobs and encounters."""
-    try:
-        cfg = read_json(path / "run.json", "run.json")["config"]
-    except (AtomicIOError, KeyError, OSError):
-        return False
-    return (list(cfg.get("encounters", [])) == list(encounters)
-            and run_is_current(path, manifest, "cerpe", preset, knob_sets))
-
-
 def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, knob_sets: Mapping | None = None,
                 schemes: Sequence[str] | None = None, n_encounters: int | None = N_ENCOUNTERS,
                 build: bool = True, progress: bool = True,
@@ -94,7 +85,8 @@ def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, knob_
         ``(runs, errors)``: one :class:`SchemeRun` per finished (set, scheme); an error
         line per run that failed (the others go on).
     """
-    from .run import load_manifest_setting, run_method
+    from .run import run_method
+    from .setting import load_manifest_setting
 
     schemes = PARETO_PRESETS if schemes is None else tuple(schemes)
     out, errors = [], []
@@ -115,7 +107,7 @@ def scheme_runs(sets: Sequence[tuple[str, Path, Any]], runs_root: Path, *, knob_
                             continue
                     encs = encs if n_encounters is None else encs[:int(n_encounters)]
                     wanted = [e.name for e in encs]
-                if not is_current(path, manifest, scheme, knob_sets, wanted):
+                if not run_is_current(path, manifest, "cerpe", scheme, knob_sets, wanted):
                     if not build:
                         errors.append(f"{name}/pareto-{scheme}: no current run under {path}")
                         continue

