@@ -1,6 +1,6 @@
 # cerpe: two commands do everything.
 #   make paper   set up, generate the synthetic suite, run every method, build tables/ and figures/
-#   make test    set up, run all tests (notebooks included, on the small fixture profile)
+#   make test    set up, run all tests (notebooks included, on the small fixture suite)
 # `make help` lists the other targets.
 
 PYTHON ?= python3
@@ -8,7 +8,8 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 PIP    := $(VENV)/bin/pip
 STAMP  := $(VENV)/.cerpe-setup-stamp
-PROFILE ?= default
+MODELS  ?= offline
+SCHEDULER ?=
 JOBS    ?= 2
 export MPLBACKEND := Agg
 export PYTHONHASHSEED := 0
@@ -18,7 +19,8 @@ export OMP_NUM_THREADS ?= 1
 
 help:
 	@echo "make demo    - a first minute: one small encounter, CERPE and a baseline, a table and build/demo/demo.png"
-	@echo "make paper   - every table and figure (sets itself up first; JOBS=N worker processes, default 2)"
+	@echo "make paper   - every table and figure (sets itself up first; JOBS=N worker processes, default 2;"
+	@echo "               MODELS=paper: the paper's models from your weights; SCHEDULER=tcp://HOST:8786: a Dask cluster)"
 	@echo "make test    - every test, notebooks included (sets itself up first)"
 	@echo "make bench   - latency / memory / bytes benchmark, 2 and 3 robots (prints figures, writes build/bench.json,"
 	@echo "               which the next make paper's runtime figure uses; renders its suite once)"
@@ -47,20 +49,19 @@ test-fast: setup
 	$(PY) -m pytest -q -x tests
 
 paper: setup
-	$(PY) -m cerpe.cli paper --profile $(PROFILE) --jobs $(JOBS)
+	$(PY) -m cerpe.cli paper --models $(MODELS) --jobs $(JOBS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-# build/bench.json: timed alone, the runtime figure prefers it to the runs' own (contended) timings;
-# removing the notebooks' stamp makes the next `make paper` draw the figures again.
+# build/bench.json: timed alone, the runtime figure prefers it to the runs' own (contended) timings
 bench: setup
 	mkdir -p build
 	$(PY) -m cerpe.cli bench --out build/bench.json
-	rm -f build/notebooks/inputs.json
 
 demo: setup
 	$(PY) -m cerpe.cli demo
 
 clean:
-	rm -rf tables/*.csv tables/*.md tables/*.tex figures/*.png figures/*.pdf build/
+	find tables figures -type f ! -name README.md -delete
+	rm -rf build/
 
 distclean: clean
 	rm -rf $(VENV) .cache

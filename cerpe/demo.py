@@ -96,7 +96,7 @@ class DemoResult:
 
 def _check(conf: DemoConfig) -> None:
     """Every option, before anything is written (a bad world argument raises the generator's own error)."""
-    from .pipeline.methods import BASELINE_METHODS
+    from .methods import BASELINE_METHODS
     from .synth.writer import full_conf
 
     if conf.baseline not in BASELINE_METHODS:

@@ -27,10 +27,38 @@ NOTEBOOK_TABLES: tuple[str, ...] = ("communication_runtime.csv", "gate_quality.c
                                     "calibration.csv",  # notebook 05
                                     "message_loss.csv", "message_loss.md",  # notebook 06
                                     "pareto.csv", "pareto.md")  # notebook 07
-# the code whose output the notebooks show: editing it runs them again
-NOTEBOOK_CODE: tuple[str, ...] = ("plotting.py", "pipeline/evaluate.py", "pipeline/figure_data.py",
-                                  "pipeline/paper_context.py", "pipeline/paper_settings.py", "pipeline/table1.py",
-                                  "pipeline/message_loss.py", "pipeline/pareto.py", "runfolder/read.py")
+# a `cerpe bench --out` measurement the runtime figure prefers to the runs' own timings
+BENCH_JSON = Path("build") / "bench.json"
+
+
+def notebook_code(root: Path = ROOT) -> list[Path]:
+    """The cerpe modules the notebooks import, transitively (:func:`cerpe.importgraph.closure`): the code
+    whose output they show, so that editing it runs them again."""
+    import ast
+
+    from .. import importgraph
+
+    entries: set[str] = set()
+    known = importgraph.modules()
+    for n in NOTEBOOKS:
+        nb = json.loads((root / "notebooks" / f"{n}.ipynb").read_text())
+        for cell in nb.get("cells", []):
+            if cell.get("cell_type") != "code":
+                continue
+            src = "".join(cell.get("source", ""))
+            lines = [ln for ln in src.splitlines() if not ln.lstrip().startswith(("%", "!"))]
+            try:
+                tree = ast.parse("\n".join(lines))
+            except SyntaxError:
+                continue
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Import):
+                    entries.update(a.name for a in node.names)
+                elif isinstance(node, ast.ImportFrom) and node.module:
+                    entries.add(node.module)
+                    entries.update(f"{node.module}.{a.name}" for a in node.names)
+    mods = importgraph.closure(sorted(e for e in entries if e in known))
+    return [known[m] for m in mods]
 
 
 def inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
@@ -42,7 +70,7 @@ def inputs_fingerprint(ctx: PaperContext, params: dict) -> str:
                 h.update(f.read_bytes())
     for e in ctx.settings:
         h.update(f"{e.name}:{e.status}:{e.detail}".encode())
-    code = [ROOT / "cerpe" / f for f in NOTEBOOK_CODE] + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS]
+    code = notebook_code() + [ROOT / "notebooks" / f"{n}.ipynb" for n in NOTEBOOKS] + [ROOT / BENCH_JSON]
     for f in code:
         if f.exists():
             h.update(f.read_bytes())
