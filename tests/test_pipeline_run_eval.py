@@ -347,3 +347,15 @@ def test_online_team_folders_evaluate_as_the_team(tmp_path, manifest, fake_metho
     shutil.copytree(robots["r1"], tmp_path / "r1-again")
     with pytest.raises(ev.EvalError, match="robot 'r1' given twice"):
         ev.evaluate([*robots.values(), tmp_path / "r1-again"])
+
+
+def test_cerpe_run_ends_with_a_summary_and_refuses_a_loss_seed_without_loss(tmp_path, manifest, fake_method, capsys):
+    from cerpe.cli import main
+    from cerpe.pipeline.eval_cli import run_summary
+
+    out = rp.run_method(manifest, "sift-ransac", tmp_path / "run", setting=_setting(), progress=False)
+    text = run_summary(out)
+    assert "frames evaluated" in text and "success" in text and "right" in text and "degradations" in text
+    rc = main(["run", str(manifest), "--method", "cerpe", "--out", str(tmp_path / "x"), "--loss-seed", "3"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--loss-seed: only with --loss" in err and not (tmp_path / "x").exists()

@@ -12,8 +12,12 @@ from pathlib import Path
 
 import pandas as pd
 
+from collections import Counter
+
 from ..atomicio import atomic_write_text
-from .evaluate import COVIS_POSITIVE, RIGHT_ROT_RAD, evaluate
+from ..reasons import DEGRADATIONS
+from ..runfolder.read import load_run
+from .evaluate import COVIS_POSITIVE, RIGHT_ROT_RAD, evaluate, evaluate_runs, summarise
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,3 +43,31 @@ def main(args: argparse.Namespace) -> int:
         atomic_write_text(args.csv, table.to_csv(index=False))
         print(f"written: {args.csv}")
     return 0
+
+
+def run_summary(out: Path) -> str:
+    """What a finished run did, in a few lines for the person who ran it: per setting the frames
+    evaluated, the estimates (direct and propagated), success, right, the mean errors, and the
+    degradations counted, by kind (:data:`cerpe.reasons.DEGRADATIONS`)."""
+    frames, _ = evaluate_runs([out])
+    run = load_run(out)
+    t = summarise(frames, ["setting", "method"]).iloc[0]
+    src = Counter(run.steps["source"].astype(str)) if "source" in run.steps else Counter()
+    pos = f"e_pos {t['e_pos_m']:.3f} m" if pd.notna(t["e_pos_m"]) else f"e_pos {t['e_pos_gt_scale_m']:.3f} m at GT scale"
+    lines = [f"{t['setting']} / {t['method']}: {int(t['n_frames'])} frames evaluated, {int(t['n_success'])} with an "
+             f"estimate ({src.get('direct', 0)} direct, {src.get('propagated', 0)} propagated over all steps); "
+             f"success {t['success_pct']:.1f} %, right {t['right_pct']:.1f} % (within {RIGHT_ROT_RAD:g} rad); "
+             f"e_rot {t['e_rot_rad']:.3f} rad, {pos}"]
+    counts: Counter = Counter()
+    if "degradations" in run.robots:
+        for cell in run.robots["degradations"].dropna().astype(str):
+            counts.update(d for d in cell.split(";") if d)
+    if counts:
+        top = ", ".join(f"{k} {n}" for k, n in counts.most_common())
+        lines.append(f"degradations (robot-steps): {top}")
+        unknown = [k for k in counts if k not in DEGRADATIONS]
+        if unknown:
+            lines.append(f"  not in cerpe.reasons: {', '.join(unknown)}")
+    else:
+        lines.append("degradations: none")
+    return "\n".join(lines)

@@ -34,6 +34,7 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
+from ..errors import CerpeError
 from ..methods import BASELINE_METHODS, CERPE_METHODS, METHOD_LABELS, METHODS, UNAVAILABLE, check_method
 from ..records import StepResult
 from ..runfolder import write
@@ -282,10 +283,18 @@ def main(args: argparse.Namespace) -> int:
         print(f"cerpe run: error: method {args.method!r} not available offline: {UNAVAILABLE[args.method]}",
               file=sys.stderr)
         return 2
+    if args.loss == 0 and args.garble == 0 and args.loss_seed is not None:
+        raise RunError("--loss-seed: only with --loss P (or --garble P); without them the channel loses nothing")
     loss = None if args.loss == 0 and args.garble == 0 else \
         LossSpec(args.loss, args.garble, args.seed if args.loss_seed is None else args.loss_seed)
     out = run_method(args.manifest, args.method, args.out, preset=args.preset, sets=parse_sets(args.sets) or None,
                      seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress, loss=loss,
                      wait=args.wait)
     print(f"run folder: {out}")
+    from .eval_cli import run_summary
+
+    try:
+        print(run_summary(out))
+    except CerpeError as exc:  # e.g. no frame with ground truth: the run itself is fine
+        print(f"(no summary: {exc})")
     return 0
