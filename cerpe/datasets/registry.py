@@ -55,6 +55,7 @@ _BUILTIN: dict[str, str] = {
     "tum-rgbd": "cerpe.datasets.tum_rgbd:TumRgbdAdapter",
     "frames": "cerpe.datasets.frames:FramesAdapter",
     "pairs": "cerpe.datasets.pairs:PairsAdapter",
+    "rosbag": "cerpe.datasets.rosbag:RosbagAdapter",
 }
 _REGISTERED: dict[str, Callable[[], Adapter] | Adapter] = {}
 
