@@ -58,7 +58,9 @@ REASONS: dict[str, str] = {
     "direct-rejected": "the direct estimate disagrees with the anchor propagated to it: the anchor is propagated "
                        "instead (by how much: check_rot_rad, check_trans_m)",
     "no-anchor": "no anchor to propagate yet",
-    "no-pose-of-other": "no pose of the peer was ever seen: nothing to propagate with",
+    "no-pose-of-other": "no pose of the peer was ever seen (online by stamps: none near this frame's stamp): nothing "
+                        "to propagate with",
+    "peer-absent": "online by stamps: the peer is not up (it has not joined yet, or it left): no descriptor to score",
     "stale-pose": "the peer's pose of this step was lost: its pose is bridged from the last ones seen",
     # the pose graph (backend.kind graph)
     "graph-uninformative": "the graph's predicted rotation sigma is too large to report its estimate",
@@ -148,6 +150,38 @@ DEGRADATIONS: dict[str, str] = {
                               "and version): its frames and requests are ignored",
     "link:team-mismatch": "online: a robot of the roster is up in another team (once per robot and team)",
     "link:duplicate-robot": "online: another session uses this robot's id in this team (once)",
+    "link:clock-offset": "online by stamps: a peer's stamps are off this robot's clock by more than the clock tolerance "
+                         "(once per peer and session): its stamps are mapped into this robot's clock by the offset "
+                         "estimated from message arrival",
+    "net:peer-restarted": "online: a peer came back in a new session (its odometry restarted): what this robot knew of "
+                          "the pair (anchors, poses, graph) is forgotten",
+    "pose:extrapolated": "online by stamps: the peer's pose at this frame's stamp extrapolated past its newest pose at "
+                         "its last velocity (within stamps.max_extrapolation_s)",
+    "pose:too-far": "online by stamps: no pose of the peer near this frame's stamp (its newest is more than "
+                    "stamps.max_extrapolation_s away, or the two around it more than stamps.max_pose_gap_s apart): "
+                    "nothing is propagated for the pair at this frame",
+    "pose:peer-motion-unknown": "online by stamps: the peer's poses at its received view's stamp and at this frame's are "
+                                "not both known: its direct estimate is taken as if both views were of one instant",
+    "input:frame-dropped": "online: a camera frame that came while the robot was busy and was replaced by a newer one "
+                           "before it was taken (a robot processes its newest frame)",
+    "input:stall": "online: no camera frame for longer than the stall time (cerpe online --stall); counted on the "
+                   "first frame after",
+    "input:out-of-order": "online: an image whose stamp is not after the last one taken (a clock that jumped back): "
+                          "dropped",
+    "input:bad-image": "online: an image message that cannot be used (unsupported encoding, cut data, does not "
+                       "decode, another size than its camera info): dropped",
+    "input:no-camera-info": "online: an image before any usable CameraInfo came: dropped",
+    "input:bad-camera-info": "online: a CameraInfo that cannot be used (zeros, NaN, an unsupported distortion model or "
+                             "binning): ignored",
+    "input:bad-depth": "online: a depth message that cannot be used (unsupported encoding, cut data, another size than "
+                       "the colour image): the frame goes without depth",
+    "input:no-depth": "online: no depth message within the depth tolerance of the image's stamp: the frame goes "
+                      "without depth",
+    "input:bad-odometry": "online: an odometry or TF message with NaN or an unusable pose: ignored",
+    "input:no-odometry": "online: no odometry pose of the robot at the image's stamp (none within the extrapolation "
+                         "bound, or no camera extrinsic): X keeps its value",
+    "input:wrong-type": "online: a message of another type than its topic's (the key names another type, or the "
+                        "payload does not decode as the topic's type): ignored",
     "graph:degenerate-covariance": "a direct estimate's or the odometry's covariance is zero, not finite or not "
                                    "positive definite: the estimate is not added to the pair's graph",
     "graph:out-of-order": "a direct estimate between poses the graph does not have (the other robot's pose of that "

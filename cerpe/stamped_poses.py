@@ -24,11 +24,8 @@ HOW = ("exact", "interpolated", "extrapolated", "gap", "too-far", "none")
 
 
 class StampedPoses:
-    """The newest ``keep`` poses ``[4,4]`` of one stream, by increasing stamp (seconds).
-
-    A sample whose stamp is not after the newest is refused (:meth:`add` returns False): a stream
-    that goes back in time is a new stream (the caller :meth:`clear`\\ s it) or a fault it counts.
-    """
+    """The newest ``keep`` poses ``[4,4]`` of one stream, by increasing stamp (seconds); a stream that
+    starts again (a restarted robot) is emptied by the caller (:meth:`clear`)."""
 
     def __init__(self, keep: int = 64) -> None:
         self.keep = int(keep)
@@ -46,15 +43,17 @@ class StampedPoses:
         return self.stamps[-1] if self.stamps else None
 
     def add(self, stamp_s: float, T: np.ndarray) -> bool:
-        """Append ``T`` at ``stamp_s``; False (not kept) when not after the newest, or not finite."""
+        """Keep ``T`` at ``stamp_s`` (in stamp order: poses may arrive out of order); False (not kept)
+        when a pose of that stamp is kept already, or it is not finite. The oldest go beyond ``keep``."""
         s = float(stamp_s)
         T = np.asarray(T, dtype=np.float64)
         if not (np.isfinite(s) and np.all(np.isfinite(T))):
             return False
-        if self.stamps and s <= self.stamps[-1] + SAME_STAMP_S:
+        k = bisect.bisect_left(self.stamps, s - SAME_STAMP_S)
+        if k < len(self.stamps) and abs(self.stamps[k] - s) <= SAME_STAMP_S:
             return False
-        self.stamps.append(s)
-        self.poses.append(T.copy())
+        self.stamps.insert(k, s)
+        self.poses.insert(k, T.copy())
         if len(self.stamps) > self.keep:
             del self.stamps[0], self.poses[0]
         return True

@@ -1,4 +1,4 @@
-"""The real ``cerpe online`` command: one robot process each, on loopback, on the synthetic fixture suite.
+"""The real ``cerpe online --lockstep`` command: one robot process each, on loopback, on the synthetic fixture suite.
 
 Robots use explicit tcp/127.0.0.1 endpoints on free ports with multicast scouting off
 (each listens on its port; all dial r0 only, as the README shows: Zenoh's gossip
@@ -67,7 +67,8 @@ def manifests(tmp_path_factory) -> dict[str, Path]:
 def robot_cmd(manifest: Path, robot: str, out: Path, team: str, listen: str, connect: list[str],
               *extra: str) -> list[str]:
     cmd = [sys.executable, "-m", "cerpe.cli", "online", "--robot", robot, "--manifest", str(manifest),
-           "--team", team, "--no-multicast", "--listen", listen, "--out", str(out / robot), "--no-progress"]
+           "--team", team, "--no-multicast", "--listen", listen, "--out", str(out / robot), "--no-progress",
+           "--lockstep"]
     for ep in connect:
         cmd += ["--connect", ep]
     return cmd + list(extra)

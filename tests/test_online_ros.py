@@ -11,6 +11,7 @@ import pytest
 
 from cerpe.geometry import paper_T_ij, random_se3, se3_inverse
 from cerpe.online import ros
+from cerpe.online.publish import EstimatePublisher
 from cerpe.records import PairRecord
 
 
@@ -96,7 +97,7 @@ def test_publisher_puts_what_a_ros_subscriber_decodes(key_format):
     pub_session, sub_session = sessions
     try:
         got, ev = [], threading.Event()
-        pub = ros.EstimatePublisher(pub_session, "lab", "r0", {"key_format": key_format})
+        pub = EstimatePublisher(pub_session, "lab", "r0", {"key_format": key_format})
 
         def on_sample(sample):
             got.append((str(sample.key_expr), sample.payload.to_bytes(),

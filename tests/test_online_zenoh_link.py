@@ -352,8 +352,8 @@ def test_other_protocol_version_is_one_counted_degradation(team_of, caplog):
         raw.close()
     assert inbox.degradations.count("link:protocol-mismatch") == 1
     assert team["r0"].stats["frames_foreign_protocol"] == 3
-    assert (f"speaks cerpe link protocol v{w.LINK_PROTOCOL + 1}.{VERSION}, this robot v{w.LINK_PROTOCOL}.{VERSION}"
-            in caplog.text)
+    assert (f"speaks cerpe link protocol v{w.LINK_STAMPS}.{VERSION} (by stamps), this robot "
+            f"v{w.LINK_PROTOCOL}.{VERSION} (lock-step)" in caplog.text)
 
 
 def test_robot_of_another_team_is_named_and_counted(team_of, caplog):

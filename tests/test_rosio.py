@@ -167,6 +167,10 @@ def test_stamped_poses_interpolate_and_bound_the_extrapolation():
     for k in range(5):
         assert s.add(float(k), make_se3(np.linalg.matrix_power(R, k), [2.0 * k, 0.0, 0.0]))
     assert not s.add(4.0, np.eye(4)) and not s.add(5.0, np.full((4, 4), np.nan)) and len(s) == 4
+    assert s.add(2.75, make_se3(np.eye(3), [0.0, 9.0, 0.0])) and s.stamps == [2.0, 2.75, 3.0, 4.0]  # in stamp order
+    s = StampedPoses(keep=4)
+    for k in range(5):
+        s.add(float(k), make_se3(np.linalg.matrix_power(R, k), [2.0 * k, 0.0, 0.0]))
     T, how = s.at(2.0, 1.5, 0.5)
     assert how == "exact" and np.allclose(T[:3, 3], [4, 0, 0])
     T, how = s.at(2.5, 1.5, 0.5)

@@ -30,6 +30,9 @@ Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
 back end; ``graph_sim`` a simulated stream for it). ``policy`` decides when an open gate
 requests the image, ``agent`` holds one robot's state and phases, ``link`` the link
 protocol, ``engine`` the step; ``channel_link`` and ``team`` run a team in one process.
+Online, robots at their own pace: ``stamp_engine`` (a step by capture stamps over a
+``StreamLink``), ``frame_ring`` (recent frames for the peers' requests), ``switch_cov`` (the
+switch's covariance from the pose graph's noise model).
 The reasons and counted degradations are :mod:`cerpe.reasons`.
 """
 from ..reasons import DEGRADATIONS
@@ -38,12 +41,13 @@ from .anchors import Anchor, AnchorConfig, PairAnchors
 from .config import BACKENDS, PAPER_THRESHOLDS, AlgorithmConfig, AlgorithmError
 from .engine import StepEngine, drive
 from .graph import GRAPH_MODEL, DirectEstimate, GraphConfig, GraphEstimate, GraphModel, PairGraph
-from .link import Inbox, Link, Mailbox, Received
+from .link import Inbox, Link, Mailbox, Received, StreamLink
 from .policy import PairView, PolicyConfig
 from .poses import direct_relative, ego_motion, registered_relative
+from .stamp_engine import StampEngine
 from .team import Team, run_encounter
 
 __all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmConfig", "AlgorithmError", "Anchor", "AnchorConfig",
            "DirectEstimate", "GRAPH_MODEL", "GraphConfig", "GraphEstimate", "GraphModel", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph", "PairView", "PolicyConfig",
-           "Received", "RobotAgent", "StepEngine", "Team", "direct_relative", "drive", "ego_motion",
+           "Received", "RobotAgent", "StampEngine", "StepEngine", "StreamLink", "Team", "direct_relative", "drive", "ego_motion",
            "registered_relative", "run_encounter"]

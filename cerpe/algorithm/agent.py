@@ -33,7 +33,7 @@ from .config import AlgorithmConfig, AlgorithmError
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import Gate
 from .policy import try_hard
-from .poses import ego_motion
+from .poses import check_pose, ego_motion
 from .relative import Relative
 from .state import Previous, RobotState, StepState
 
@@ -133,6 +133,26 @@ class RobotAgent:
         """Phase 8: this step's record about ``other`` (:meth:`Relative.pair_record`)."""
         return self.relative.pair_record(other, bytes_pair)
 
+    # ---------------------------------------------------------------- online by stamps (cerpe.algorithm.stamp_engine)
+    def peer_absent(self, other: str) -> None:
+        """``other`` is not up (not joined yet, or left): no descriptor to score, nothing counted per frame."""
+        self.gate.peer_absent(other)
+
+    def forget_peer(self, other: str) -> None:
+        """``other`` came back in a new session: its odometry restarted, so what this robot knew of the
+        pair (anchors, poses, graph, descriptors, requests) no longer holds."""
+        for kept in (self.s.pairs, self.s.graphs, self.s.poses, self.s.pose_logs, self.s.odometers,
+                     self.s.shared_anchors, self.s.shared_steps, self.s.asks, self.s.sigmas, self.s.last_descriptors):
+            kept.pop(other, None)
+
+    def pose_unknown(self, other: str) -> None:
+        """No pose of ``other`` at this frame (none near its stamp): nothing is propagated with an old one."""
+        self.s.poses.pop(other, None)
+
+    def set_collab_motion(self, other: str, T_cj_now_cj_view: np.ndarray) -> None:
+        """The motion of ``other``'s camera from the capture of its received view to this frame's."""
+        self.s.step_state().collab_motion[other] = check_pose(T_cj_now_cj_view, f"{self.s.where()}: motion of {other}")
+
     # ---------------------------------------------------------------- 1. describe
     def begin_step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> np.ndarray:
         """Check the frame and describe it; returns the ``[D] float32`` descriptor it broadcasts.
@@ -181,16 +201,20 @@ class RobotAgent:
         return dataclasses.replace(st.reply_cache, pose_step=st.step if now else self.s.last_step,
                                    T_odom_cam=self.s.X.copy())
 
-    def accept_reply(self, other: str, reply: ImageReply) -> View | None:
-        """Decode a collaborator's JPEG for the joint pass (see :func:`~cerpe.algorithm.frames.received_view`)."""
+    def accept_reply(self, other: str, reply: ImageReply, same_step: bool = True) -> View | None:
+        """Decode a collaborator's JPEG for the joint pass (see :func:`~cerpe.algorithm.frames.received_view`).
+
+        ``same_step`` False (online by stamps): the reply is of the peer's own frame ``reply.step``,
+        not of this step; the caller files the pose it carries and sets the peer's motion since
+        (:meth:`set_collab_motion`)."""
         st = self.s.step_state()
-        if reply.step != st.step:
+        if same_step and reply.step != st.step:
             self.s.degrade("msg:stale-reply")
             return None
         t0 = time.perf_counter()
         view, fault = received_view(other, reply)
         st.timings["gate"] += time.perf_counter() - t0
-        if reply.T_odom_cam is not None and 0 <= reply.pose_step <= st.step:
+        if same_step and reply.T_odom_cam is not None and 0 <= reply.pose_step <= st.step:
             self.relative.log_pose(other, reply.pose_step, reply.T_odom_cam)
         if view is None:  # the pair gets no direct estimate this step
             self.s.degrade(f"msg:{fault}")
@@ -307,13 +331,19 @@ class RobotAgent:
         return st.scale
 
     # ---------------------------------------------------------------- 6. odometry
-    def update_odometry(self) -> np.ndarray:
+    def update_odometry(self, T_odom_cam: np.ndarray | None = None) -> np.ndarray:
         """``X_t`` through the pass's reference view, else the previous frame, else the newest placed keyframe.
 
         Only differences within one pass are used, so a new backbone frame never
-        makes ``X`` jump; without an estimate ``X`` keeps its value.
+        makes ``X`` jump; without an estimate ``X`` keeps its value. ``T_odom_cam`` (online: the
+        robot's own odometry at this frame, e.g. wheels) is taken as ``X`` instead (``external``).
         """
         st = self._pass("update_odometry")
+        if T_odom_cam is not None:
+            st.ego_status = "external"
+            self.s.X = check_pose(T_odom_cam, f"{self.s.where()}: the robot's odometry")
+            self.s.ego_base, self.s.ego_speeds = None, []
+            return self.s.X
         out = st.out
         kfs = self.s.memory.newest_first()
         if out is None:
@@ -430,7 +460,7 @@ class RobotAgent:
         self.s.previous = None
         if not self.config.odometry.track_previous:
             return
-        if st.ego_status in ("ok", "held") or (st.ego_status == "first" and st.out is not None):
+        if st.ego_status in ("ok", "held", "external") or (st.ego_status == "first" and st.out is not None):
             # joint_pass attached this frame's depth and memo to st.view
             self.s.previous = Previous(step=st.step, view=st.view, T_odom_cam=self.s.X.copy())
 

@@ -1,8 +1,9 @@
 """The algorithm's part of the configuration tree (:class:`AlgorithmConfig`) and the algorithm's exception.
 
 One group per phase of Algorithm 1: ``gate``, ``memory``, ``scale``, ``odometry``, ``anchors``,
-``policy`` (when a gate that opened asks for the image), ``backend`` (switch or pose graph) and
-``messages`` (what goes on the wire). The whole tree, with the plug-ins' ``backbone`` group and the
+``policy`` (when a gate that opened asks for the image), ``backend`` (switch or pose graph),
+``messages`` (what goes on the wire) and ``stamps`` (robots online at their own pace: a peer's
+descriptor and pose at this robot's frame's stamp). The whole tree, with the plug-ins' ``backbone`` group and the
 named presets, is :class:`cerpe.method_config.CerpeConfig`. Thresholds on descriptor similarity are
 specific to a descriptor: ``None`` takes the descriptor's own calibrated value, else the paper's
 (:data:`PAPER_THRESHOLDS`, calibrated for SALAD); :meth:`AlgorithmConfig.resolved` applies this.
@@ -101,6 +102,18 @@ class MessageConfig(Group):
 
 
 @dataclass(frozen=True)
+class StampsConfig(Group):
+    """Online by capture stamps: what a robot takes of a peer at its own frame's stamp (cerpe online)."""
+
+    max_descriptor_age_s: float = knob(1.0, "a peer's descriptor is scored against this frame when its stamp is at "
+                                       "most this far from the frame's (s)", low=0.0)
+    max_pose_gap_s: float = knob(1.0, "a peer's pose at this frame's stamp is interpolated between two of its poses at "
+                                 "most this far apart (s)", low=0.0, low_open=True)
+    max_extrapolation_s: float = knob(0.5, "or extrapolated at its last velocity at most this far past its newest "
+                                      "pose (s); further: unknown, nothing propagated", low=0.0)
+
+
+@dataclass(frozen=True)
 class AlgorithmConfig(Group):
     """Every knob Algorithm 1 reads, one group per phase (see the module docstring)."""
 
@@ -112,6 +125,7 @@ class AlgorithmConfig(Group):
     policy: PolicyConfig = group(PolicyConfig, "phase 3: when a gate that opened asks for the image")
     backend: BackendConfig = group(BackendConfig, "phase 8: switch or pose graph")
     messages: MessageConfig = group(MessageConfig, "what robots put on the wire")
+    stamps: StampsConfig = group(StampsConfig, "online by capture stamps: a peer's frames at this robot's frame's stamp")
 
     def resolved(self, descriptor_thresholds: dict[str, float] | None = None) -> "AlgorithmConfig":
         """Concrete ``gate.tau``, ``memory.tau_m``, ``memory.tau_k``: a value set here > the descriptor's

@@ -34,7 +34,7 @@ def via_to_current(st: StepState, via: int, X: np.ndarray) -> np.ndarray | None:
         return np.eye(4)
     if out.valid[via] and out.valid[0]:
         return scale_translation(se3_inverse(out.T_frame_cam[via]) @ out.T_frame_cam[0], st.scale)
-    if st.ego_status == "ok":
+    if st.ego_status in ("ok", "external"):  # external: the robot's own odometry (online)
         return se3_inverse(st.own_views[via][1]) @ X
     return None
 

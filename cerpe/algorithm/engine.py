@@ -24,6 +24,20 @@ from .link import Inbox, Link
 StepRun = Generator[str, None, StepResult]
 
 
+def team_roster(agent: RobotAgent, robot_ids: Sequence[str],
+                peers: Iterable[str] | None) -> tuple[list[str], list[str], dict[str, int]]:
+    """``(robot ids, the peers the agent exchanges with, robot -> wire index)``; an
+    :class:`AlgorithmError` when the agent's index is not its position or a peer is not in the team."""
+    ids = [str(r) for r in robot_ids]
+    if agent.robot_id not in ids or ids.index(agent.robot_id) != agent.index:
+        raise AlgorithmError(f"robot {agent.robot_id}: its index {agent.index} is not its position in {ids}")
+    wanted = set(ids if peers is None else peers)
+    if wanted - set(ids):
+        raise AlgorithmError(f"robot {agent.robot_id}: peers {sorted(wanted - set(ids))} are not robots of the "
+                             f"team {ids}")
+    return ids, [r for r in ids if r in wanted and r != agent.robot_id], {r: k for k, r in enumerate(ids)}
+
+
 class StepEngine:
     """Runs one robot's :class:`RobotAgent` over a link, one step per :meth:`step`.
 
@@ -38,16 +52,7 @@ class StepEngine:
     def __init__(self, agent: RobotAgent, link: Link, robot_ids: Sequence[str],
                  peers: Iterable[str] | None = None, wait_s: float = 0.0) -> None:
         self.agent, self.link, self.wait_s = agent, link, float(wait_s)
-        self.robot_ids = [str(r) for r in robot_ids]
-        if agent.robot_id not in self.robot_ids or self.robot_ids.index(agent.robot_id) != agent.index:
-            raise AlgorithmError(f"robot {agent.robot_id}: its index {agent.index} is not its position "
-                                 f"in {self.robot_ids}")
-        wanted = set(self.robot_ids if peers is None else peers)
-        if wanted - set(self.robot_ids):
-            raise AlgorithmError(f"robot {agent.robot_id}: peers {sorted(wanted - set(self.robot_ids))} are not "
-                                 f"robots of the team {self.robot_ids}")
-        self.peers = [r for r in self.robot_ids if r in wanted and r != agent.robot_id]
-        self.index_of = {r: k for k, r in enumerate(self.robot_ids)}
+        self.robot_ids, self.peers, self.index_of = team_roster(agent, robot_ids, peers)
         link.serve(self._answer)
 
     def _answer(self, peer: str, request: ImageRequest) -> bytes | None:

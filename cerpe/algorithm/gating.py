@@ -117,6 +117,12 @@ class Gate:
         st.timings["gate"] += time.perf_counter() - t0
         return score
 
+    def peer_absent(self, other: str) -> None:
+        """Online by stamps: ``other`` is not up; the gate stays closed (reason ``peer-absent``)."""
+        st = self.s.step_state()
+        st.scores[other] = float("nan")
+        st.gate_reason[other] = "peer-absent"
+
     def peer_gone(self, other: str) -> None:
         """The link says ``other`` left: its last descriptor no longer stands in for a lost one."""
         self.s.last_descriptors.pop(other, None)

@@ -1,11 +1,14 @@
 """The link between one robot's step engine and its peers (no transport code here).
 
 A :class:`Link` moves the unchanged :mod:`cerpe.messages` wire frames; the step
-engine (:mod:`cerpe.algorithm.engine`) runs the phases of Algorithm 1 over it.
-Two implementations: :class:`cerpe.algorithm.channel_link.ChannelLink` (a team
-in one process, over the lossy :class:`cerpe.transport.Channel`) and
-:class:`cerpe.online.zenoh_link.ZenohLink` (one robot per process). Every wait has a
-deadline; faults come back counted in an :class:`Inbox`, never raised.
+engine (:mod:`cerpe.algorithm.engine`) runs the phases of Algorithm 1 over it, the team
+in lock-step (every robot at the same step). Two implementations:
+:class:`cerpe.algorithm.channel_link.ChannelLink` (a team in one process, over the lossy
+:class:`cerpe.transport.Channel`) and :class:`cerpe.online.zenoh_link.ZenohLink` (one robot
+per process). A :class:`StreamLink` moves the same frames with their capture stamps, for
+robots at their own pace (:mod:`cerpe.algorithm.stamp_engine`; a frame's ``step`` is then its
+sender's own frame index). Every wait has a deadline; faults come back counted in an
+:class:`Inbox`, never raised.
 """
 from __future__ import annotations
 
@@ -24,6 +27,9 @@ KIND_OF: dict[type, str] = {DescriptorMessage: "descriptor", PoseMessage: "pose"
 
 #: answers an image request: ``(peer, request) -> reply frame`` or None (nothing to send)
 RequestHandler = Callable[[str, ImageRequest], "bytes | None"]
+#: answers an image request that names a frame by stamp: ``(peer, request, stamp_s) -> reply frame`` or None
+#: (not held); called on a thread of the link's, not the robot's
+FrameHandler = Callable[[str, ImageRequest, float], "bytes | None"]
 
 
 @dataclass(frozen=True)
@@ -174,3 +180,73 @@ class Mailbox:
         got = {p: have[p] for p in peers if p in have}
         out, self._pending = Inbox(got, self._pending), []
         return out
+
+
+@dataclass(frozen=True)
+class Stamped:
+    """A peer's frame with its capture stamp: ``stamp_s`` in this robot's clock, ``peer_stamp_s`` as the
+    peer stamped it (what an image request names); ``message.step`` is the peer's own frame index."""
+
+    message: Message
+    nbytes: int
+    stamp_s: float
+    peer_stamp_s: float
+
+
+@dataclass
+class StreamInbox:
+    """What a wait by stamp brought: per peer the frame nearest the asked stamp, the degradations noticed
+    since the last answer, and the peers up now."""
+
+    messages: dict[str, Stamped] = field(default_factory=dict)
+    degradations: list[str] = field(default_factory=list)
+    present: set[str] = field(default_factory=set)
+
+
+@runtime_checkable
+class StreamLink(Protocol):
+    """One robot's end of the team when every robot runs at its own pace (frames carry capture stamps).
+
+    No global step: a robot broadcasts each frame it processes with its stamp, reads each peer's
+    frame nearest its own stamp, and asks a peer for the image of one of its frames by that
+    frame's stamp. Waits end when what can still come has come, at the latest at their deadline.
+    """
+
+    robot_id: str
+
+    def broadcast(self, kind: str, frame: bytes, stamp_s: float | None = None) -> int:
+        """Send ``frame`` (of this robot's frame captured at ``stamp_s``); returns its bytes (counted once)."""
+        ...
+
+    def descriptors_near(self, peers: Sequence[str], stamp_s: float, wait_s: float, max_age_s: float) -> StreamInbox:
+        """Each peer's descriptor nearest ``stamp_s`` (this robot's clock) and at most ``max_age_s`` from it,
+        after waiting at most ``wait_s`` for one that may still come nearer."""
+        ...
+
+    def wait_poses(self, peers: Sequence[str], stamp_s: float, wait_s: float) -> None:
+        """Wait at most ``wait_s`` until each peer's poses reach ``stamp_s`` (or cannot any more)."""
+        ...
+
+    def poses_since(self, peer: str) -> list[tuple[float, object]]:
+        """``(stamp in the peer's clock, T_odom_cam)`` of the peer's poses received since the last call."""
+        ...
+
+    def to_peer(self, peer: str, stamp_s: float) -> float:
+        """A stamp of this robot's clock in ``peer``'s."""
+        ...
+
+    def request_frames(self, asks: Mapping[str, tuple[bytes, float]], deadline_s: float) -> Inbox:
+        """Send each peer its image request ``(frame, peer stamp of the frame asked)``; replies within ``deadline_s``."""
+        ...
+
+    def serve_frames(self, handler: FrameHandler) -> None:
+        """Answer image requests by stamp with ``handler`` from now on (on a thread of the link's)."""
+        ...
+
+    def take_events(self) -> list[tuple[str, str]]:
+        """``(peer, event)`` since the last call: ``up``, ``restarted`` (a new session), ``gone``."""
+        ...
+
+    def take_degradations(self) -> list[str]:
+        """Degradations noticed since the last answer that no inbox handed out."""
+        ...

@@ -101,7 +101,9 @@ class Relative:
     def _directs(self, st: StepState, other: str) -> tuple[list, str]:
         """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
         if other not in st.directs:
-            st.directs[other] = direct_estimates(st, other, self.s.X, self.s.degrade)
+            ests, why = direct_estimates(st, other, self.s.X, self.s.degrade)
+            M = st.collab_motion.get(other)  # online by stamps: the peer's view was captured at another time
+            st.directs[other] = (ests if M is None else [(k, v, M @ T, n) for k, v, T, n in ests], why)
         return st.directs[other]
 
     def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
@@ -159,7 +161,7 @@ class Relative:
                   DirectEstimate(st.step, info.direct_T, info.direct_inliers, info.verdict,
                                  depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
         res = graph.step(st.step, self.s.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
-                         direct, own_ok=st.ego_status in ("ok", "first"), stamp_s=st.stamp_s)
+                         direct, own_ok=st.ego_status in ("ok", "first", "external"), stamp_s=st.stamp_s)
         st.timings["graph"] += time.perf_counter() - t0
         for what in res.degradations:
             self.s.degrade(what)

@@ -1,31 +1,29 @@
-"""Estimates out to ROS 2: each robot's relative poses as ``geometry_msgs/msg/PoseWithCovarianceStamped``.
+"""ROS 2 on Zenoh without ROS: the keys of ROS topics, rmw_zenoh's attachment, the CDR of an estimate.
 
-Topic ``/cerpe/<team>/<i>/relative_pose/<j>``, pose ``T_cj_ci`` (camera ``i`` in camera
-``j``, optical axes, metres), frame id ``<team>/<j>/camera_optical``, stamp = capture
-time, covariance all zeros when unknown (the ROS convention). CDR-encoded with
-``rosbags`` and put on rmw_zenoh's data key (with its 33-byte attachment) or on the
-key ``zenoh-bridge-ros2dds`` uses. The keys and bytes are described once, in
-``docs/ARCHITECTURE.md``, "Online transport", "Wire format"; this module builds them.
-No liveliness tokens are declared, so ``ros2 topic list`` does not show the topic; name
-the type: ``ros2 topic echo /cerpe/lab/r0/relative_pose/r1 geometry_msgs/msg/PoseWithCovarianceStamped``.
+Two key layouts, the ones a ROS 2 graph reaches Zenoh by: ``rmw_zenoh`` (``<domain>/<topic>/<DDS
+type name>/<type hash>``, each sample with rmw_zenoh's 33-byte attachment) and ``ros2dds`` (the key
+``zenoh-bridge-ros2dds`` maps a DDS topic to: the topic without its leading ``/``, bare CDR). An
+estimate is a ``geometry_msgs/msg/PoseWithCovarianceStamped`` on
+``/cerpe/<team>/<i>/relative_pose/<j>``: pose ``T_cj_ci`` (camera ``i`` in camera ``j``, optical
+axes, metres), frame id ``<team>/<j>/camera_optical``, stamp = capture time, covariance in ROS order
+(``x y z rot_x rot_y rot_z`` in the parent frame; all zeros only when unknown). The keys and bytes
+are described once, in ``docs/online.md``; this module builds and parses them.
 """
 from __future__ import annotations
 
-import functools
-import os
 import re
 import struct
-import time
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
-from ..config import merge_conf
 from ..errors import CerpeError
-from ..geometry import GeometryError, check_se3, se3_from_tq_xyzw, se3_to_tq_xyzw
+from ..geometry import GeometryError, check_se3, pose_cov_in_parent, se3_from_tq_xyzw
+from ..rosio import encode as rencode
+from ..rosio import types as rt
 
-ROS_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-DDS_TYPE = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
+ROS_TYPE = rt.POSE_COV_STAMPED
+DDS_TYPE = rt.dds_type_name(ROS_TYPE)
 HUMBLE_HASH = "TypeHashNotSupported"
 KEY_FORMATS = ("rmw_zenoh", "ros2dds")
 
@@ -37,19 +35,15 @@ default_conf: dict[str, Any] = {
     "key_format": "rmw_zenoh",  # or "ros2dds" (through zenoh-bridge-ros2dds)
 }
 
+#: the variance a published covariance gives what is not known (the translation without metric depth)
+UNKNOWN_VAR = 100.0**2
+
 _TOKEN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _ATTACHMENT = struct.Struct("<qqB16s")
 
 
 class RosError(CerpeError, ValueError):
     """A name that cannot be a ROS topic token, a bad pose or covariance, a bad option."""
-
-
-@functools.lru_cache(maxsize=1)
-def _typestore() -> Any:
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_JAZZY)  # PoseWithCovarianceStamped is the same in every ROS 2 distro
 
 
 def check_distro(distro: Any) -> str:
@@ -60,9 +54,9 @@ def check_distro(distro: Any) -> str:
     return str(distro).lower()
 
 
-def type_hash(distro: str) -> str:
-    """rmw_zenoh's type-hash key chunk for :data:`ROS_TYPE` under ``distro`` (one of :data:`DISTROS`)."""
-    return HUMBLE_HASH if check_distro(distro) == "humble" else _typestore().hash_rihs01(ROS_TYPE)
+def type_hash(distro: str, msgtype: str = ROS_TYPE) -> str:
+    """rmw_zenoh's type-hash key chunk for ``msgtype`` under ``distro`` (one of :data:`DISTROS`)."""
+    return HUMBLE_HASH if check_distro(distro) == "humble" else rt.type_hash(msgtype)
 
 
 def ros_token(name: str, what: str) -> str:
@@ -82,11 +76,32 @@ def camera_frame_id(team: str, robot: str) -> str:
     return f"{team}/{robot}/camera_optical"
 
 
-def zenoh_key(topic: str, conf: Mapping[str, Any]) -> str:
-    """The Zenoh key of ``topic`` for ``conf`` (see the module docstring)."""
+def peer_frame_id(team: str, ego: str, other: str) -> str:
+    """TF frame of ``other``'s camera as ``ego`` places it (a child of ``ego``'s camera frame): each robot
+    publishes its own, so two robots' estimates never give one frame two parents."""
+    return f"{team}/{ego}/peers/{other}/camera_optical"
+
+
+def zenoh_key(topic: str, conf: Mapping[str, Any], msgtype: str = ROS_TYPE) -> str:
+    """The Zenoh key of ``topic`` carrying ``msgtype`` for ``conf`` (see the module docstring)."""
     if conf["key_format"] == "ros2dds":
-        return topic.lstrip("/")
-    return f"{int(conf['domain_id'])}/{topic.lstrip('/')}/{DDS_TYPE}/{type_hash(conf['distro'])}"
+        return topic.strip("/")
+    return f"{int(conf['domain_id'])}/{topic.strip('/')}/{rt.dds_type_name(msgtype)}/{type_hash(conf['distro'], msgtype)}"
+
+
+def subscription_key(topic: str, conf: Mapping[str, Any]) -> str:
+    """What subscribes to ``topic`` of any type: rmw_zenoh's key with the type and hash chunks left open."""
+    if conf["key_format"] == "ros2dds":
+        return topic.strip("/")
+    return f"{int(conf['domain_id'])}/{topic.strip('/')}/*/*"
+
+
+def key_type(key: str, conf: Mapping[str, Any]) -> str | None:
+    """The message type an rmw_zenoh key names (``pkg/msg/Name``); None for ros2dds keys (they name none)."""
+    if conf["key_format"] == "ros2dds":
+        return None
+    parts = str(key).split("/")
+    return rt.ros_type_name(parts[-2]) if len(parts) >= 4 else None
 
 
 def rmw_attachment(sequence: int, stamp_ns: int, gid: bytes) -> bytes:
@@ -106,6 +121,22 @@ def parse_rmw_attachment(data: bytes) -> tuple[int, int, bytes]:
     return seq, stamp_ns, gid
 
 
+def ros_covariance(T_cj_ci: np.ndarray, cov: Any) -> np.ndarray:
+    """A right-perturbation covariance ``[rotation, translation]`` of ``T_cj_ci`` (``PairRecord.cov``) in ROS
+    order and frame (:func:`~cerpe.geometry.pose_cov_in_parent`); a block of NaN (not known: no metric
+    depth) gets :data:`UNKNOWN_VAR` on its diagonal and no correlation. None: all zeros (unknown)."""
+    if cov is None:
+        return np.zeros((6, 6))
+    C = np.array(cov, dtype=np.float64)
+    for blk in (slice(0, 3), slice(3, 6)):
+        if not np.all(np.isfinite(C[blk, blk])):
+            C[blk, :] = 0.0
+            C[:, blk] = 0.0
+            C[blk, blk] = np.eye(3) * UNKNOWN_VAR
+    C[~np.isfinite(C)] = 0.0
+    return pose_cov_in_parent(T_cj_ci, 0.5 * (C + C.T))
+
+
 def _covariance(cov: Any) -> np.ndarray:
     if cov is None:
         return np.zeros(36)  # ROS: all zeros = covariance unknown
@@ -118,33 +149,32 @@ def _covariance(cov: Any) -> np.ndarray:
     return c.ravel()
 
 
-def encode_pose_cdr(T_cj_ci: Any, stamp_s: float, frame_id: str, covariance: Any = None) -> bytes:
-    """One ``PoseWithCovarianceStamped`` as CDR (little endian, with its 4-byte encapsulation header)."""
-    types = _typestore().types
-    Time, Header = types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
-    Point, Quaternion = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
-    Pose, PoseWithCovariance = types["geometry_msgs/msg/Pose"], types["geometry_msgs/msg/PoseWithCovariance"]
+def _check(T: Any, stamp_s: float, what: str) -> np.ndarray:
     try:
-        t, q = se3_to_tq_xyzw(check_se3(T_cj_ci, "T_cj_ci"))
+        T = check_se3(T, what)
     except GeometryError as exc:
         raise RosError(f"pose to publish: {exc}") from None
     stamp = float(stamp_s)
     if not (np.isfinite(stamp) and 0 <= stamp < 2**31):
         raise RosError(f"stamp {stamp_s!r} s cannot be a ROS time (0 <= stamp < 2^31 s)")
-    sec = int(np.floor(stamp))
-    nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
-    msg = types[ROS_TYPE](header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=str(frame_id)),
-                  pose=PoseWithCovariance(pose=Pose(position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                                                    orientation=Quaternion(x=float(q[0]), y=float(q[1]),
-                                                                           z=float(q[2]), w=float(q[3]))),
-                                          covariance=_covariance(covariance)))
-    return bytes(_typestore().serialize_cdr(msg, ROS_TYPE))
+    return T
+
+
+def encode_pose_cdr(T_cj_ci: Any, stamp_s: float, frame_id: str, covariance: Any = None) -> bytes:
+    """One ``PoseWithCovarianceStamped`` as CDR (little endian, with its 4-byte encapsulation header);
+    ``covariance``: 6x6 in ROS order (None: all zeros, unknown)."""
+    T = _check(T_cj_ci, stamp_s, "T_cj_ci")
+    cov = _covariance(covariance)
+    PwC = rt.msg_class("geometry_msgs/msg/PoseWithCovariance")
+    pose = rencode.pose_stamped(T, float(stamp_s), frame_id).pose
+    msg = rt.msg_class(ROS_TYPE)(header=rencode.header(float(stamp_s), frame_id), pose=PwC(pose=pose, covariance=cov))
+    return rt.serialize(msg, ROS_TYPE)
 
 
 def decode_pose_cdr(data: bytes) -> dict[str, Any]:
     """``{"T_cj_ci", "stamp_s", "frame_id", "covariance" (6x6)}`` of a CDR ``PoseWithCovarianceStamped``."""
     try:
-        m = _typestore().deserialize_cdr(bytes(data), ROS_TYPE)
+        m = rt.typestore().deserialize_cdr(bytes(data), ROS_TYPE)
     except Exception as exc:  # rosbags raises several types for truncated or foreign data
         raise RosError(f"not a CDR {ROS_TYPE}: {exc}") from None
     p, o = m.pose.pose.position, m.pose.pose.orientation
@@ -153,48 +183,7 @@ def decode_pose_cdr(data: bytes) -> dict[str, Any]:
             "frame_id": m.header.frame_id, "covariance": np.asarray(m.pose.covariance, np.float64).reshape(6, 6)}
 
 
-class EstimatePublisher:
-    """Publishes one robot's relative-pose estimates on a Zenoh session (e.g. ``ZenohLink.session``).
-
-    Args:
-        session: an open ``zenoh.Session``.
-        team, robot_id: this robot's team and id (ROS name tokens).
-        conf: overrides of :data:`default_conf`.
-    """
-
-    def __init__(self, session: Any, team: str, robot_id: str, conf: Mapping[str, Any] | None = None) -> None:
-        self.conf = merge_conf(default_conf, conf, "ros estimates conf")
-        if self.conf["key_format"] not in KEY_FORMATS:
-            raise RosError(f"ros key_format {self.conf['key_format']!r}: expected one of {KEY_FORMATS}")
-        domain = self.conf["domain_id"]
-        if not (isinstance(domain, int) and 0 <= domain <= 232):
-            raise RosError(f"ros domain_id {domain!r}: expected an integer in 0..232 (ROS_DOMAIN_ID)")
-        check_distro(self.conf["distro"])
-        self.session, self.team, self.robot_id = session, ros_token(team, "--team"), ros_token(robot_id, "robot id")
-        self.gid = os.urandom(16)
-        self._pubs: dict[str, Any] = {}
-        self._seq: dict[str, int] = {}
-
-    def key(self, other: str) -> str:
-        return zenoh_key(topic_name(self.team, self.robot_id, other), self.conf)
-
-    def publish(self, other: str, T_cj_ci: Any, stamp_s: float, covariance: Any = None) -> int:
-        """Publish this robot's estimate of ``T_cj_ci`` (j = ``other``); returns the CDR bytes."""
-        cdr = encode_pose_cdr(T_cj_ci, stamp_s, camera_frame_id(self.team, other), covariance)
-        if other not in self._pubs:
-            self._pubs[other] = self.session.declare_publisher(self.key(other))
-            self._seq[other] = 0
-        self._seq[other] += 1
-        if self.conf["key_format"] == "rmw_zenoh":
-            self._pubs[other].put(cdr, attachment=rmw_attachment(self._seq[other], time.time_ns(), self.gid))
-        else:
-            self._pubs[other].put(cdr)
-        return len(cdr)
-
-    def publish_pairs(self, pairs: Iterable[Any]) -> int:
-        """Publish every :class:`~cerpe.records.PairRecord` of this robot that has an estimate."""
-        n = 0
-        for rec in pairs:
-            if rec.ego == self.robot_id and rec.T_cj_ci is not None:
-                n += self.publish(rec.other, rec.T_cj_ci, rec.stamp_s)
-        return n
+def encode_tf_cdr(transforms: list[tuple[np.ndarray, float, str, str]]) -> bytes:
+    """A ``tf2_msgs/msg/TFMessage`` of ``(T_parent_child, stamp_s, parent, child)`` as CDR."""
+    msgs = [rencode.transform(_check(T, s, "transform"), float(s), parent, child) for T, s, parent, child in transforms]
+    return rt.serialize(rencode.tf_message(msgs), rt.TF_MESSAGE)

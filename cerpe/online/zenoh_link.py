@@ -1,9 +1,12 @@
-"""One robot's link to its team over Zenoh (``eclipse-zenoh``): a ``Link`` for the step engine.
+"""One robot's link to its team over Zenoh (``eclipse-zenoh``): a ``Link`` or a ``StreamLink``.
 
-Keys and the link header are in :mod:`cerpe.online.zenoh_wire`. The methods are those
-of the engine's link protocol (``begin``, ``broadcast``, ``gather``, ``request``,
-``serve``); frames are filed in the engine's :class:`~cerpe.algorithm.link.Mailbox` and
-handed out in its :class:`~cerpe.algorithm.link.Inbox`:
+Keys and the link header are in :mod:`cerpe.online.zenoh_wire`. ``sync: stamps`` (what ``cerpe
+online`` runs) makes it the :class:`~cerpe.algorithm.link.StreamLink` of robots at their own pace
+(the methods of :mod:`cerpe.online.zenoh_stream`, image requests answered on a serving thread).
+``sync: lockstep`` makes it the engine's lock-step :class:`~cerpe.algorithm.link.Link` (``begin``,
+``broadcast``, ``gather``, ``request``, ``serve``), which reproduces ``cerpe run``; frames are then
+filed in the engine's :class:`~cerpe.algorithm.link.Mailbox` and handed out in its
+:class:`~cerpe.algorithm.link.Inbox`:
 
 * :meth:`ZenohLink.broadcast` puts a frame on ``cerpe/<team>/<robot>/<kind>``;
   the bytes counted are the frame's, once (as :class:`cerpe.transport.Channel`).
@@ -36,7 +39,8 @@ Counting: one entry per event in the next :class:`Inbox`'s ``degradations``;
 * ``net:peer-lost``: a peer's session ended without bye, none within ``BYE_GRACE_S``;
 * ``link:protocol-mismatch`` and ``link:team-mismatch``: once per robot and
   version/team, with a warning naming both;
-* ``link:duplicate-robot``: another session uses this robot's id.
+* ``link:duplicate-robot``: another session uses this robot's id;
+* ``link:clock-offset`` (by stamps): a peer's clock is off this robot's beyond ``clock_tolerance_s``.
 
 Late, duplicate and far-ahead frames, refused queries and the bytes really sent (frame
 + header) go to :attr:`ZenohLink.stats`.
@@ -63,6 +67,7 @@ from . import zenoh_wire as w
 from .zenoh_presence import PresenceSide
 from .zenoh_receive import ReceiveSide
 from .zenoh_serve import ServeSide
+from .zenoh_stream import StreamSide
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +77,8 @@ default_conf: dict[str, Any] = {
     "max_lag_steps": 2,           # do not wait for a peer this many steps behind
     "max_ahead_steps": 64,        # frames further ahead of the current step are dropped
     "max_queued_queries": 64,     # image queries waiting to be answered; more are refused ("busy")
+    "sync": "lockstep",           # lockstep: the team's step (reproduces cerpe run); stamps: each robot at its pace
+    "clock_tolerance_s": 0.05,    # stamps: a peer's clock offset beyond this is mapped (and counted once)
 }
 
 
@@ -79,7 +86,7 @@ class ZenohLinkError(CerpeError, ValueError):
     """Bad link configuration, or a Zenoh session that cannot open."""
 
 
-class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
+class ZenohLink(ReceiveSide, PresenceSide, ServeSide, StreamSide):
     """This robot's end of the team, over one Zenoh session.
 
     Args:
@@ -105,6 +112,9 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
                                  f"once and include this one")
         self.index_of = {r: k for k, r in enumerate(self.robot_ids)}
         self.index = self.index_of[self.robot_id]
+        self.wire = w.Wire(self.conf["sync"])
+        if not float(self.conf["clock_tolerance_s"]) >= 0:
+            raise ZenohLinkError(f"--clock-tolerance must be >= 0, got {self.conf['clock_tolerance_s']!r}")
         self._cond = threading.Condition()   # guards everything below; Zenoh's threads file into it
         self.box = Mailbox(self.robot_id, self.robot_ids, max_ahead_steps=int(self.conf["max_ahead_steps"]))
         self.stats: Counter[str] = self.box.stats
@@ -114,10 +124,12 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
         self._said_bye: set[str] = set()
         self._leaving: dict[str, float] = {}  # peer -> when its token went without a bye (a bye may follow)
         self._reported: set[tuple] = set()   # (what, robot, detail) logged and counted once
-        self._queries: list[tuple[Any, str, ImageRequest]] = []  # (query, peer, request), not answered yet
+        self._sessions: dict[str, set[str]] = {}  # peer -> Zenoh ids of its sessions up
+        self._queries: list[tuple[Any, str, ImageRequest, float]] = []  # (query, peer, request, stamp), not answered
         self._handler: RequestHandler | None = None
         self._token: Any = None
         self._closed = False
+        self._init_streams()
         self.session = zs.open_session({k: self.conf[k] for k in zs.default_conf}, f"robot {self.robot_id}")
         try:
             self.zid = str(self.session.zid())
@@ -146,7 +158,8 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
         if self._token is not None:
             return
         try:
-            self._token = self.session.liveliness().declare_token(w.alive_key(self.team, self.robot_id, self.zid))
+            self._token = self.session.liveliness().declare_token(w.alive_key(self.team, self.robot_id, self.zid,
+                                                                              self.wire.tag))
         except zenoh.ZError as exc:
             raise ZenohLinkError(f"robot {self.robot_id}: cannot declare its liveliness token: "
                                  f"{zs.first_line(exc)}") from None
@@ -163,8 +176,13 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
                 raise ZenohLinkError(f"robot {self.robot_id}: step {step} begun after step {self.box.step}")
             self.box.begin(step)
 
-    def broadcast(self, kind: str, frame: bytes) -> int:
-        """Put ``frame`` on this robot's ``kind`` key; returns its bytes (counted once)."""
+    def clock_now(self) -> float | None:
+        """This robot's stamp clock now (by stamps; None in lock-step or before its first frame)."""
+        return self.clock.now() if self.wire.mode == "stamps" else None
+
+    def broadcast(self, kind: str, frame: bytes, stamp_s: float | None = None) -> int:
+        """Put ``frame`` (of this robot's frame stamped ``stamp_s``) on its ``kind`` key; returns its bytes
+        (counted once)."""
         if kind not in w.BROADCAST_KINDS:
             raise ZenohLinkError(f"robot {self.robot_id}: cannot broadcast kind {kind!r}; "
                                  f"expected one of {w.BROADCAST_KINDS}")
@@ -173,12 +191,12 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
         import zenoh
 
         try:
-            self._pubs[kind].put(bytes(frame), attachment=w.HEADER)
+            self._pubs[kind].put(bytes(frame), attachment=self.wire.attachment(stamp_s, self.clock_now()))
         except zenoh.ZError as exc:  # the session was closed under the robot
             raise ZenohLinkError(f"robot {self.robot_id}: cannot send its {kind}: {zs.first_line(exc)}") from None
         with self._cond:
             self.stats[f"frames_sent_{kind}"] += 1
-            self.stats[f"wire_bytes_{kind}"] += len(frame) + len(w.HEADER)
+            self.stats[f"wire_bytes_{kind}"] += len(frame) + self.wire.size
         return len(frame)
 
     def gather(self, step: int, kind: str, peers: Sequence[str], deadline_s: float) -> Inbox:
@@ -217,24 +235,34 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
         (``msg:lost`` for no reply in time, ``msg:image-not-held``,
         ``msg:garbled``, ``msg:unknown-sender``). ``sent``: request bytes per peer.
         """
-        import zenoh
-
         step = int(step)
-        self._check_peers(list(frames), f"request({step})")
         if step != self.box.step:
             self._begin(step)  # the peers' queries are answered in the wait below, once ours are out
-        reqs = {}
-        for p, frame in frames.items():
-            try:
-                req = decode(frame)
-            except MessageError as exc:
-                raise ZenohLinkError(f"robot {self.robot_id}: request frame to {p} does not decode: {exc}") from None
-            if not (isinstance(req, ImageRequest) and req.step == step and req.target == self.index_of[p]
-                    and req.sender == self.index):
-                raise ZenohLinkError(f"robot {self.robot_id}: the frame for {p} is not this robot's image "
-                                     f"request of step {step} to {p}: {req}")
-            reqs[p] = req
-        state = {p: {"ok": [], "err": [], "done": False} for p in frames}
+        return self._ask({p: (self._request_of(p, f, step), f, None) for p, f in frames.items()}, deadline_s)
+
+    def request_frames(self, asks: Mapping[str, tuple[bytes, float]], deadline_s: float) -> Inbox:
+        """By stamps: each peer's image request ``(frame, the peer's stamp of the frame it names)`` as a
+        Zenoh query; replies within ``deadline_s``, counted as :meth:`request` counts them."""
+        return self._ask({p: (self._request_of(p, f, None), f, float(s)) for p, (f, s) in asks.items()}, deadline_s)
+
+    def _request_of(self, peer: str, frame: bytes, step: int | None) -> ImageRequest:
+        """The request ``frame`` to ``peer`` decoded, checked to be this robot's (of ``step`` when given)."""
+        self._check_peers([peer], "request")
+        try:
+            req = decode(frame)
+        except MessageError as exc:
+            raise ZenohLinkError(f"robot {self.robot_id}: request frame to {peer} does not decode: {exc}") from None
+        if not (isinstance(req, ImageRequest) and (step is None or req.step == step)
+                and req.target == self.index_of[peer] and req.sender == self.index):
+            raise ZenohLinkError(f"robot {self.robot_id}: the frame for {peer} is not this robot's image request "
+                                 f"to {peer}{'' if step is None else f' of step {step}'}: {req}")
+        return req
+
+    def _ask(self, reqs: Mapping[str, tuple[ImageRequest, bytes, float | None]], deadline_s: float) -> Inbox:
+        """Send the queries ``peer -> (request, frame, stamp)``, wait for the replies, check and count them."""
+        import zenoh
+
+        state = {p: {"ok": [], "err": [], "done": False} for p in reqs}
 
         def on_reply(p: str, reply: Any) -> None:
             with self._cond:
@@ -251,27 +279,27 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
 
         timeout = max(float(deadline_s), 1e-3)
         deadline = time.monotonic() + timeout
-        for p, frame in frames.items():
+        for p, (_, frame, stamp) in reqs.items():
             handler = zenoh.handlers.Callback(lambda r, p=p: on_reply(p, r), lambda p=p: on_done(p))
             try:
-                self.session.get(w.image_key(self.team, p), handler, payload=bytes(frame), attachment=w.HEADER,
-                                 timeout=timeout, target=zenoh.QueryTarget.ALL,
-                                 consolidation=zenoh.ConsolidationMode.NONE)
+                self.session.get(w.image_key(self.team, p), handler, payload=bytes(frame),
+                                 attachment=self.wire.attachment(stamp, self.clock_now()), timeout=timeout,
+                                 target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
             except zenoh.ZError as exc:
                 raise ZenohLinkError(f"robot {self.robot_id}: cannot send its image request to {p}: "
                                      f"{zs.first_line(exc)}") from None
             with self._cond:
                 self.stats["frames_sent_request"] += 1
-                self.stats["wire_bytes_request"] += len(frame) + len(w.HEADER)
+                self.stats["wire_bytes_request"] += len(frame) + self.wire.size
         t0 = time.perf_counter()
         self._wait(lambda: all(st["ok"] or st["done"] for st in state.values()), deadline)
         self._serve_queries()  # a peer's query that came in with our last reply: answered now, not next wait
         with self._cond:
             self.stats["wait_s"] += time.perf_counter() - t0
-            got = {p: self._check_reply(p, req, state[p]["ok"], state[p]["err"]) for p, req in reqs.items()}
-            inbox = self.box.inbox(step, "reply", [])  # the degradations counted so far
+            got = {p: self._check_reply(p, req, state[p]["ok"], state[p]["err"]) for p, (req, _, _) in reqs.items()}
+            inbox = self.box.inbox(self.box.step, "reply", [])  # the degradations counted so far
         inbox.messages = {p: r for p, r in got.items() if r is not None}
-        inbox.sent = {p: len(f) for p, f in frames.items()}
+        inbox.sent = {p: len(f) for p, (_, f, _) in reqs.items()}
         return inbox
 
     def _check_peers(self, peers: Sequence[str], what: str) -> None:
@@ -297,7 +325,7 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
             return Received(msg, len(payload))
         ours = [e for e in errs if e[:2] == w.MAGIC]
         if ours:  # the owner answered with a reason; Zenoh's own errors (timeout) carry no header
-            reason = w.parse_error_payload(ours[0])
+            reason = self.wire.parse_error_payload(ours[0])
             self.stats[f"reply_error_{reason}"] += 1
             if reason == w.NOT_HELD:
                 self._degrade("msg:image-not-held")
@@ -322,17 +350,20 @@ class ZenohLink(ReceiveSide, PresenceSide, ServeSide):
             return
         try:
             if not self.session.is_closed():
-                self._pubs[w.BYE].put(b"", attachment=w.HEADER)
+                self._pubs[w.BYE].put(b"", attachment=self.wire.attachment(None, self.clock_now()))
                 self._wait(lambda: not (self._present - self._said_bye), time.monotonic() + max(0.0, linger_s))
         finally:
             with self._cond:
                 self._closed = True
                 queries, self._queries = self._queries, []
+                self._cond.notify_all()
             import zenoh
 
-            for query, _, _ in queries:
+            for query, _, _, _ in queries:
                 with query, contextlib.suppress(zenoh.ZError):  # the requester's query may be gone
-                    query.reply_err(w.error_payload(w.NOT_HELD))
+                    query.reply_err(self.wire.error_payload(w.NOT_HELD))
+            if self._serving.is_alive():
+                self._serving.join(2.0)
             self.session.close()
 
     def __enter__(self) -> "ZenohLink":

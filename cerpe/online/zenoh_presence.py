@@ -3,6 +3,9 @@
 A mixin of :class:`~cerpe.online.zenoh_link.ZenohLink` (it reads the link's roster and keeps its
 peer sets, under the link's lock); apart so that the link module stays the engine's link protocol.
 A peer whose token goes has :data:`BYE_GRACE_S` to say bye before it counts as ``net:peer-lost``.
+A peer is up while a token of it is (one per Zenoh session); a token of a new session while the
+robot was gone, or beside the old one (a process restarted before its old session was noticed
+gone), is a new run of that robot: event ``restarted`` (``up`` the first time, ``gone`` on leaving).
 """
 from __future__ import annotations
 
@@ -42,8 +45,12 @@ class PresenceSide:
         _leaving: dict[str, float]
         _reported: set[tuple]
         _closed: bool
+        _sessions: dict[str, set[str]]
+        _events: list[tuple[str, str]]
+        wire: w.Wire
 
         def announce(self) -> None: ...
+        def _restart_stream(self, robot: str) -> None: ...
         def _degrade(self, what: str) -> None: ...
         def _once(self, what: str, robot: str, detail: str, message: str) -> None: ...
         def _protocol_mismatch(self, robot: str, tag: str) -> None: ...
@@ -60,17 +67,17 @@ class PresenceSide:
         up = sample.kind == zenoh.SampleKind.PUT
         with self._cond:
             if zid != self.zid:
-                self._presence(team, robot, tag, up)
+                self._presence(team, robot, tag, up, zid)
             self._cond.notify_all()
 
-    def _presence(self, team: str, robot: str, tag: str, up: bool) -> None:
+    def _presence(self, team: str, robot: str, tag: str, up: bool, zid: str = "") -> None:
         if team != self.team:
             if up and robot in self.index_of and robot not in self._present:
                 self._once("link:team-mismatch", robot, team,
                            f"robot {robot} is up in team {team!r}, this robot is in team {self.team!r}: "
                            f"they do not hear each other (give both the same --team)")
             return
-        if tag != w.PROTOCOL_TAG:
+        if tag != self.wire.tag:
             if up:
                 self._protocol_mismatch(robot, tag)
             return
@@ -85,17 +92,30 @@ class PresenceSide:
                 log.info("robot %s: robot %s of team %s is not in the roster %s; ignored",
                          self.robot_id, robot, self.team, self.robot_ids)
             return
+        sessions = self._sessions.setdefault(robot, set())
         if up:
+            if zid in sessions:
+                return
+            again = robot in self._gone or bool(sessions)  # back after leaving, or beside its old session
+            sessions.add(zid)
             if robot in self._leaving:  # back before its bye could come: the old session ended without one
                 self._peer_lost(robot)
-            if robot in self._gone:  # back after leaving: a new run of that robot
+            if again:  # a new run of that robot
                 self._last.pop(robot, None)
                 self.box.seen.pop(robot, None)
+                if self.wire.mode == "stamps":
+                    self._restart_stream(robot)
+            self._events.append((robot, "restarted" if again else "up"))
             self._present.add(robot)
             self._gone.discard(robot)
             self._said_bye.discard(robot)
-            log.info("robot %s: robot %s is up", self.robot_id, robot)
-        elif robot in self._present:
+            log.info("robot %s: robot %s is up%s", self.robot_id, robot, " again (a new session)" if again else "")
+        else:
+            sessions.discard(zid)
+            if sessions or robot not in self._present:
+                return  # a newer session of it is up: only its old one ended
+            if robot not in self._gone:  # (a bye came first: said already)
+                self._events.append((robot, "gone"))
             self._present.discard(robot)
             self._gone.add(robot)
             if robot not in self._said_bye and not self._closed:

@@ -37,6 +37,11 @@ class ReceiveSide:
         _said_bye: set[str]
         _leaving: dict[str, float]
         _reported: set[tuple]
+        _events: list[tuple[str, str]]
+        wire: w.Wire
+
+        def _stream_file(self, robot: str, kind: str, msg: Message, nbytes: int, stamp_s: float,
+                         clock_s: float) -> None: ...
 
     # ------------------------------------------------------------------ counting
     def _degrade(self, what: str) -> None:
@@ -68,12 +73,13 @@ class ReceiveSide:
     def _protocol_mismatch(self, robot: str, tag: str) -> None:
         """Count and name a robot of another link protocol version, once (lock held)."""
         self._once("link:protocol-mismatch", robot, tag,
-                   f"robot {robot} speaks cerpe link protocol {tag}, this robot {w.PROTOCOL_TAG}: its frames "
-                   f"and requests are ignored (run the same cerpe version on every robot)")
+                   f"robot {robot} speaks cerpe link protocol {w.describe_tag(tag)}, this robot "
+                   f"{w.describe_tag(self.wire.tag)}: its frames and requests are ignored (run the same cerpe "
+                   f"version, and --lockstep on all robots or on none)")
 
     def _decode(self, robot: str, payload: bytes, attachment: bytes | None) -> Message | None:
         """The message of a payload that carries our header; None, counted, for anything else (lock held)."""
-        status = w.header_status(attachment)
+        status = self.wire.parse(attachment)[0]
         if status == "protocol":
             self._protocol_mismatch(robot, w.header_tag(attachment))
             self.stats["frames_foreign_protocol"] += 1
@@ -100,7 +106,9 @@ class ReceiveSide:
             log.debug("robot %s: frame from robot %r, not in the roster %s", self.robot_id, robot, self.robot_ids)
             return
         if kind == w.BYE:
-            if w.header_status(attachment) == "ok":
+            if self.wire.parse(attachment)[0] == "ok":
+                if robot not in self._gone:
+                    self._events.append((robot, "gone"))
                 self._said_bye.add(robot)
                 self._gone.add(robot)
                 self._leaving.pop(robot, None)  # its token went first: not lost after all
@@ -115,6 +123,10 @@ class ReceiveSide:
         if msg.sender != self.index_of[robot]:
             self._degrade("msg:unknown-sender")
             log.debug("robot %s: frame on %s's key says sender index %d", self.robot_id, robot, msg.sender)
+            return
+        if self.wire.mode == "stamps":
+            _, stamp, clock = self.wire.parse(attachment)
+            self._stream_file(robot, kind, msg, len(payload), stamp, clock)
             return
         last = self._last[robot]
         last[kind] = max(last.get(kind, -1), int(msg.step))

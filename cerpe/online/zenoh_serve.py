@@ -1,7 +1,8 @@
 """Answering the peers' image requests: queries checked on Zenoh's threads, answered on the robot's.
 
-A bad query is refused at once and a good one queued. The robot's handler answers it on the thread
-that calls the link, inside its waits, once the robot has begun the query's step.
+A bad query is refused at once and a good one queued. In lock-step, the robot's handler answers it
+on the thread that calls the link, inside its waits, once the robot has begun the query's step; by
+stamps, a serving thread of the link's answers it at once (:mod:`cerpe.online.zenoh_stream`).
 
 A mixin of :class:`~cerpe.online.zenoh_link.ZenohLink` (it reads the link's roster, mailbox step and
 counters, under the link's lock); apart so that the link module stays the engine's link protocol.
@@ -36,11 +37,13 @@ class ServeSide:
         team: str
         box: Mailbox
         stats: Counter[str]
+        wire: w.Wire
         _cond: threading.Condition
-        _queries: list[tuple[Any, str, ImageRequest]]
+        _queries: list[tuple[Any, str, ImageRequest, float]]
         _handler: RequestHandler | None
 
         def _degrade(self, what: str) -> None: ...
+        def clock_now(self) -> float | None: ...
         def _protocol_mismatch(self, robot: str, tag: str) -> None: ...
         def _decode(self, robot: str, payload: bytes, attachment: bytes | None) -> Message | None: ...
 
@@ -53,16 +56,16 @@ class ServeSide:
             if reason is None and len(self._queries) >= int(self.conf["max_queued_queries"]):
                 reason = "busy"
             if reason is None:
-                self._queries.append((query, peer, req))
+                self._queries.append((query, peer, req, self.wire.parse(attachment)[1]))
                 self._cond.notify_all()
                 return
             self.stats[f"queries_refused_{reason}"] += 1
         with query:
-            query.reply_err(w.error_payload(reason))
+            query.reply_err(self.wire.error_payload(reason))
 
     def _check_query(self, payload: bytes, attachment: bytes | None) -> tuple[str | None, str, Any]:
         """``(refusal reason or None, peer, request)`` (lock held)."""
-        if w.header_status(attachment) == "protocol":
+        if self.wire.parse(attachment)[0] == "protocol":
             self._protocol_mismatch("?", w.header_tag(attachment))
             return "protocol", "", None
         req = self._decode("?", payload, attachment)
@@ -93,16 +96,16 @@ class ServeSide:
         self._wait(lambda: False, time.monotonic() + max(0.0, float(timeout_s)))
 
     def _serve_queries(self) -> None:
-        if self._handler is None:
+        if self._handler is None or self.wire.mode != "lockstep":  # by stamps: a thread of its own serves
             return
         with self._cond:
             ready = [q for q in self._queries if q[2].step <= self.box.step]
             self._queries = [q for q in self._queries if q[2].step > self.box.step]
-        for query, peer, req in ready:
+        for query, peer, req, stamp in ready:
             with query:
-                self._answer(query, peer, req)
+                self._answer(query, peer, req, stamp)
 
-    def _answer(self, query: Any, peer: str, req: ImageRequest) -> None:
+    def _answer(self, query: Any, peer: str, req: ImageRequest, stamp_s: float) -> None:
         try:
             reply = self._handler(peer, req)
         except CerpeError as exc:
@@ -110,16 +113,21 @@ class ServeSide:
             reply, reason = None, "error"
         else:
             reason = w.NOT_HELD
+        self._send_reply(query, reply, reason, stamp_s)
+
+    def _send_reply(self, query: Any, reply: bytes | None, reason: str, stamp_s: float) -> None:
+        """Reply ``reply`` (None: refuse with ``reason``), counted."""
         with self._cond:
             if reply is None:
                 self.stats[f"queries_refused_{reason}"] += 1
             else:
                 self.stats["replies_sent"] += 1
-                self.stats["wire_bytes_reply"] += len(reply) + len(w.HEADER)
+                self.stats["wire_bytes_reply"] += len(reply) + self.wire.size
         if reply is None:
-            query.reply_err(w.error_payload(reason))
+            query.reply_err(self.wire.error_payload(reason))
         else:
-            query.reply(w.image_key(self.team, self.robot_id), bytes(reply), attachment=w.HEADER)
+            query.reply(w.image_key(self.team, self.robot_id), bytes(reply),
+                        attachment=self.wire.attachment(stamp_s, self.clock_now()))
 
     # ------------------------------------------------------------------ waiting
     def _wait(self, done: Callable[[], bool], deadline: float) -> None:
@@ -132,5 +140,6 @@ class ServeSide:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return
-                if not any(q[2].step <= self.box.step for q in self._queries) or self._handler is None:
+                if (self.wire.mode != "lockstep" or self._handler is None
+                        or not any(q[2].step <= self.box.step for q in self._queries)):
                     self._cond.wait(min(left, 0.5))

@@ -1,25 +1,35 @@
-"""Where cerpe frames travel on Zenoh: key names, the 4-byte link header, error replies.
+"""Where cerpe frames travel on Zenoh: key names, the link header, error replies.
 
-The format itself is described once, in ``docs/ARCHITECTURE.md``, "Online transport",
-"Wire format": keys ``cerpe/<team>/<robot>/{descriptor,pose,bye,image}``, liveliness
-tokens ``cerpe/<team>/<robot>/alive/v<L>.<M>/<zid>``, :data:`HEADER` as every put's,
-query's and reply's attachment, error replies ``HEADER + reason``. This module builds
-and parses them.
+The format itself is described once, in ``docs/online.md``, "Wire format": keys
+``cerpe/<team>/<robot>/{descriptor,pose,estimate,bye,image}``, liveliness tokens
+``cerpe/<team>/<robot>/alive/v<L>.<M>/<zid>``, a link header as every put's, query's and reply's
+attachment, error replies ``header + reason``. Two link protocols: lock-step (``L`` 1, the
+4-byte :data:`HEADER`: every robot at the team's step) and by stamps (``L`` 2: the header, then
+the frame's capture stamp and the sender's stamp clock, ns, 20 bytes). :class:`Wire` builds and
+parses one protocol's; this module also builds and parses the keys.
 """
 from __future__ import annotations
 
 import re
+import struct
+from dataclasses import dataclass
 from typing import Any
 
 from ..errors import CerpeError
 from ..messages import VERSION as MESSAGES_VERSION
 from ..messages import DescriptorMessage, EstimateMessage, ImageReply, ImageRequest, PoseMessage
 
-LINK_PROTOCOL = 1
+LINK_PROTOCOL = 1  # lock-step
+LINK_STAMPS = 2    # by capture stamps
 MAGIC = b"CZ"
 HEADER = MAGIC + bytes([LINK_PROTOCOL, MESSAGES_VERSION])
 PROTOCOL_TAG = f"v{LINK_PROTOCOL}.{MESSAGES_VERSION}"
 ROOT = "cerpe"
+SYNC_MODES = ("stamps", "lockstep")
+PROTOCOL_OF_MODE = {"lockstep": LINK_PROTOCOL, "stamps": LINK_STAMPS}
+_STAMPS = struct.Struct("<qq")  # capture stamp, sender's stamp clock (ns; the clock INT64_MIN: none yet)
+_NONE_NS = -(2**63)
+LATEST = "latest"  # cerpe/<team>/<robot>/latest/<peer>: the newest estimate, a queryable
 
 # message type byte -> the kind name cerpe.transport uses; "image" is the queryable's key
 KIND_OF_TYPE: dict[int, str] = {DescriptorMessage.TYPE: "descriptor", PoseMessage.TYPE: "pose",
@@ -63,8 +73,8 @@ def image_key(team: str, robot: str) -> str:
     return data_key(team, robot, IMAGE)
 
 
-def alive_key(team: str, robot: str, zid: str) -> str:
-    return f"{ROOT}/{team}/{robot}/{ALIVE}/{PROTOCOL_TAG}/{zid}"
+def alive_key(team: str, robot: str, zid: str, tag: str = PROTOCOL_TAG) -> str:
+    return f"{ROOT}/{team}/{robot}/{ALIVE}/{tag}/{zid}"
 
 
 ALIVE_ALL = f"{ROOT}/*/*/{ALIVE}/**"
@@ -86,11 +96,13 @@ def parse_alive_key(key: str) -> tuple[str, str, str, str] | None:
     return parts[1], parts[2], parts[4], parts[5]
 
 
-def header_status(attachment: bytes | None) -> str:
-    """``"ok"``, ``"protocol"`` (our magic, another version) or ``"garbled"`` (absent or not ours)."""
-    if attachment is None or len(attachment) != len(HEADER) or attachment[:2] != MAGIC:
+def header_status(attachment: bytes | None, header: bytes = HEADER) -> str:
+    """``"ok"``, ``"protocol"`` (our magic, another protocol or version) or ``"garbled"`` (absent or not ours)."""
+    if attachment is None or len(attachment) < len(header) or attachment[:2] != MAGIC:
         return "garbled"
-    return "ok" if attachment == HEADER else "protocol"
+    if attachment[:len(header)] != header:
+        return "protocol"
+    return "ok" if len(attachment) == len(header) else "garbled"
 
 
 def header_tag(attachment: bytes) -> str:
@@ -98,19 +110,85 @@ def header_tag(attachment: bytes) -> str:
     return f"v{attachment[2]}.{attachment[3]}" if len(attachment) >= 4 else "v?"
 
 
-def error_payload(reason: str) -> bytes:
+def describe_tag(tag: str) -> str:
+    """``v1.2 (lock-step)`` / ``v2.2 (by stamps)``: a protocol tag as a log line names it."""
+    proto = tag[1:].split(".")[0]
+    mode = {str(LINK_PROTOCOL): "lock-step", str(LINK_STAMPS): "by stamps"}.get(proto)
+    return f"{tag} ({mode})" if mode else tag
+
+
+def error_payload(reason: str, header: bytes = HEADER) -> bytes:
     if reason not in REPLY_ERRORS:
         raise ZenohWireError(f"unknown reply error {reason!r}; known: {REPLY_ERRORS}")
-    return HEADER + reason.encode("ascii")
+    return header + reason.encode("ascii")
 
 
-def parse_error_payload(payload: bytes) -> str:
+def parse_error_payload(payload: bytes, header: bytes = HEADER) -> str:
     """The reason of an error reply; ``"protocol"`` for another header, ``"garbled"`` for none."""
-    status = header_status(payload[: len(HEADER)] if len(payload) >= len(HEADER) else None)
+    status = header_status(payload[: len(header)] if len(payload) >= len(header) else None, header)
     if status != "ok":
         return status
-    reason = payload[len(HEADER):].decode("ascii", "replace")
+    reason = payload[len(header):].decode("ascii", "replace")
     return reason if reason in REPLY_ERRORS else "garbled"
+
+
+def _ns(s: float | None) -> int:
+    return _NONE_NS if s is None or not s == s else int(round(float(s) * 1e9))
+
+
+@dataclass(frozen=True)
+class Wire:
+    """One link protocol's attachments: ``lockstep`` (:data:`HEADER`) or ``stamps`` (header, capture stamp,
+    the sender's stamp clock)."""
+
+    mode: str = "lockstep"
+
+    def __post_init__(self) -> None:
+        if self.mode not in SYNC_MODES:
+            raise ZenohWireError(f"link sync mode {self.mode!r}: expected one of {SYNC_MODES}")
+
+    @property
+    def header(self) -> bytes:
+        return MAGIC + bytes([PROTOCOL_OF_MODE[self.mode], MESSAGES_VERSION])
+
+    @property
+    def tag(self) -> str:
+        return f"v{PROTOCOL_OF_MODE[self.mode]}.{MESSAGES_VERSION}"
+
+    @property
+    def size(self) -> int:
+        return len(self.header) + (_STAMPS.size if self.mode == "stamps" else 0)
+
+    def attachment(self, stamp_s: float | None = None, clock_s: float | None = None) -> bytes:
+        """What goes with a put, query or reply: the header (and, by stamps, the stamp and the clock)."""
+        if self.mode == "lockstep":
+            return self.header
+        return self.header + _STAMPS.pack(_ns(0.0 if stamp_s is None else stamp_s), _ns(clock_s))
+
+    def parse(self, attachment: bytes | None) -> tuple[str, float, float]:
+        """``(status, capture stamp s, sender's clock s)`` of an attachment; status as :func:`header_status`
+        (NaN stamps for lock-step, and for a clock the sender did not have yet)."""
+        if attachment is None or len(attachment) < 4 or attachment[:2] != MAGIC:
+            return "garbled", float("nan"), float("nan")
+        if attachment[:4] != self.header:
+            return "protocol", float("nan"), float("nan")
+        if len(attachment) != self.size:
+            return "garbled", float("nan"), float("nan")
+        if self.mode == "lockstep":
+            return "ok", float("nan"), float("nan")
+        stamp, clock = _STAMPS.unpack(attachment[4:])
+        return "ok", stamp * 1e-9, float("nan") if clock == _NONE_NS else clock * 1e-9
+
+    def error_payload(self, reason: str) -> bytes:
+        return error_payload(reason, self.header)
+
+    def parse_error_payload(self, payload: bytes) -> str:
+        return parse_error_payload(payload, self.header)
+
+
+def latest_key(team: str, robot: str, peer: str = "*") -> str:
+    """``cerpe/<team>/<robot>/latest/<peer>``: the queryable of ``robot``'s newest estimate of ``peer``."""
+    return f"{ROOT}/{team}/{robot}/{LATEST}/{peer}"
 
 
 def as_bytes(z: Any) -> bytes | None:

@@ -161,7 +161,10 @@ def csv_text(rows: list[dict]) -> str:
 
 def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp: str,
                             progress: bool = True) -> dict:
-    """Run one encounter and write its files; DONE.json last. Returns DONE's content."""
+    """Run one encounter and write its files; DONE.json last. Returns DONE's content.
+
+    An encounter whose ``n_steps`` is None is open-ended (a robot online by stamps: its frames are
+    those it took, until its input ended); otherwise ``steps`` must give every step."""
     from tqdm import tqdm
 
     idx = {r.robot_id: k for k, r in enumerate(encounter.robots)}
@@ -171,7 +174,7 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
     odo: dict[str, list[tuple[float, np.ndarray]]] = {r.robot_id: [] for r in encounter.robots}
     t0 = time.perf_counter()
     n_steps = 0
-    bar = tqdm(total=encounter.n_steps, desc=f"{encounter.name}", unit="step", disable=not progress,
+    bar = tqdm(total=getattr(encounter, "n_steps", None), desc=f"{encounter.name}", unit="step", disable=not progress,
                leave=False, dynamic_ncols=True)
     try:
         for res in steps(encounter):
@@ -199,7 +202,7 @@ def run_encounter_to_folder(encounter: Any, steps: StepSource, enc_dir: Path, fp
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    if n_steps != encounter.n_steps:
+    if encounter.n_steps is not None and n_steps != encounter.n_steps:
         raise RunError(f"encounter {encounter.name}: method produced {n_steps} steps for {encounter.n_steps}")
     enc_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(enc_dir / STEPS_CSV, csv_text(step_rows))
