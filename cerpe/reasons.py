@@ -49,6 +49,8 @@ REASONS: dict[str, str] = {
     "registrations-not-usable": "the peer's view was registered only against views this robot no longer has a pose of",
     "shared-estimate": "the estimate is the peer's own, shared and inverted (messages.share_estimates)",
     "anchor-not-stored": "a direct estimate while no pose message of the peer was ever seen: reported, not an anchor",
+    "peer-motion-unknown": "online by stamps: the peer's received view is of another instant and how far the peer "
+                           "moved since is unknown (no pose of it near this frame's stamp): no direct estimate",
     # anchors and propagation (phase 8)
     "unverified": "nothing has verified the estimate (or the anchor it propagates) yet",
     "unverified-held": "an unverified estimate held back (anchors.report_unverified, or a peer's shared estimate)",
@@ -161,7 +163,7 @@ DEGRADATIONS: dict[str, str] = {
                     "stamps.max_extrapolation_s away, or the two around it more than stamps.max_pose_gap_s apart): "
                     "nothing is propagated for the pair at this frame",
     "pose:peer-motion-unknown": "online by stamps: the peer's poses at its received view's stamp and at this frame's are "
-                                "not both known: its direct estimate is taken as if both views were of one instant",
+                                "not both known: its view gives no direct estimate (reason peer-motion-unknown)",
     "input:frame-dropped": "online: a camera frame that came while the robot was busy and was replaced by a newer one "
                            "before it was taken (a robot processes its newest frame)",
     "input:stall": "online: no camera frame for longer than the stall time (cerpe online --stall); counted on the "

@@ -149,9 +149,11 @@ class RobotAgent:
         """No pose of ``other`` at this frame (none near its stamp): nothing is propagated with an old one."""
         self.s.poses.pop(other, None)
 
-    def set_collab_motion(self, other: str, T_cj_now_cj_view: np.ndarray) -> None:
-        """The motion of ``other``'s camera from the capture of its received view to this frame's."""
-        self.s.step_state().collab_motion[other] = check_pose(T_cj_now_cj_view, f"{self.s.where()}: motion of {other}")
+    def set_collab_motion(self, other: str, T_cj_now_cj_view: np.ndarray | None) -> None:
+        """The motion of ``other``'s camera from the capture of its received view to this frame's (None:
+        unknown; the view then gives no direct estimate)."""
+        self.s.step_state().collab_motion[other] = (None if T_cj_now_cj_view is None else
+                                                    check_pose(T_cj_now_cj_view, f"{self.s.where()}: motion of {other}"))
 
     # ---------------------------------------------------------------- 1. describe
     def begin_step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> np.ndarray:

@@ -109,7 +109,7 @@ class StampsConfig(Group):
                                        "most this far from the frame's (s)", low=0.0)
     max_pose_gap_s: float = knob(1.0, "a peer's pose at this frame's stamp is interpolated between two of its poses at "
                                  "most this far apart (s)", low=0.0, low_open=True)
-    max_extrapolation_s: float = knob(0.5, "or extrapolated at its last velocity at most this far past its newest "
+    max_extrapolation_s: float = knob(1.0, "or extrapolated at its last velocity at most this far past its newest "
                                       "pose (s); further: unknown, nothing propagated", low=0.0)
 
 

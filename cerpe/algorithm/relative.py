@@ -102,8 +102,10 @@ class Relative:
         """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
         if other not in st.directs:
             ests, why = direct_estimates(st, other, self.s.X, self.s.degrade)
-            M = st.collab_motion.get(other)  # online by stamps: the peer's view was captured at another time
-            st.directs[other] = (ests if M is None else [(k, v, M @ T, n) for k, v, T, n in ests], why)
+            if other in st.collab_motion:  # online by stamps: the peer's view was captured at another time
+                M = st.collab_motion[other]  # None: how far the peer moved since is unknown
+                ests, why = ([], "peer-motion-unknown") if M is None else ([(k, v, M @ T, n) for k, v, T, n in ests], why)
+            st.directs[other] = (ests, why)
         return st.directs[other]
 
     def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:

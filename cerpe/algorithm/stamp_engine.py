@@ -15,7 +15,8 @@ frame of stamp ``s``:
   another instant is moved by the peer's motion between the two (:meth:`RobotAgent.set_collab_motion`);
 * a peer that comes back in a new session (its odometry restarted) is forgotten (``net:peer-restarted``).
 
-Nothing waits for a full team, for a slower robot beyond ``wait_s`` per wait, or for a peer that left.
+Nothing waits for a full team or for a peer that left; a wait for a slower peer lasts at most ``wait_s``
+and at most :data:`WAIT_FRACTION` of the robot's own pace.
 """
 from __future__ import annotations
 
@@ -37,6 +38,9 @@ from .link import Stamped, StreamLink
 
 #: a peer's poses kept (its stream at this robot)
 POSES_KEPT = 256
+#: a wait for peers lasts at most this fraction of the robot's own pace (the median time between the stamps of
+#: the frames it processed), so a slower peer never slows it by more than that
+WAIT_FRACTION = 0.25
 
 
 class StampEngine:
@@ -63,8 +67,15 @@ class StampEngine:
         self.poses = {p: StampedPoses(POSES_KEPT) for p in self.peers}
         self._replies: dict[str, tuple[int, float, ImageReply]] = {}  # peer -> (its frame, its stamp, reply)
         self.events: list[tuple[float, str, str]] = []  # (this robot's frame stamp, peer, up | restarted | gone)
+        self._stamps: list[float] = []  # stamps of the frames processed, the newest last (the robot's pace)
         self.pose_stats: Counter[str] = Counter()  # how each peer pose at a frame was had (StampedPoses.at's how)
         link.serve_frames(self.ring.reply)
+
+    def _wait_s(self, stamp_s: float) -> float:
+        """This frame's waits: ``wait_s``, at most :data:`WAIT_FRACTION` of the robot's own pace."""
+        self._stamps = (self._stamps + [stamp_s])[-9:]
+        gaps = np.diff(self._stamps)
+        return self.wait_s if len(gaps) < 2 else min(self.wait_s, WAIT_FRACTION * float(np.median(gaps)))
 
     def _book(self, degradations: Iterable[str]) -> None:
         for what in degradations:
@@ -92,13 +103,14 @@ class StampEngine:
         ``degradations``: what the frame's input counted (dropped frames, a stall...), booked on its record.
         """
         a, link, t, stamp_s = self.agent, self.link, int(context.step), float(stamp_s)
+        wait_s = self._wait_s(stamp_s)
         a.begin_step(image, context, stamp_s)
         self._book(degradations)
         self._events(stamp_s)
         a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.messages.descriptor_dtype),
                                                   stamp_s))
         self.ring.hold(t, stamp_s, a.cur.image, context.intrinsics)
-        got = link.descriptors_near(self.peers, stamp_s, self.wait_s, float(self.stamps.max_descriptor_age_s))
+        got = link.descriptors_near(self.peers, stamp_s, wait_s, float(self.stamps.max_descriptor_age_s))
         self._book(got.degradations)
         chosen: dict[str, Stamped] = {}
         for p in self.peers:
@@ -122,7 +134,7 @@ class StampEngine:
         a.count_sent("pose", link.broadcast("pose", a.pose_frame(), stamp_s))
         self.ring.set_pose(t, a.X)
         a.note_pose(a.robot_id, t, a.X)
-        link.wait_poses([p for p in self.peers if p in got.present], stamp_s, self.wait_s)
+        link.wait_poses([p for p in self.peers if p in got.present], stamp_s, wait_s)
         for p in self.peers:
             self._peer_pose(p, t, stamp_s, chosen[p].stamp_s if p in replies else None, p in got.present)
         pairs = [a.pair_record(p, sent.get(p, 0)) for p in self.peers]
@@ -180,5 +192,6 @@ class StampEngine:
         X_view, _ = self.poses[p].at(self.link.to_peer(p, view_stamp_s), gap, ext)
         if X_now is None or X_view is None:
             a.degrade("pose:peer-motion-unknown")
+            a.set_collab_motion(p, None)
         else:
             a.set_collab_motion(p, se3_inverse(X_now) @ X_view)

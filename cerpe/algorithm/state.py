@@ -44,8 +44,9 @@ class StepState:
     directs: dict[str, tuple[list, str]] = field(default_factory=dict)  # peer -> own direct estimates, reason
     shared: dict[str, tuple] = field(default_factory=dict)  # peer -> its estimate of this robot, as this robot's
     # online by stamps: peer -> T_cj(now)_cj(view), the peer camera's motion from its received view's capture
-    # to this frame's (a direct estimate through that view is moved by it); absent: the same instant
-    collab_motion: dict[str, np.ndarray] = field(default_factory=dict)
+    # to this frame's (a direct estimate through that view is moved by it; None: unknown, none made);
+    # absent: the same instant
+    collab_motion: dict[str, np.ndarray | None] = field(default_factory=dict)
     scale: float = float("nan")
     metric_scale: bool = True  # False: s = 1 for want of metric depth (unit_scale_without_depth)
     ego_status: str = ""

@@ -154,7 +154,8 @@ class RobotNode:
                                               else dataclasses.replace(p, cov=covs[p.other]) for p in res.pairs])
         self.step_s.append(time.perf_counter() - t0)
         self.met |= self.link.present & set(self.peers)
-        if self._publish(res, covs):
+        self._publish(res, covs)
+        if any(p.T_cj_ci is not None for p in res.pairs):  # published now (or would be, with --ros-keys off)
             self.latency_s.append(time.time() - frame.arrival_s)
         return res
 
