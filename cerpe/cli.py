@@ -46,6 +46,8 @@ _register("dev", "cerpe.pipeline.dev", "development report: the five methods on 
 _register("fit", "cerpe.fit.cli", "fit the files shipped in cerpe/data/ on development data: descriptor centres "
           "and mean, the codecs' projection, the gate's thresholds")
 _register("online", "cerpe.online.cli", "run ONE robot of a team online, talking to its peers over Zenoh")
+_register("bag", "cerpe.online.bag_cli", "ROS bags: play one on Zenoh as a robot's topics, write a dataset as bags, "
+          "list a bag")
 _register("data", "cerpe.datasets.data_cli", "list public datasets, download one (resumable, checked) and print its manifest")
 
 

@@ -16,12 +16,13 @@ frame of stamp ``s``:
 * a peer that comes back in a new session (its odometry restarted) is forgotten (``net:peer-restarted``).
 
 Nothing waits for a full team or for a peer that left; a wait for a slower peer lasts at most ``wait_s``
-and at most :data:`WAIT_FRACTION` of the robot's own pace.
+and at most :data:`WAIT_FRACTION` of the robot's compute time per frame.
 """
 from __future__ import annotations
 
+import time
 from collections import Counter
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -38,9 +39,9 @@ from .link import Stamped, StreamLink
 
 #: a peer's poses kept (its stream at this robot)
 POSES_KEPT = 256
-#: a wait for peers lasts at most this fraction of the robot's own pace (the median time between the stamps of
-#: the frames it processed), so a slower peer never slows it by more than that
-WAIT_FRACTION = 0.25
+#: a wait for a peer's descriptor or pose lasts at most this fraction of the robot's own compute time per frame
+#: (the median of its recent frames, waits left out), so a slower peer never slows it by more than that
+WAIT_FRACTION = 0.5
 
 
 class StampEngine:
@@ -51,31 +52,42 @@ class StampEngine:
         link: its end of the team; the engine's :class:`FrameRing` answers image requests through it.
         robot_ids: every robot of the team in wire-index order.
         peers: the robots it exchanges with and makes pair records for (default: all others).
-        wait_s: the longest wait for a peer's descriptor, reply or pose near this frame's stamp.
+        wait_s: the longest wait for a peer's descriptor or pose near this frame's stamp (and at most
+            :data:`WAIT_FRACTION` of the robot's compute time per frame).
+        reply_wait_s: the longest wait for the replies to this frame's image requests.
         keep_frames: own frames held for image requests.
     """
 
     def __init__(self, agent: RobotAgent, link: StreamLink, robot_ids: Sequence[str],
-                 peers: Iterable[str] | None = None, wait_s: float = 0.2, keep_frames: int = 8) -> None:
+                 peers: Iterable[str] | None = None, wait_s: float = 0.5, reply_wait_s: float = 2.0,
+                 keep_frames: int = 8) -> None:
         if agent.config.messages.share_estimates:
             raise AlgorithmError(f"robot {agent.robot_id}: messages.share_estimates needs the robots in lock-step "
                                  f"(cerpe online --lockstep)")
-        self.agent, self.link, self.wait_s = agent, link, float(wait_s)
+        self.agent, self.link, self.wait_s, self.reply_wait_s = agent, link, float(wait_s), float(reply_wait_s)
         self.robot_ids, self.peers, self.index_of = team_roster(agent, robot_ids, peers)
         self.stamps = agent.config.stamps
         self.ring = FrameRing(agent.index, agent.config.messages, keep_frames)
         self.poses = {p: StampedPoses(POSES_KEPT) for p in self.peers}
         self._replies: dict[str, tuple[int, float, ImageReply]] = {}  # peer -> (its frame, its stamp, reply)
         self.events: list[tuple[float, str, str]] = []  # (this robot's frame stamp, peer, up | restarted | gone)
-        self._stamps: list[float] = []  # stamps of the frames processed, the newest last (the robot's pace)
+        self._compute: list[float] = []  # the recent frames' step times without the waits (s), the newest last
+        self._waited = 0.0  # this frame's waits so far (s)
         self.pose_stats: Counter[str] = Counter()  # how each peer pose at a frame was had (StampedPoses.at's how)
         link.serve_frames(self.ring.reply)
 
-    def _wait_s(self, stamp_s: float) -> float:
-        """This frame's waits: ``wait_s``, at most :data:`WAIT_FRACTION` of the robot's own pace."""
-        self._stamps = (self._stamps + [stamp_s])[-9:]
-        gaps = np.diff(self._stamps)
-        return self.wait_s if len(gaps) < 2 else min(self.wait_s, WAIT_FRACTION * float(np.median(gaps)))
+    def _wait_s(self) -> float:
+        """This frame's waits: ``wait_s``, at most :data:`WAIT_FRACTION` of the robot's compute time per frame."""
+        c = self._compute[-9:]
+        return self.wait_s if len(c) < 2 else min(self.wait_s, WAIT_FRACTION * float(np.median(c)))
+
+    def _timed(self, call: Any, *args: Any) -> Any:
+        """``call(*args)``, a wait of the link's: its time is left out of the robot's compute time."""
+        t0 = time.perf_counter()
+        try:
+            return call(*args)
+        finally:
+            self._waited += time.perf_counter() - t0
 
     def _book(self, degradations: Iterable[str]) -> None:
         for what in degradations:
@@ -103,14 +115,14 @@ class StampEngine:
         ``degradations``: what the frame's input counted (dropped frames, a stall...), booked on its record.
         """
         a, link, t, stamp_s = self.agent, self.link, int(context.step), float(stamp_s)
-        wait_s = self._wait_s(stamp_s)
+        t0, self._waited, wait_s = time.perf_counter(), 0.0, self._wait_s()
         a.begin_step(image, context, stamp_s)
         self._book(degradations)
         self._events(stamp_s)
         a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.messages.descriptor_dtype),
                                                   stamp_s))
         self.ring.hold(t, stamp_s, a.cur.image, context.intrinsics)
-        got = link.descriptors_near(self.peers, stamp_s, wait_s, float(self.stamps.max_descriptor_age_s))
+        got = self._timed(link.descriptors_near, self.peers, stamp_s, wait_s, float(self.stamps.max_descriptor_age_s))
         self._book(got.degradations)
         chosen: dict[str, Stamped] = {}
         for p in self.peers:
@@ -134,13 +146,14 @@ class StampEngine:
         a.count_sent("pose", link.broadcast("pose", a.pose_frame(), stamp_s))
         self.ring.set_pose(t, a.X)
         a.note_pose(a.robot_id, t, a.X)
-        link.wait_poses([p for p in self.peers if p in got.present], stamp_s, wait_s)
+        self._timed(link.wait_poses, [p for p in self.peers if p in got.present], stamp_s, wait_s)
         for p in self.peers:
             self._peer_pose(p, t, stamp_s, chosen[p].stamp_s if p in replies else None, p in got.present)
         pairs = [a.pair_record(p, sent.get(p, 0)) for p in self.peers]
         a.manage_memory()
         a.count_sent("reply", self.ring.take_bytes())
         self._book(link.take_degradations())
+        self._compute = (self._compute + [time.perf_counter() - t0 - self._waited])[-9:]
         return StepResult(step=t, pairs=pairs, robots=[a.record()])
 
     def _images(self, asked: Sequence[str], chosen: dict[str, Stamped]) -> tuple[dict[str, ImageReply], dict[str, int]]:
@@ -157,7 +170,7 @@ class StampEngine:
             todo = {p: f for p, f in frames.items() if p not in got}
             if not todo:
                 break
-            inbox = self.link.request_frames(todo, self.wait_s)
+            inbox = self._timed(self.link.request_frames, todo, self.reply_wait_s)
             self._book(inbox.degradations)
             for p in todo if attempt else ():
                 a.degrade("msg:request-retried")

@@ -152,6 +152,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="longest wait for a peer's frame: by stamps a descriptor, reply or pose near this frame's "
                         f"stamp (default {node_defaults['wait_s']} s); --lockstep the peers' frames of the same step "
                         f"(default {node_defaults['step_timeout_s']} s)")
+    z.add_argument("--reply-timeout", type=float, default=node_defaults["reply_timeout_s"], metavar="S",
+                   help="by stamps: longest wait for a peer's reply to an image request (default %(default)s)")
     z.add_argument("--connect-timeout", type=float, default=node_defaults["connect_timeout_s"],
                    help="replays: seconds to wait for all peers before the first frame (default %(default)s)")
     z.add_argument("--linger", type=float, default=node_defaults["linger_s"],
@@ -178,6 +180,7 @@ def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict, dict]:
     """``(link_conf, node_conf, ros_input_conf)`` of the command-line options."""
     for name, v in (("--rate", args.rate), ("--timeout", 0.0 if args.timeout is None else args.timeout),
                     ("--connect-timeout", args.connect_timeout), ("--linger", args.linger),
+                    ("--reply-timeout", args.reply_timeout),
                     ("--clock-tolerance", args.clock_tolerance), ("--stall", args.stall),
                     ("--depth-tolerance", args.depth_tolerance), ("--idle-exit", args.idle_exit)):
         if not v >= 0:
@@ -195,6 +198,7 @@ def confs_from_args(args: argparse.Namespace) -> tuple[dict, dict, dict]:
             "multicast_scouting": not args.no_multicast, "zenoh": extra or None,
             "sync": "lockstep" if args.lockstep else "stamps", "clock_tolerance_s": args.clock_tolerance}
     node = {"connect_timeout_s": args.connect_timeout, "rate_hz": args.rate, "linger_s": args.linger, "tf": args.tf,
+            "reply_timeout_s": args.reply_timeout,
             "ros": {"key_format": args.ros_keys, "domain_id": args.ros_domain, "distro": args.ros_distro}}
     if args.timeout is not None:
         node["step_timeout_s" if args.lockstep else "wait_s"] = args.timeout

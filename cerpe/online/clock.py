@@ -1,9 +1,10 @@
 """Clocks of robots at their own pace: this robot's capture-stamp clock, and its peers' offsets from it.
 
 A capture stamp is a time of the robot's camera clock (a live camera's driver), or of a dataset (a
-replay, a bag). :class:`StampClock` says what that clock reads *now*: the newest frame's stamp moved
+replay, a bag). :class:`StampClock` says what that clock reads *now*: a recent frame's stamp moved
 on by the wall time since it arrived, at the rate stamps advance against wall time (1 for a live
-camera; a bag played at ``--rate`` advances that much slower). Every frame a robot sends carries
+camera; a bag played at ``--rate`` advances that much slower); of the recent frames, the one that
+says latest (an arrival noted late, by a busy process, only makes its reading early). Every frame a robot sends carries
 its clock's reading; a peer takes ``sender's reading - own reading on arrival`` as a sample of the
 offset between the two clocks (less the travel time), and :class:`PeerOffsets` keeps the largest
 of the samples of the last ``OFFSET_MAX_AGE_S`` (the one that travelled fastest). An offset within ``tolerance_s`` is taken
@@ -52,11 +53,11 @@ class StampClock:
     def now(self, wall_s: float | None = None) -> float | None:
         """The stamp clock's reading at wall time ``wall_s`` (now); None before the first frame."""
         rate = self.rate()
+        wall = time.time() if wall_s is None else wall_s
         with self._lock:
             if not self._seen:
                 return None
-            s, w = self._seen[-1]
-        return s + ((time.time() if wall_s is None else wall_s) - w) * rate
+            return max(s + (wall - w) * rate for s, w in self._seen)
 
 
 class PeerOffsets:

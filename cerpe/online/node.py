@@ -42,7 +42,8 @@ ROS_KEYS = (*ros.KEY_FORMATS, "off")
 
 default_conf: dict[str, Any] = {
     "step_timeout_s": 5.0,      # lock-step: longest wait for the peers' frames of the same step
-    "wait_s": 0.5,              # by stamps: longest wait for a peer's descriptor, reply or pose near a frame's stamp
+    "wait_s": 0.5,              # by stamps: longest wait for a peer's descriptor or pose near a frame's stamp
+    "reply_timeout_s": 2.0,     # by stamps: longest wait for the replies to a frame's image requests
     "connect_timeout_s": 30.0,  # before the first frame: wait this long for every peer (lock-step, replays)
     "rate_hz": 0.0,             # lock-step replay rate: step t starts no earlier than t / rate_hz after step 0
     "linger_s": 10.0,           # after the last step: answer requests until every peer said bye, at most this long
@@ -74,7 +75,7 @@ class RobotNode:
     def __init__(self, agent: RobotAgent, link: ZenohLink, robot_ids: Sequence[str],
                  peers: Iterable[str] | None = None, conf: Mapping[str, Any] | None = None) -> None:
         self.conf = merge_conf(default_conf, conf, "online node conf")
-        for key in ("step_timeout_s", "wait_s", "connect_timeout_s", "rate_hz", "linger_s"):
+        for key in ("step_timeout_s", "wait_s", "reply_timeout_s", "connect_timeout_s", "rate_hz", "linger_s"):
             if not float(self.conf[key]) >= 0:
                 raise OnlineError(f"online node conf: {key} must be >= 0, got {self.conf[key]!r}")
         rconf = self.conf["ros"]
@@ -86,7 +87,8 @@ class RobotNode:
         try:
             self.engine: Any = (StepEngine(agent, link, robot_ids, peers, float(self.conf["step_timeout_s"]))
                                 if self.sync == "lockstep" else
-                                StampEngine(agent, link, robot_ids, peers, float(self.conf["wait_s"])))
+                                StampEngine(agent, link, robot_ids, peers, float(self.conf["wait_s"]),
+                                            float(self.conf["reply_timeout_s"])))
         except AlgorithmError as exc:
             raise OnlineError(str(exc)) from None
         self.estimates = (None if rconf["key_format"] == "off" else

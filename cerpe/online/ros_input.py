@@ -42,6 +42,10 @@ from .sources import Frame, StallWatch
 
 log = logging.getLogger(__name__)
 
+#: a sample's rmw_zenoh source time is taken as its arrival when it is at most this old (s): the publisher
+#: runs on this machine (a camera driver, a bag player); older, its clock is another machine's
+SOURCE_TIME_MAX_S = 5.0
+
 default_conf: dict[str, Any] = {
     "namespace": None,                # relative topics resolve here; None: /<robot id>
     "image_topic": "camera/image_raw",
@@ -167,6 +171,7 @@ class RosInput:
                    "odom": (rt.ODOMETRY,), "tf": (rt.TF_MESSAGE,), "tf_static": (rt.TF_MESSAGE,)}[role]
 
         def on_sample(sample: Any) -> None:
+            arrival = self._arrival(sample)
             payload = sample.payload.to_bytes()
             kind = self._type_of(role, str(sample.key_expr), topic)
             with self._cond:
@@ -175,7 +180,7 @@ class RosInput:
                     self._fault("input:wrong-type", topic, f"{topic} carries {kind}; expected {' or '.join(allowed)}")
                     return
                 try:
-                    self._file(role, topic, kind, payload)
+                    self._file(role, topic, kind, payload, arrival)
                 except rt.RosInputError as exc:
                     what = {"camera_info": "input:bad-camera-info", "odom": "input:bad-odometry",
                             "tf": "input:bad-odometry", "tf_static": "input:bad-odometry"}.get(role, "input:wrong-type")
@@ -184,12 +189,26 @@ class RosInput:
 
         return on_sample
 
-    def _file(self, role: str, topic: str, kind: str, payload: bytes) -> None:
+    def _arrival(self, sample: Any) -> float:
+        """When a sample came: rmw_zenoh's source time (the publisher's clock, on the robot: the driver's)
+        when its attachment has one within the last seconds, else now. This process may run the callback
+        late while it computes; the source time does not move with that."""
+        now = time.time()
+        if self.conf["key_format"] == "rmw_zenoh" and sample.attachment is not None:
+            try:
+                _, stamp_ns, _ = ros.parse_rmw_attachment(sample.attachment.to_bytes())
+            except ros.RosError:
+                return now
+            if 0 <= now - stamp_ns * 1e-9 < SOURCE_TIME_MAX_S:
+                return stamp_ns * 1e-9
+        return now
+
+    def _file(self, role: str, topic: str, kind: str, payload: bytes, arrival: float) -> None:
         if role == "image":
             if self._image is not None:
                 self._pending["input:frame-dropped"] += 1
                 self.stats["input:frame-dropped"] += 1
-            self._image = (payload, kind, time.time())
+            self._image = (payload, kind, arrival)
             self._last_image_wall = time.time()
             return
         if role == "depth":

@@ -110,14 +110,19 @@ class BagReader:
         return {c.topic: c.msgtype for c in self._reader.connections}
 
     @property
+    def duration_s(self) -> float:
+        return self._reader.duration * 1e-9
+
+    @property
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for c in self._reader.connections:
             out[c.topic] = out.get(c.topic, 0) + int(getattr(c, "msgcount", 0) or 0)
         return out
 
-    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, Any]]:
-        """``(topic, msgtype, bag time ns, ROS 2 message)`` of ``topics`` in bag-time order.
+    def messages(self, topics: Iterable[str], cdr: bool = False) -> Iterator[tuple[str, str, int, Any]]:
+        """``(topic, msgtype, bag time ns, ROS 2 message)`` of ``topics`` in bag-time order; with ``cdr`` the
+        message as ROS 2 CDR bytes (a ROS 2 bag's as stored, a ROS 1 bag's converted).
 
         Raises :class:`BagTruncated` at the first message that cannot be read or decoded.
         """
@@ -128,14 +133,20 @@ class BagReader:
         while True:
             try:
                 conn, t_ns, raw = next(it)
-                msg = self._reader.deserialize(raw, conn.msgtype)
+                if cdr and not self.ros1:
+                    msg = bytes(raw)
+                else:
+                    msg = self._reader.deserialize(raw, conn.msgtype)
+                    msg = to_ros2(msg) if self.ros1 else msg
+                    if cdr:
+                        msg = bytes(typestore().serialize_cdr(msg, conn.msgtype))
             except StopIteration:
                 return
             except _reader_errors() as exc:
                 raise BagTruncated(f"{self.what}: {self.path}: message {n + 1} of {sorted(wanted)} cannot be read "
                                    f"({type(exc).__name__}: {exc}); the bag may be cut short", n) from None
             n += 1
-            yield conn.topic, conn.msgtype, int(t_ns), (to_ros2(msg) if self.ros1 else msg)
+            yield conn.topic, conn.msgtype, int(t_ns), msg
 
     def close(self) -> None:
         self._reader.close()
