@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 #: a sample's rmw_zenoh source time is taken as its arrival when it is at most this old (s): the publisher
 #: runs on this machine (a camera driver, a bag player); older, its clock is another machine's
 SOURCE_TIME_MAX_S = 5.0
+#: an image taken waits at most this long (s) for its depth message and, the first time, its CameraInfo: a
+#: driver publishes them beside the image, and they may come just after it
+COMPANION_WAIT_S = 0.25
 
 default_conf: dict[str, Any] = {
     "namespace": None,                # relative topics resolve here; None: /<robot id>
@@ -247,6 +250,8 @@ class RosInput:
                             return
                         continue
                 (payload, kind, arrival), self._image = self._image, None
+                if self._camera is None:  # its CameraInfo may come just after the first image
+                    self._cond.wait_for(lambda: self._camera is not None, COMPANION_WAIT_S)
                 camera = self._camera
             frame = self._frame(payload, kind, arrival, camera)
             if frame is not None:
@@ -302,7 +307,8 @@ class RosInput:
 
     def _match_depth(self, stamp: float, K: Any, und: Any, degr: list[str]) -> np.ndarray | None:
         topic, tol = self.topics["depth"], float(self.conf["depth_tolerance_s"])
-        with self._cond:
+        with self._cond:  # its depth may come just after the image: until one at or after its stamp is here
+            self._cond.wait_for(lambda: any(d[0] >= stamp - tol for d in self._depth), COMPANION_WAIT_S)
             near = min(self._depth, key=lambda d: abs(d[0] - stamp), default=None)
         if near is None or abs(near[0] - stamp) > tol:
             degr.append("input:no-depth")
