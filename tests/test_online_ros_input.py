@@ -189,6 +189,8 @@ def test_bad_options_and_bags_are_one_line(tmp_path):
                         (online + ["--input", "ros", "--robots", "r0,r1", "--lockstep"], "--lockstep replays a manifest"),
                         (online + ["--input", "ros", "--robots", "r0,r1", "--image-topic", "a b"], "not a ROS topic name"),
                         (online + ["--input", "ros", "--robots", "r0,r1", "--stall", "-1"], "--stall must be >= 0"),
+                        (online + ["--input", "ros", "--robots", "r0,r1", "--set", "messages.share_estimates=true",
+                                   "--out", str(tmp_path / "o")], "share_estimates needs the robots in lock-step"),
                         (["bag", "play", str(bag), "--robot", "r0", "--no-multicast", "--topics", "/nope"],
                          "--topics /nope: not in the bag; it holds /r0/camera/image_raw"),
                         (["bag", "play", str(cut), "--robot", "r0", "--no-multicast"], "does not open as a ROS bag"),

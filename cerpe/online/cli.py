@@ -160,8 +160,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="after the last frame, answer late image requests until every peer said bye, "
                         "at most this many seconds (default %(default)s)")
     z.add_argument("--clock-tolerance", type=float, default=link_defaults["clock_tolerance_s"], metavar="S",
-                   help="a peer whose clock is off this robot's by more than S seconds has its stamps mapped "
-                        "(default %(default)s)")
+                   help="--input ros: a peer whose clock is off this robot's by more than S seconds has its stamps "
+                        "mapped (default %(default)s; a replay's stamps are the dataset's, never mapped)")
     r = p.add_argument_group("estimates out to ROS 2")
     r.add_argument("--ros-keys", default=node_defaults["ros"]["key_format"], choices=ROS_KEYS,
                    help="rmw_zenoh: rmw_zenoh's key (a ROS 2 graph on rmw_zenoh reads it); ros2dds: the key of "

@@ -159,6 +159,8 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
     if input not in INPUTS:
         raise OnlineError(f"--input {input!r}: expected one of {INPUTS}")
     lconf, nconf = merge_conf(link_defaults, link_conf, "zenoh link conf"), dict(node_conf or {})
+    if input == "manifest":  # a replay's stamps are the dataset's: one clock, nothing to map
+        lconf["clock_tolerance_s"] = float("inf")
     zenoh_wire.check_chunk(lconf["team"], "--team")
     zenoh_wire.Wire(lconf["sync"])
     zenoh_session.zenoh_config({k: lconf[k] for k in zenoh_session.default_conf})  # bad options fail now
