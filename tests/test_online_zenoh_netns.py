@@ -110,7 +110,8 @@ def run_pair(pair: VethPair, manifest: Path, out: Path, tag: str, timeout_s: flo
         cmd = ["ip", "netns", "exec", pair.ns[r], sys.executable, "-m", "cerpe.cli", "online", "--robot", r,
                "--manifest", str(manifest), "--team", f"ns{tag}", "--timeout", str(timeout_s),
                "--connect-timeout", "60", "--linger", "5", "--out", str(out / r), "--no-progress",
-               "--zenoh", "transport/shared_memory/enabled=false"]  # two machines share no memory
+               "--zenoh", "transport/shared_memory/enabled=false",  # two machines share no memory
+               "--lockstep"]  # every frame of every step is expected: each missing one is counted
         if not multicast:
             cmd += ["--no-multicast"]
             cmd += ["--listen", f"tcp/{ADDR['r0']}:{PORT}"] if r == "r0" else ["--connect", f"tcp/{ADDR['r0']}:{PORT}"]

@@ -152,8 +152,8 @@ class RobotAgent:
     def set_collab_motion(self, other: str, T_cj_now_cj_view: np.ndarray | None) -> None:
         """The motion of ``other``'s camera from the capture of its received view to this frame's (None:
         unknown; the view then gives no direct estimate)."""
-        self.s.step_state().collab_motion[other] = (None if T_cj_now_cj_view is None else
-                                                    check_pose(T_cj_now_cj_view, f"{self.s.where()}: motion of {other}"))
+        M = None if T_cj_now_cj_view is None else check_pose(T_cj_now_cj_view, f"{self.s.where()}: motion of {other}")
+        self.s.step_state().collab_motion[other] = M
 
     # ---------------------------------------------------------------- 1. describe
     def begin_step(self, image: np.ndarray, context: FrameContext, stamp_s: float | None = None) -> np.ndarray:

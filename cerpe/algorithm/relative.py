@@ -104,7 +104,8 @@ class Relative:
             ests, why = direct_estimates(st, other, self.s.X, self.s.degrade)
             if other in st.collab_motion:  # online by stamps: the peer's view was captured at another time
                 M = st.collab_motion[other]  # None: how far the peer moved since is unknown
-                ests, why = ([], "peer-motion-unknown") if M is None else ([(k, v, M @ T, n) for k, v, T, n in ests], why)
+                ests, why = (([], "peer-motion-unknown") if M is None
+                             else ([(k, v, M @ T, n) for k, v, T, n in ests], why))
             st.directs[other] = (ests, why)
         return st.directs[other]
 

@@ -15,7 +15,6 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -68,12 +67,13 @@ def cache_key(t: Topics) -> str:
 
 def _missing_topics(r: BagReader, wanted: dict[str, str | None], field_of: dict[str, str], f: str) -> list[Problem]:
     have = r.topics
-    probs = []
-    for role, topic in wanted.items():
-        if topic and topic not in have:
-            probs.append(Problem(f, field_of[role], f"topic {topic} is not in bag {r.path}; it holds "
-                                                     f"{', '.join(f'{k} ({v})' for k, v in sorted(have.items())) or 'nothing'}"))
-    return probs
+    holds = ", ".join(f"{k} ({v})" for k, v in sorted(have.items())) or "nothing"
+    return [Problem(f, field_of[role], f"topic {topic} is not in bag {r.path}; it holds {holds}")
+            for role, topic in wanted.items() if topic and topic not in have]
+
+
+def _bump(counts: dict[str, int], what: str) -> None:
+    counts[what] = counts.get(what, 0) + 1
 
 
 def _poses(r: BagReader, topic: str, what: str, counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -82,13 +82,11 @@ def _poses(r: BagReader, topic: str, what: str, counts: dict[str, int]) -> tuple
         try:
             T = decode.pose(msg, what)
         except RosInputError:
-            counts[f"{what}: messages with NaN or an unusable pose (skipped)"] = \
-                counts.get(f"{what}: messages with NaN or an unusable pose (skipped)", 0) + 1
+            _bump(counts, f"{what}: messages with NaN or an unusable pose (skipped)")
             continue
         s = decode.stamp_s(msg)
         if stamps and s <= stamps[-1]:
-            counts[f"{what}: messages not after the one before (skipped)"] = \
-                counts.get(f"{what}: messages not after the one before (skipped)", 0) + 1
+            _bump(counts, f"{what}: messages not after the one before (skipped)")
             continue
         stamps.append(s)
         poses.append(T)
@@ -110,8 +108,7 @@ def _extract(r: BagReader, t: Topics, out: Path, counts: dict[str, int], fields:
             s = decode.stamp_s(msg)
             arr = decode.image_rgb(msg, what) if role == "rgb" else decode.depth_m(msg, what)
         except RosInputError as exc:
-            key = f"{what}: messages that do not decode (skipped): {str(exc).split(': ', 1)[-1][:80]}"
-            counts[key] = counts.get(key, 0) + 1
+            _bump(counts, f"{what}: messages that do not decode (skipped): {str(exc).split(': ', 1)[-1][:80]}")
             continue
         k = len(index[role])
         name = f"{role}/{k:06d}.{'png' if role == 'rgb' else 'npy'}"
@@ -171,8 +168,7 @@ def read_robot(t: Topics, cache: Path, f: str, fields: dict[str, str]) -> tuple[
                 if cam is None:
                     cam = got
                 elif got != cam:
-                    counts[f"{t.camera_info}: CameraInfo that differs from the first (the first is used)"] = \
-                        counts.get(f"{t.camera_info}: CameraInfo that differs from the first (the first is used)", 0) + 1
+                    _bump(counts, f"{t.camera_info}: CameraInfo that differs from the first (the first is used)")
             if cam is None:
                 return None, [Problem(f, fields["camera_info"], f"no usable CameraInfo on {t.camera_info} in {t.bag}"
                                                                 f"{''.join(f'; {k}' for k in counts)}")]

@@ -292,6 +292,25 @@ def parse_transform(value: Any, field: str, manifest_file: str, resolve=None) ->
         raise ManifestError([Problem(src, field, f"not a rigid transform ({str(exc).removeprefix('T: ')})")]) from None
 
 
+def ground_truth_problems(rob: dict, f: str, fr: str,
+                          positive: Sequence[str] = ("gt_tolerance_s", "interpolate_max_gap_s")) -> list[Problem]:
+    """Problems of a robot's ground-truth fields, no file access: ``positive`` numbers, ``interpolate`` a
+    boolean, ``T_body_cam`` ``identity``, a 4x4 list (checked) or a YAML file name."""
+    probs = [Problem(f, f"{fr}.{k}", f"expected a positive number, got {rob[k]!r}") for k in positive
+             if k in rob and (not is_number(rob[k]) or float(rob[k]) <= 0)]
+    if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
+        probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
+    tb = rob.get("T_body_cam", "identity")
+    if not (tb == "identity" or isinstance(tb, (list, str))):
+        probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
+    elif isinstance(tb, list):
+        try:
+            parse_transform(tb, f"{fr}.T_body_cam", f)
+        except ManifestError as exc:
+            probs += exc.problems
+    return probs
+
+
 def parse_stamp(text: str, units: str) -> float:
     return float(text) * STAMP_UNITS[units]
 

@@ -32,12 +32,12 @@ import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, RobotStream, SceneError, Setting
 from . import covisibility
-from .formats import (NONFINITE_ROWS, STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, list_images,
-                      parse_transform, read_camera, read_trajectory)
+from .formats import (NONFINITE_ROWS, STAMP_UNITS, TRAJECTORY_FORMATS, Trajectory, find_depth_files, ground_truth_problems,
+                      list_images, parse_transform, read_camera, read_trajectory)
 from .imageref import DepthFile, ImageFile, Undistortion, undistortion
 from .manifest import Manifest, ManifestError, Problem, type_name
 from .report import LoadReport
-from .sequence import positive_number, synchronise_robots, validate_encounter_list
+from .sequence import synchronise_robots, validate_encounter_list
 from .sync import check_window, poses_at, window_mask
 
 ENCOUNTER_FIELDS = ("name", "sync", "window_s", "overlap", "robots", "meta")
@@ -69,18 +69,7 @@ def _check_robot(rob: dict, f: str, fr: str) -> list[Problem]:
     if rob.get("image_stamp_units", "s") not in STAMP_UNITS:
         probs.append(Problem(f, f"{fr}.image_stamp_units",
                              f"expected one of {', '.join(STAMP_UNITS)}, got {rob.get('image_stamp_units')!r}"))
-    for k in ("gt_tolerance_s", "interpolate_max_gap_s", "depth_units_per_m"):
-        probs += positive_number(rob, k, f, fr)
-    if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
-        probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
-    tb = rob.get("T_body_cam", "identity")
-    if not (tb == "identity" or isinstance(tb, (list, str))):
-        probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
-    elif isinstance(tb, list):
-        try:
-            parse_transform(tb, f"{fr}.T_body_cam", f)
-        except ManifestError as exc:
-            probs += exc.problems
+    probs += ground_truth_problems(rob, f, fr, ("gt_tolerance_s", "interpolate_max_gap_s", "depth_units_per_m"))
     return probs + check_window(rob.get("window_s"), f, f"{fr}.window_s")
 
 

@@ -39,14 +39,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ..scene import CameraIntrinsics, Encounter, Setting
 from . import covisibility
 from .bag_frames import BagData, Topics, read_robot
-from .formats import parse_transform
+from .formats import ground_truth_problems, parse_transform
 from .imageref import ImageFile, Undistortion, undistortion
 from .manifest import Manifest, ManifestError, Problem, cache_base, type_name
 from .report import LoadReport
@@ -95,19 +94,7 @@ def _check_robot(rob: dict, f: str, fr: str) -> list[Problem]:
             probs.append(Problem(f, f"{fr}.{k}", f"expected an absolute topic name (starting with /), got {rob[k]!r}"))
     if rob.get("gt_bag") and not rob.get("gt_topic"):
         probs.append(Problem(f, f"{fr}.gt_bag", "gt_bag without gt_topic"))
-    if "interpolate" in rob and not isinstance(rob["interpolate"], bool):
-        probs.append(Problem(f, f"{fr}.interpolate", f"expected true or false, got {rob['interpolate']!r}"))
-    for k in ("gt_tolerance_s", "interpolate_max_gap_s"):
-        probs += positive_number(rob, k, f, fr)
-    tb = rob.get("T_body_cam", "identity")
-    if isinstance(tb, list):
-        try:
-            parse_transform(tb, f"{fr}.T_body_cam", f)
-        except ManifestError as exc:
-            probs += exc.problems
-    elif not isinstance(tb, str):
-        probs.append(Problem(f, f"{fr}.T_body_cam", f"expected 'identity', a 4x4 list or a YAML file, got {type_name(tb)}"))
-    return probs + validate_slice(rob, f, fr)
+    return probs + ground_truth_problems(rob, f, fr) + validate_slice(rob, f, fr)
 
 
 def _ordered(d: BagData, rid: str, enc: str, report: LoadReport) -> tuple[np.ndarray, list[Path]]:
