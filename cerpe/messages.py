@@ -198,7 +198,7 @@ class ImageReply:
     ``T_odom_cam`` is the sender's odometry pose ``X`` of step ``pose_step`` when it
     answered (its pose of ``step`` when it had one, else of its previous step; -1 and
     None: no pose), so a requester whose copy of the sender's pose message is lost
-    can still anchor the pair (see ``docs/ARCHITECTURE.md``, "Message loss").
+    can still anchor the pair (see ``docs/extensions.md``, "Message loss").
     """
 
     TYPE: ClassVar[int] = 4

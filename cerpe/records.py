@@ -3,7 +3,7 @@
 These records are the only interface between the algorithm and everything that
 evaluates, stores or plots it (``cerpe.pipeline``, notebooks). They are plain
 data; :func:`PairRecord.as_row` / :func:`RobotRecord.as_row` flatten them to the
-columns of ``steps.csv`` / ``robots.csv`` (see ``docs/ARCHITECTURE.md``).
+columns of ``steps.csv`` / ``robots.csv`` (see ``docs/formats.md``).
 """
 from __future__ import annotations
 
