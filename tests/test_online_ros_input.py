@@ -135,7 +135,7 @@ def test_estimates_out_with_their_covariance_as_tf_and_on_the_queryable(tmp_path
 
         def run():
             out = run_online(tmp_path / "m.yaml", None, rid, tmp_path / rid, link_conf=confs[rid], node_conf=node_conf,
-                             setting=setting, plugins=plugins, config=CFG, progress=False, speed=4.0)
+                             setting=setting, plugins=plugins, config=CFG, progress=False, speed=0.0)
             return out
         return run
 
