@@ -178,5 +178,9 @@ def test_peers_at_their_own_pace_join_late_die_restart_and_stall():
         [e[1:] for e in rep0["peer_events"]] == [["r1", "up"], ["r1", "restarted"]]
     # r1: slower than its camera, it drops frames (counted on the frame it takes), and its camera stalled
     r1_total = sum((Counter(r.robots[0].degradations) for r in out["r1a"][0] + out["r1b"][0]), Counter())
+    print(f"r1: {len(out['r1a'][0])} frames before the kill, {len(out['r1b'][0])} after the restart, "
+          f"{sum(p.source == 'direct' for r in out['r1a'][0] + out['r1b'][0] for p in r.pairs)} direct estimates; "
+          f"counted {dict(r1_total)}; clock offset of r0 {out['r1b'][1]['clock_offsets_s']}; "
+          f"peer events at r0 {[e[1:] for e in rep0['peer_events']]}")
     assert r1_total["input:frame-dropped"] > 0 and r1_total["input:stall"] == 1
     assert out["r1b"][1]["n_steps"] > 0 and any(p.source == "direct" for r in out["r1b"][0] for p in r.pairs)
