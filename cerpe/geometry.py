@@ -1,6 +1,6 @@
 """Pure, typed numpy geometry: SE(3), Sim(3), quaternions, the paper's errors.
 
-Conventions (one place for all of them; see also ``docs/ARCHITECTURE.md``):
+Conventions (one place for all of them; see also ``docs/algorithm.md``):
 
 * A transform ``T_a_b`` is a 4x4 homogeneous matrix that maps points expressed in
   frame ``b`` into frame ``a`` (``p_a = T_a_b @ p_b``); equivalently it is the pose

@@ -14,7 +14,7 @@ The paper's broadcast ``m_i^t = (i, X_i^t, d_i^t)`` travels as two frames. The
 :class:`DescriptorMessage` goes before the joint backbone pass (the gate needs it) and
 the :class:`PoseMessage` right after it (propagation needs ``X_j^t`` of the same
 step). This costs one extra 14-byte header per robot and step and keeps one
-backbone pass per step. With ``CerpeConfig.share_estimates`` (our extension, off in the paper's
+backbone pass per step. With ``messages.share_estimates`` (our extension, off in the paper's
 rows) a robot also broadcasts, right after its pose, the direct estimates it made this step
 (:class:`EstimateMessage`, 62 B each, possibly none). So a robot whose own pass could not
 place its peer's image still gets the pair's pose. A garbled frame (bad magic, length or checksum) raises
@@ -198,7 +198,7 @@ class ImageReply:
     ``T_odom_cam`` is the sender's odometry pose ``X`` of step ``pose_step`` when it
     answered (its pose of ``step`` when it had one, else of its previous step; -1 and
     None: no pose), so a requester whose copy of the sender's pose message is lost
-    can still anchor the pair (see ``docs/ARCHITECTURE.md``, "Message loss").
+    can still anchor the pair (see ``docs/extensions.md``, "Message loss").
     """
 
     TYPE: ClassVar[int] = 4

@@ -2,7 +2,7 @@
 
 ``cerpe`` is Algorithm 1, ``cerpe-wo-em`` the same without ego-motion
 propagation; ``cerpe-graph`` (our extension, not in the paper) the same messages with
-a robust pose graph per pair instead of the switch (``CerpeConfig.backend="graph"``); ``sift-ransac`` and ``aliked-lightglue`` are per-pair, per-frame
+a robust pose graph per pair instead of the switch (``backend.kind: graph``); ``sift-ransac`` and ``aliked-lightglue`` are per-pair, per-frame
 baselines (``aliked-lightglue`` stands in for the paper's SuperGlue row);
 ``nope`` and ``co-visnet`` have no offline code or weights.
 

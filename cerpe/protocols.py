@@ -129,7 +129,7 @@ class BackboneOutput:
             name -> number; may be empty.
         metric_unit: True when the translation unit of this pass is already the metre
             (the backbone anchored it on the views' metric depth priors); the scale
-            step then has nothing to recover (``CerpeConfig.backbone_metric_unit``).
+            step then has nothing to recover (``scale.metric_unit``).
             Up-to-scale backbones (VGGT) leave it False.
         reference: index of the view against which the current view (index 0) was
             measured most directly (the offline backbone's depth-prior view, whose

@@ -121,7 +121,7 @@ DEGRADATIONS: dict[str, str] = {
     "descriptor:missing": "a peer's descriptor of this step did not arrive: the gate scores its last one if at most "
                           "messages.stale_descriptor_steps steps old, else it waits for the next step (closed now); the anchor "
                           "is carried",
-    "descriptor:stale-used": "a lost descriptor replaced by the peer's previous one (at most descriptor_max_age "
+    "descriptor:stale-used": "a lost descriptor replaced by the peer's previous one (at most messages.stale_descriptor_steps "
                              "steps old) in the gate",
     "msg:request-retried": "an image request sent again within the step because its reply did not come "
                            "(messages.request_retries)",

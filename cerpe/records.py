@@ -3,7 +3,7 @@
 These records are the only interface between the algorithm and everything that
 evaluates, stores or plots it (``cerpe.pipeline``, notebooks). They are plain
 data; :func:`PairRecord.as_row` / :func:`RobotRecord.as_row` flatten them to the
-columns of ``steps.csv`` / ``robots.csv`` (see ``docs/ARCHITECTURE.md``).
+columns of ``steps.csv`` / ``robots.csv`` (see ``docs/formats.md``).
 """
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ class PairRecord:
             through; -1 for the current frame or the joint pass (or no estimate).
         anchor_verdict: what anchor verification said about this step's direct
             estimate: ``verified``, ``accepted``, ``unverified``, ``rejected``,
-            ``replaced``, ``unchecked`` (``verify_anchors=False``), ``""`` (none).
+            ``replaced``, ``unchecked`` (``anchors.verify: false``), ``""`` (none).
         check_rot_rad, check_trans_m: disagreement of the direct estimate with what
             it was checked against (the propagated anchor, a second registration,
             an earlier candidate); NaN when nothing was compared.
@@ -76,7 +76,7 @@ class PairRecord:
             step, ``(source, T_cj_ci, reason, anchor_step)``: the graph reads nothing back
             into the algorithm, so one pass yields both methods' records. Not a column.
         request_skipped: the gate opened but the request policy did not ask for the image
-            (``CerpeConfig.request_policy``, mode ``pays``: the pair's anchor was fresh and certain).
+            (``policy.mode: pays``: the pair's anchor was fresh and certain).
     """
 
     step: int

@@ -36,11 +36,21 @@ def format_tum_cov(stamps_s: np.ndarray, T: np.ndarray, cov: np.ndarray, stamp_d
     (:mod:`cerpe.geometry`, "pose covariances") of the poses ``T [N,4,4]``. Written in ROS
     ``PoseWithCovariance`` order and frame (:func:`~cerpe.geometry.pose_cov_in_parent`), so a
     line pairs with the TUM line of the same stamp as a ``PoseWithCovarianceStamped`` would.
-    Non-finite covariances are written as ``nan``.
+    Unknown entries are written as ``nan``: a covariance that knows the rotation only (no metric depth:
+    the translation's scale is unknown) keeps its rotation block and has ``nan`` in every row and
+    column of the position.
     """
     lines = [f"# {COV_HEADER}"]
     for s, Tk, Ck in zip(stamps_s, T, cov):
-        C = pose_cov_in_parent(Tk, Ck) if np.all(np.isfinite(Ck)) else np.full((6, 6), np.nan)
+        Ck = np.asarray(Ck, dtype=np.float64)
+        if np.all(np.isfinite(Ck)):
+            C = pose_cov_in_parent(Tk, Ck)
+        elif np.all(np.isfinite(Ck[:3, :3])):  # the rotation block alone (first order: it maps on its own)
+            C = pose_cov_in_parent(Tk, np.where(np.isfinite(Ck), Ck, 0.0))
+            C[:3, :] = np.nan
+            C[:, :3] = np.nan
+        else:
+            C = np.full((6, 6), np.nan)
         lines.append(f"{s:.{stamp_decimals}f} " + " ".join(f"{v:.9g}" for v in C.ravel()))
     return "\n".join(lines) + "\n"
 

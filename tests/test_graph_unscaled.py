@@ -81,3 +81,17 @@ def test_rgb_only_graph_reports_rotation_covariance_and_unknown_translation():
     world = make_world(2, 20, seed=2)
     rows = [p.as_row() for r in _run(world, "graph") for p in r.pairs if p.T_cj_ci is not None]
     assert rows and all(np.isfinite(r["sigma_rot_rad"]) and np.isnan(r["sigma_pos_m"]) for r in rows if r["source"] != "none")
+
+
+def test_a_rotation_only_covariance_keeps_its_rotation_block_in_the_cov_file():
+    from cerpe.geometry import pose_cov_in_parent
+    from cerpe.tum import format_tum_cov, parse_tum_cov
+
+    T = make_se3(so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 3.0]))
+    C = np.diag([1e-4, 2e-4, 3e-4, 1.0, 1.0, 1.0])
+    partial = C.copy()
+    partial[3:, :], partial[:, 3:] = np.nan, np.nan
+    _, (full, half) = parse_tum_cov(format_tum_cov(np.array([0.0, 1.0]), np.stack([T, T]), np.stack([C, partial])))
+    np.testing.assert_allclose(half[3:, 3:], full[3:, 3:], rtol=1e-6)  # ROS order: rotation last
+    np.testing.assert_allclose(full, pose_cov_in_parent(T, C), rtol=1e-6)
+    assert np.isnan(half[:3, :]).all() and np.isnan(half[:, :3]).all()

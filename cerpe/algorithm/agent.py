@@ -204,7 +204,7 @@ class RobotAgent:
             self.s.degrade(f"msg:{fault}")
             st.gate_reason[other] = f"reply-{fault}"
             return None
-        # the costliest registration only for a gated image (request_policy "always" asks without the gate)
+        # the costliest registration only for a gated image (policy.mode "always" asks without the gate)
         hard = self.gate.gate_open(other) and try_hard(self.gate.pair_view(other, st.step))
         view = dataclasses.replace(view, try_hard=hard)
         st.collab_views[other] = view

@@ -2,7 +2,7 @@
 
 :func:`direct_estimates` reads the pass (:class:`~cerpe.algorithm.state.StepState`): the
 collaborator view's registrations against single own views, most inliers first, else its
-joint-pass pose. With ``CerpeConfig.share_estimates`` (our extension) each robot also
+joint-pass pose. With ``messages.share_estimates`` (our extension) each robot also
 broadcasts the best of them per peer (:func:`estimate_message`); the peer takes the inverse
 (:func:`shared_estimate`) as an estimate of its own, marked :data:`SHARED_VIA`. Estimates are
 tuples ``(pass index of the own view, that view's step or -1 for the current frame, T_cj_ci

@@ -75,7 +75,7 @@ class StepEngine:
         a.count_sent("descriptor", link.broadcast("descriptor", a.descriptor_frame(a.config.messages.descriptor_dtype)))
         yield "descriptor"
         # 3. gate: score every peer's descriptor, request the images whose score passes tau
-        # (and that the request policy wants: CerpeConfig.request_policy; the paper's asks them all)
+        # (and that the request policy wants: the policy group; the paper's asks them all)
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
         for p in got.gone:
             a.peer_gone(p)

@@ -73,7 +73,7 @@ class Gate:
         Returns the score of the current frame (the paper's gate score), NaN when
         none can be computed (the gate stays closed and the reason is kept). The
         received descriptor is also scored against every keyframe; the best of all
-        (and the keyframe that gave it) opens the gate with ``gate_memory``.
+        (and the keyframe that gave it) opens the gate with ``gate.memory_aware``.
         """
         return self.score_descriptors({other: descriptor})[other]
 
@@ -140,7 +140,7 @@ class Gate:
         self.s.last_descriptors.pop(other, None)
 
     def _recent_descriptor(self, other: str, step: int) -> np.ndarray | None:
-        """``other``'s last descriptor when at most ``descriptor_max_age`` steps old (counted
+        """``other``'s last descriptor when at most ``messages.stale_descriptor_steps`` steps old (counted
         ``descriptor:stale-used``: a lost one does not close the gate at once), else None."""
         last = self.s.last_descriptors.get(other)
         if last is None or not 0 < step - last[0] <= self.config.messages.stale_descriptor_steps:
@@ -149,7 +149,7 @@ class Gate:
         return last[1]
 
     def gate_open(self, other: str) -> bool:
-        """``score >= gate_tau``: the current frame's score, or with ``gate_memory`` the best over the keyframes
+        """``score >= gate_tau``: the current frame's score, or with ``gate.memory_aware`` the best over the keyframes
         too (``tau`` is ``gate.tau``, or the codec's own threshold with a compressed descriptor)."""
         s = self.gate_score(self.s.step_state(), other)
         return bool(np.isfinite(s) and s >= self.tau)

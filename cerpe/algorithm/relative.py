@@ -72,7 +72,7 @@ class Relative:
 
     # ---------------------------------------------------------------- 7b. shared estimates (our extension)
     def estimate_frame(self, index_of: Mapping[str, int]) -> bytes:
-        """The ``estimate`` frame of this step (``CerpeConfig.share_estimates``): the best own direct
+        """The ``estimate`` frame of this step (``messages.share_estimates``): the best own direct
         estimate of each peer (wire index ``index_of``) whose image this pass held. Sent even when it
         holds none, so that a peer waiting for it need not wait out its deadline."""
         st = self.s.step_state()
@@ -85,7 +85,7 @@ class Relative:
 
     def note_estimates(self, other: str, msg: EstimateMessage) -> None:
         """Keep robot ``other``'s estimate of this robot from its ``estimate`` frame of this step, unless
-        it stands on fewer than ``anchor_min_inliers`` registration inliers.
+        it stands on fewer than ``anchors.min_inliers`` registration inliers.
 
         Where this robot placed nothing itself, the peer's estimates tend to stand on few inliers
         and to be much less accurate than the robot's own: the bar keeps the weakest out."""

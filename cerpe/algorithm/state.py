@@ -47,7 +47,7 @@ class StepState:
     directs: dict[str, tuple[list, str]] = field(default_factory=dict)  # peer -> own direct estimates, reason
     shared: dict[str, tuple] = field(default_factory=dict)  # peer -> its estimate of this robot, as this robot's
     scale: float = float("nan")
-    metric_scale: bool = True  # False: s = 1 for want of metric depth (unit_scale_without_depth)
+    metric_scale: bool = True  # False: s = 1 for want of metric depth (a depth source that never has any)
     ego_status: str = ""
     keyframe: bool = False
     timings: Counter = field(default_factory=Counter)  # wall seconds per stage
@@ -86,8 +86,8 @@ class PairInfo:
     """How this step's direct estimate for one peer came about (pair record columns).
 
     ``direct_via``: step of the own view it was registered through (-1: the current
-    frame or the joint pass; -2: the peer's estimate, shared, ``CerpeConfig.share_estimates``); ``verdict``: what anchor verification said (``""``
-    without a direct estimate, ``"unchecked"`` with ``verify_anchors=False``);
+    frame or the joint pass; -2: the peer's estimate, shared, ``messages.share_estimates``); ``verdict``: what anchor verification said (``""``
+    without a direct estimate, ``"unchecked"`` with ``anchors.verify: false``);
     ``check_rot_rad``, ``check_trans_m``: its disagreement with what it was checked
     against (NaN when nothing was compared); ``direct_T``: the direct estimate itself
     (before verification), ``direct_inliers`` its registration's inliers (-1: unknown).

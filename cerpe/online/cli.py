@@ -11,8 +11,7 @@ peers, the other robots of the encounter: descriptors and poses are published on
 Zenoh keys cerpe/<team>/<robot>/{descriptor,pose}, image requests are Zenoh
 queries to the owner's cerpe/<team>/<robot>/image. Other robots' images are
 never read; their ground truth is (for the gt columns), so every machine needs
-the manifest's trajectory files. Wire format: docs/ARCHITECTURE.md, "Online
-transport".
+the manifest's trajectory files. Wire format: docs/online.md.
 
 Finding the peers: by default Zenoh peer mode with UDP multicast scouting
 (224.0.0.224:7446) on the LAN: nothing to configure. Where multicast does not

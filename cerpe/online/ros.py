@@ -5,7 +5,7 @@ Topic ``/cerpe/<team>/<i>/relative_pose/<j>``, pose ``T_cj_ci`` (camera ``i`` in
 time, covariance all zeros when unknown (the ROS convention). CDR-encoded with
 ``rosbags`` and put on rmw_zenoh's data key (with its 33-byte attachment) or on the
 key ``zenoh-bridge-ros2dds`` uses. The keys and bytes are described once, in
-``docs/ARCHITECTURE.md``, "Online transport", "Wire format"; this module builds them.
+``docs/online.md``, "Wire format"; this module builds them.
 No liveliness tokens are declared, so ``ros2 topic list`` does not show the topic; name
 the type: ``ros2 topic echo /cerpe/lab/r0/relative_pose/r1 geometry_msgs/msg/PoseWithCovarianceStamped``.
 """

@@ -1,6 +1,6 @@
 """Where cerpe frames travel on Zenoh: key names, the 4-byte link header, error replies.
 
-The format itself is described once, in ``docs/ARCHITECTURE.md``, "Online transport",
+The format itself is described once, in ``docs/online.md``, "Keys on Zenoh" and
 "Wire format": keys ``cerpe/<team>/<robot>/{descriptor,pose,bye,image}``, liveliness
 tokens ``cerpe/<team>/<robot>/alive/v<L>.<M>/<zid>``, :data:`HEADER` as every put's,
 query's and reply's attachment, error replies ``HEADER + reason``. This module builds

@@ -14,7 +14,7 @@ backbone.models=paper``, ``--set anchors.rot_tol_rad=0.2``), all recorded in ``r
 ``--loss`` / ``--garble`` run the cerpe methods' robots over the in-process lossy
 channel (:class:`cerpe.transport.LossSpec`, recorded in ``run.json``).
 
-The run folder (its layout: :mod:`cerpe.runfolder`, see ``docs/ARCHITECTURE.md``) holds
+The run folder (its layout: :mod:`cerpe.runfolder`, see ``docs/formats.md``) holds
 ``run.json`` and per encounter ``steps.csv``, ``robots.csv``, ``poses/``, ``odometry/`` and
 ``DONE.json`` (written last). Every file is written to a temporary name and renamed. A rerun
 skips finished encounters and recomputes unfinished ones (an interrupted run continues). A

@@ -7,7 +7,7 @@ world (OUT/synthetic-cad, OUT/synthetic-indoor). A --preset fills every argument
 (`fixture`: 160x120, 12 frames, 1 encounter per world; `paper-default`: 640x480,
 8 cad + 4 indoor encounters); explicit options override it.
 
-Output follows docs/ARCHITECTURE.md "Dataset manifest": per encounter and robot
+Output follows docs/formats.md "Dataset manifests": per encounter and robot
 rgb/<stamp>.png, depth/<stamp>.png (uint16 mm), groundtruth.txt (TUM,
 camera-to-world), camera.yaml; per encounter overlap.npy [T,N,N] and meta.json
 (viewing angles); OUT/manifest.yaml and OUT/meta.json. Rerunning with the same

@@ -1,6 +1,6 @@
 """Render planned encounters, in memory or to the mocap-style dataset layout.
 
-On disk (one *setting* folder per world; see docs/ARCHITECTURE.md "Dataset manifest")::
+On disk (one *setting* folder per world; see docs/formats.md "Dataset manifests")::
 
     OUT/manifest.yaml                 adapter: mocap, metric_depth: sensor, all encounters
     OUT/meta.json                     generator arguments (the cache key) and encounter names
