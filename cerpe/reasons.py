@@ -33,6 +33,8 @@ REASONS: dict[str, str] = {
                                 "row: it asks only every few steps (policy.miss_limit)",
     "request-skipped: anchor-fresh": "the gate opened, but the pair's anchor is fresh and certain: the image would "
                                      "not pay (policy.mode pays)",
+    "request-skipped: max-requests": "the gate opened, but policy.max_requests peers with higher gate scores were "
+                                     "asked this step",
     "request-skipped: peer-shares": "the gate opened, but this robot's images of the peer place nothing while the "
                                     "peer shares its estimates (messages.share_estimates)",
     # the image reply
@@ -48,6 +50,12 @@ REASONS: dict[str, str] = {
     "no-scale": "the pass has no metric scale",
     "registrations-not-usable": "the peer's view was registered only against views this robot no longer has a pose of",
     "shared-estimate": "the estimate is the peer's own, shared and inverted (messages.share_estimates)",
+    "registration-pending": "the peer's image is being registered apart from the step (a registrar): its estimate "
+                            "lands when ready",
+    "registration-late": "the estimate is a registration that landed after the step it was requested at, carried "
+                         "to this step with both robots' odometry",
+    "registration-late-no-pose": "a registration landed late, but the peer's pose of its step or of this one is "
+                                 "unknown: it cannot be carried to this step",
     "anchor-not-stored": "a direct estimate while no pose message of the peer was ever seen: reported, not an anchor",
     "peer-motion-unknown": "online by stamps: the peer's received view is of another instant and how far the peer "
                            "moved since is unknown (no pose of it near this frame's stamp): no direct estimate",
@@ -134,6 +142,11 @@ DEGRADATIONS: dict[str, str] = {
                                   "or mirrored structure): no direct estimate this step, the anchor is carried",
     "anchor:odometry-jump": "one robot's odometry turned by more than anchors.max_odo_rot_step in one step (a lost "
                             "track): the pair forgot its anchor and candidates rather than carry them through it",
+    "registration:dropped": "a registration job dropped unrun (the registrar's queue was full: the oldest goes): its "
+                            "images give no estimate",
+    "registration:failed": "a registration job whose pass failed (raised, or returned a malformed output): no estimate",
+    "registration:late-no-pose": "a registration landed late, but the peer's pose of its step or of this one is "
+                                 "unknown: not carried to this step",
     "msg:lost": "a frame that did not arrive (in process: dropped by the channel; online: missing at the deadline)",
     "msg:garbled": "a frame that does not decode",
     "msg:unknown-sender": "a frame whose sender index is not the robot it came from",

@@ -137,6 +137,10 @@ class RobotRecord:
         timings_s: seconds per stage (see :data:`STAGES`).
         degradations: counted, logged problems of this step (names of :data:`cerpe.reasons.DEGRADATIONS`:
             ``"depth:none"``, ``"msg:garbled"``...).
+        cpu_s: CPU seconds per stage (and per part of a stage, as in ``parts_s``) of the thread that
+            ran it (``cerpe bench``; not written to ``robots.csv``, whose timings are the wall ones).
+        parts_s: wall seconds of parts of stages, e.g. ``gate_score`` (the descriptor scores, part of
+            ``gate``).
     """
 
     step: int
@@ -149,6 +153,8 @@ class RobotRecord:
     bytes_sent: dict[str, int] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     degradations: list[str] = field(default_factory=list)
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    parts_s: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_degradations(self.degradations)  # a closed vocabulary: cerpe.reasons.DEGRADATIONS

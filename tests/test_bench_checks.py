@@ -112,3 +112,51 @@ def test_printout_carries_the_cross_robot_registration_counters():
             "learned matcher for 3 views (7 image pairs)") in text
     r["cross"] = {"gated_pairs": 10}  # a backbone without the counters (VGGT): no line
     assert "cross-robot" not in format_table([r], {"dim": 8, "wire_bytes": {}})
+
+
+def _sweep_row(n: int, wall_ms: float, late: list[int] | None) -> dict:
+    from cerpe.pipeline.bench_walk import median_p90
+
+    reg = None if late is None else {"late_steps": median_p90(late)}
+    return {"n_robots": n, "robot_step_ms": median_p90([wall_ms]), "robot_step_cpu_ms": median_p90([wall_ms / 2]),
+            "bytes_per_robot_step": {"total": median_p90([1000.0 * n])}, "gate_score_cpu_ms": median_p90([0.25]),
+            "registration": reg}
+
+
+def test_sweep_growth_is_against_the_smallest_team():
+    from cerpe.pipeline.bench_report import format_sweep
+
+    text = format_sweep([_sweep_row(2, 100.0, [0, 1]), _sweep_row(8, 140.0, [2])])
+    assert "8 robots against 2: 1.40x (target <= 1.5x: met)" in text
+    row8 = next(line.split() for line in text.splitlines() if line.split()[:1] == ["8"])
+    assert row8[:6] == ["8", "140.0", "140.0", "70.0", "70.0", "1.40"] and row8[6:8] == ["8000", "250"]
+    text = format_sweep([_sweep_row(2, 100.0, None), _sweep_row(5, 151.0, None)])  # inline: no lateness
+    assert "5 robots against 2: 1.51x (target <= 1.5x: NOT met)" in text and "nan" in text
+
+
+@pytest.mark.parametrize("registration", ["worker", "inline"])
+def test_team_sweep_beyond_the_suite_renders_one_team_encounter(tmp_path, monkeypatch, capsys, registration):
+    """--robots beyond the suite's teams: every size runs on one rendered indoor-team encounter of the
+    largest team; the sweep table, the registration counters (worker) and the report's fields."""
+    import json
+
+    from cerpe.cli import main
+    from cerpe.synth import writer
+
+    tiny = {"seed": 0, "n_encounters": 1, "n_frames": 3, "fps": 2.0, "size": (160, 120), "n_robots": 2}
+    monkeypatch.setitem(writer.SUITES, "paper-default", {"synthetic-indoor": ("indoor-team", tiny)})
+    monkeypatch.setenv("CERPE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    out_json = tmp_path / "bench.json"
+    argv = ["bench", "--robots", "2", "4", "--steps", "3", "--warmup", "1", "--width", "160", "--height", "120",
+            "--registration", registration, "--graph-seconds", "1", "--out", str(out_json)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "indoor-team seed 7, 4 robots, 3 steps" in out
+    assert "== 2 robots" in out and "== 4 robots" in out and "4 robots against 2:" in out
+    assert ("registration apart from the step:" in out) == (registration == "worker")
+    report = json.loads(out_json.read_text())
+    assert report["registration"] == registration and [r["n_robots"] for r in report["results"]] == [2, 4]
+    for r in report["results"]:
+        assert set(r["stage_cpu_ms"]) == set(r["stage_ms"]) and r["gate_score_cpu_ms"]["n"] == 2 * r["n_robots"]
+        assert (r["registration"] is None) == (registration == "inline")

@@ -89,7 +89,8 @@ def test_eval_into_a_closed_pipe_ends_quietly(run_dir):
 
 @pytest.mark.parametrize("args,match", [
     (["--steps", "0"], "--steps 0: must be >= 1"),
-    (["--robots", "1", "3"], "a team has at least 2 robots"),
+    (["--robots", "1", "3"], "a team has 2 to 8 robots"),
+    (["--robots", "2", "9"], "--robots 2 9: a team has 2 to 8 robots"),
     (["--warmup", "5", "--steps", "3"], "leaves none of --steps 3"),
     (["--encounters", "0"], "--encounters 0"),
     (["--width", "0"], "--width 0"),

@@ -82,7 +82,8 @@ def wait_for_tokens(session, team: str, robots: list[str], timeout_s: float) -> 
     raise AssertionError(f"robots {robots} not up after {timeout_s} s")
 
 
-def run_team(folder: Path, manifest: Path, robots: list[str], bags: dict[str, Path], team: str) -> dict[str, Path]:
+def run_team(folder: Path, manifest: Path, robots: list[str], bags: dict[str, Path], team: str,
+             registration: str = "worker") -> dict[str, Path]:
     """Robots with --input ros, then one bag player each, started together; returns the robots' run folders."""
     ports = dict(zip(robots + ["obs"], free_ports(len(robots) + 1)))
     eps = [endpoint(ports[r]) for r in robots]
@@ -90,7 +91,8 @@ def run_team(folder: Path, manifest: Path, robots: list[str], bags: dict[str, Pa
     for k, r in enumerate(robots):
         cmd = [sys.executable, "-m", "cerpe.cli", "online", "--robot", r, "--input", "ros", "--manifest", str(manifest),
                "--team", team, "--no-multicast", "--listen", eps[k], "--no-progress", "--out", str(folder / "on" / r),
-               "--depth-topic", "camera/depth/image_raw", "--idle-exit", "3", "--reply-timeout", "5"]
+               "--depth-topic", "camera/depth/image_raw", "--idle-exit", "3", "--reply-timeout", "5",
+               "--registration", registration]
         for ep in eps[:k] + [endpoint(ports["obs"])]:
             cmd += ["--connect", ep]
         procs[r] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
@@ -132,20 +134,25 @@ def latency_lines(label: str, outs: dict[str, Path]) -> list[str]:
     return lines
 
 
-def test_two_robots_on_live_topics_match_cerpe_run_on_the_bags(tmp_path):
+@pytest.mark.parametrize("registration", ["inline", "worker"])
+def test_two_robots_on_live_topics_match_cerpe_run_on_the_bags(tmp_path, registration):
+    """Inline, each frame's estimate is of that frame, as in ``cerpe run``; with the worker a
+    registration lands at a later frame, so a robot's first frame with an image has no direct
+    estimate yet (one frame of each robot's eight: 12.5 points of success more may be missed)."""
     manifest, robots, bags = bags_of(tmp_path, 2, frame_rate=1.0)
-    outs = run_team(tmp_path, manifest, robots, bags, "bags2")
+    outs = run_team(tmp_path, manifest, robots, bags, "bags2", registration)
     ref = rp.run_method(manifest, "cerpe", tmp_path / "ref", progress=False)
     online = ev.evaluate(list(outs.values())).iloc[0]
     offline = ev.evaluate([ref]).iloc[0]
-    print(f"[bags, 2 robots, {manifest.stem}] online --input ros: e_rot {online['e_rot_rad']:.4f} rad, success "
+    print(f"[bags, 2 robots, {manifest.stem}] online --input ros --registration {registration}: e_rot {online['e_rot_rad']:.4f} rad, success "
           f"{online['success_pct']:.1f} % over {online['n_frames']} frames; cerpe run on the bags: e_rot "
           f"{offline['e_rot_rad']:.4f} rad, success {offline['success_pct']:.1f} % over {offline['n_frames']} frames")
     for line in latency_lines("bags, 2 robots", outs):
         print(line)
     assert online["n_frames"] >= 0.5 * offline["n_frames"] and online["n_no_gt"] == 0
     assert online["e_rot_rad"] <= 1.2 * offline["e_rot_rad"]
-    assert abs(online["success_pct"] - offline["success_pct"]) <= 10.0
+    first_frame = 0.0 if registration == "inline" else 100.0 / (offline["n_frames"] / len(robots))
+    assert abs(online["success_pct"] - offline["success_pct"]) <= 10.0 + first_frame
     steps = pd.concat([pd.read_csv(next(o.glob("*/steps.csv"))) for o in outs.values()])
     assert steps.loc[steps.source != "none", "sigma_rot_rad"].gt(0).all()  # the covariance published
 

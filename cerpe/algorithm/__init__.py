@@ -8,7 +8,9 @@ One step of one robot (:class:`StepEngine`, over a :class:`Link`):
    score); ``score >= tau`` -> an :class:`~cerpe.messages.ImageRequest`, answered
    with a JPEG :class:`~cerpe.messages.ImageReply` (``gate`` stage);
 4. ONE joint backbone pass over ``[current] + memory (newest first) (+ previous
-   frame) + received images`` (``backbone``);
+   frame) + received images`` (``backbone``). With a :class:`Registrar` (``registrar``) the step's
+   pass holds the own views only; the joint pass runs on a worker and its estimates land when
+   ready, carried to the current frame with both odometries (``late``);
 5. metric scale from the keyframes' depth references (``scale``);
 6. odometry through the view the current one was measured against;
 7. broadcast a :class:`~cerpe.messages.PoseMessage`;
@@ -26,7 +28,8 @@ Run-time faults are counted under the names in :data:`DEGRADATIONS`; malformed
 input raises :class:`AlgorithmError` naming robot, step and field.
 
 Modules: ``config`` (parameters), ``frames`` (frame checks, blank test),
-``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``graph`` (the pose-graph
+``poses`` (pose arithmetic), ``anchors`` (anchor verification), ``registrar`` and ``late``
+(registration apart from the step), ``graph`` (the pose-graph
 back end; ``graph_sim`` a simulated stream for it). ``policy`` decides when an open gate
 requests the image, ``agent`` holds one robot's state and phases, ``link`` the link
 protocol, ``engine`` the step; ``channel_link`` and ``team`` run a team in one process.
@@ -44,10 +47,12 @@ from .graph import GRAPH_MODEL, DirectEstimate, GraphConfig, GraphEstimate, Grap
 from .link import Inbox, Link, Mailbox, Received, StreamLink
 from .policy import PairView, PolicyConfig
 from .poses import direct_relative, ego_motion, registered_relative
+from .registrar import Registrar, RegistrationJob, RegistrationResult, WorkerRegistrar
 from .stamp_engine import StampEngine
 from .team import Team, run_encounter
 
 __all__ = ["BACKENDS", "DEGRADATIONS", "PAPER_THRESHOLDS", "AlgorithmConfig", "AlgorithmError", "Anchor", "AnchorConfig",
            "DirectEstimate", "GRAPH_MODEL", "GraphConfig", "GraphEstimate", "GraphModel", "Inbox", "Link", "Mailbox", "PairAnchors", "PairGraph", "PairView", "PolicyConfig",
-           "Received", "RobotAgent", "StampEngine", "StepEngine", "StreamLink", "Team", "direct_relative", "drive", "ego_motion",
+           "Received", "Registrar", "RegistrationJob", "RegistrationResult", "RobotAgent", "StampEngine", "StepEngine", "StreamLink", "Team",
+           "WorkerRegistrar", "direct_relative", "drive", "ego_motion",
            "registered_relative", "run_encounter"]

@@ -9,7 +9,6 @@ estimates, relative poses) its :class:`~cerpe.algorithm.relative.Relative`, the 
 from __future__ import annotations
 
 import dataclasses
-import time
 from typing import Mapping
 
 import numpy as np
@@ -32,10 +31,12 @@ from ..scale import recover_scale
 from .config import AlgorithmConfig, AlgorithmError
 from .frames import check_frame, describe, intrinsics_tuple, received_view
 from .gating import Gate
+from .late import LateRegistrations, checked_output
 from .policy import try_hard
 from .poses import check_pose, ego_motion
+from .registrar import Registrar
 from .relative import Relative
-from .state import Previous, RobotState, StepState
+from .state import Previous, RobotState, StepState, timed
 
 
 class RobotAgent:
@@ -50,7 +51,7 @@ class RobotAgent:
     """
 
     def __init__(self, robot_id: str, index: int, config: AlgorithmConfig, descriptor: DescriptorEncoder,
-                 backbone: PoseBackbone, depth: MetricDepthSource) -> None:
+                 backbone: PoseBackbone, depth: MetricDepthSource, registrar: Registrar | None = None) -> None:
         self.robot_id = str(robot_id)
         self.index = int(index)
         self.config = config.resolved(getattr(descriptor, "thresholds", None))  # idempotent on concrete values
@@ -71,7 +72,9 @@ class RobotAgent:
             tau = float(msgs.codec_tau if msgs.codec_tau is not None else codec.tau if codec.tau is not None
                         else self.config.gate.tau)
         self.gate = Gate(self.s, self.config, codec, tau)
-        self.relative = Relative(self.s, self.config, depth, self.gate)
+        # registrar: received images are registered apart and land when ready (None: in the joint pass)
+        self.late = None if registrar is None else LateRegistrations(self.s, registrar, self.config)
+        self.relative = Relative(self.s, self.config, depth, self.gate, self.late)
 
     # ---------------------------------------------------------------- what others read
     @property
@@ -105,6 +108,10 @@ class RobotAgent:
         """Phase 3: the gate score against a received descriptor (:meth:`Gate.score_descriptor`)."""
         return self.gate.score_descriptor(other, descriptor)
 
+    def score_descriptors(self, received: Mapping[str, np.ndarray | DescriptorMessage | None]) -> dict[str, float]:
+        """Phase 3 for every peer at once, in one matrix product (:meth:`Gate.score_descriptors`)."""
+        return self.gate.score_descriptors(received)
+
     def peer_gone(self, other: str) -> None:
         self.gate.peer_gone(other)
 
@@ -130,7 +137,10 @@ class RobotAgent:
         self.relative.note_estimates(other, msg)
 
     def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
-        """Phase 8: this step's record about ``other`` (:meth:`Relative.pair_record`)."""
+        """Phase 8: this step's record about ``other`` (:meth:`Relative.pair_record`); with a registrar,
+        the registrations that landed since the last step are read first."""
+        if self.late is not None:
+            self.late.collect(self.s.step_state())
         return self.relative.pair_record(other, bytes_pair)
 
     # ---------------------------------------------------------------- online by stamps (cerpe.algorithm.stamp_engine)
@@ -172,10 +182,10 @@ class RobotAgent:
             raise AlgorithmError(f"{where}: steps must increase (previous {self.s.last_step})")
         img = check_frame(image, context, where)
         view = View(key=(self.robot_id, step), image=img, intrinsics=context.intrinsics)
-        d, blank, timings = describe(self.descriptor, view, where, BLANK_STD)
+        d, blank, timings, cpu = describe(self.descriptor, view, where, BLANK_STD)
         self.s.cur = StepState(step=step, stamp_s=float(step if stamp_s is None else stamp_s), image=img,
                               context=context, view=view, descriptor=np.zeros_like(d) if blank else d,
-                              blank=bool(blank), timings=timings)
+                              blank=bool(blank), timings=timings, cpu=cpu)
         if blank == "zero-norm":
             self.s.degrade("descriptor:zero-norm")
         if blank:
@@ -190,13 +200,12 @@ class RobotAgent:
             self.s.degrade("msg:stale-request")
             return None
         if st.reply_cache is None:
-            t0 = time.perf_counter()
-            st.reply_cache = ImageReply.from_image(self.index, st.step, st.image,
-                                                   intrinsics_tuple(st.context.intrinsics),
-                                                   quality=self.config.messages.reply_quality,
-                                                   codec=self.config.messages.reply_codec,
-                                                   scale=self.config.messages.reply_scale)
-            st.timings["gate"] += time.perf_counter() - t0
+            with timed(st, "gate"):
+                st.reply_cache = ImageReply.from_image(self.index, st.step, st.image,
+                                                       intrinsics_tuple(st.context.intrinsics),
+                                                       quality=self.config.messages.reply_quality,
+                                                       codec=self.config.messages.reply_codec,
+                                                       scale=self.config.messages.reply_scale)
         # the newest own pose goes with the image: this step's once odometry ran (or at the first
         # step, identity), else the previous step's; a requester whose pose message is lost bridges from it
         now = bool(st.ego_status) or self.s.last_step is None
@@ -213,9 +222,8 @@ class RobotAgent:
         if same_step and reply.step != st.step:
             self.s.degrade("msg:stale-reply")
             return None
-        t0 = time.perf_counter()
-        view, fault = received_view(other, reply)
-        st.timings["gate"] += time.perf_counter() - t0
+        with timed(st, "gate"):
+            view, fault = received_view(other, reply)
         if same_step and reply.T_odom_cam is not None and 0 <= reply.pose_step <= st.step:
             self.relative.log_pose(other, reply.pose_step, reply.T_odom_cam)
         if view is None:  # the pair gets no direct estimate this step
@@ -257,23 +265,19 @@ class RobotAgent:
             st.prev_index = len(views)
             st.own_views[st.prev_index] = (prev.step, prev.T_odom_cam)
             views.append(dataclasses.replace(prev.view, role="previous"))
+        n_own = len(views)
+        collab_index: dict[str, int] = {}
         for other, v in st.collab_views.items():
-            st.collab_index[other] = len(views)
+            collab_index[other] = len(views)
             views.append(dataclasses.replace(v, role="collaborator"))
-        t0 = time.perf_counter()
-        out = self.backbone.infer(views)
-        st.timings["backbone"] += time.perf_counter() - t0
-        if not isinstance(out, BackboneOutput) or len(out.valid) != len(views):
-            n = len(out.valid) if isinstance(out, BackboneOutput) else type(out).__name__
-            raise AlgorithmError(f"{self.s.where()}: backbone returned {n} views for {len(views)} given")
-        valid = np.asarray(out.valid, dtype=bool).copy()
-        for k in range(len(views)):
-            if valid[k] and not np.all(np.isfinite(out.T_frame_cam[k])):
-                valid[k] = False
-                out.reasons[k] = "non-finite pose"
-                self.s.degrade("backbone:non-finite-pose")
-        out.valid = valid
-        st.out = out
+        if self.late is not None and collab_index:  # the joint pass to the registrar; own views here
+            self.late.submit(st, views, collab_index)
+            views = views[:n_own]
+        else:
+            st.collab_index.update(collab_index)
+        with timed(st, "backbone"):
+            out = self.backbone.infer(views)
+        st.out = out = checked_output(out, len(views), self.s.where(), self.s.degrade)
         st.view = dataclasses.replace(st.view, memo=out.memos[0])  # travels with the frame if it is kept
         return out
 
@@ -283,9 +287,8 @@ class RobotAgent:
         done, d = st.depth_cache
         if done:
             return d
-        t0 = time.perf_counter()
-        d = self.depth.depth_m(st.view, st.context)
-        st.timings["scale"] += time.perf_counter() - t0
+        with timed(st, "scale"):
+            d = self.depth.depth_m(st.view, st.context)
         if d is not None:
             d = np.asarray(d, dtype=np.float32)
             if d.ndim != 2 or d.size == 0:
@@ -314,10 +317,9 @@ class RobotAgent:
         kfs = self.s.memory.newest_first()
         metric, idx = ([kf.depth_ref_m for kf in kfs], list(range(1, 1 + len(kfs)))) if kfs \
             else ([self._current_depth()], [0])
-        t0 = time.perf_counter()
-        est = recover_scale(metric, [out.depth[k] if out.valid[k] else None for k in idx],
-                            [out.depth_conf[k] for k in idx], min_pixels=self.config.scale.min_pixels)
-        st.timings["scale"] += time.perf_counter() - t0
+        with timed(st, "scale"):
+            est = recover_scale(metric, [out.depth[k] if out.valid[k] else None for k in idx],
+                                [out.depth_conf[k] for k in idx], min_pixels=self.config.scale.min_pixels)
         for _, reason in est.skipped:
             self.s.degrade(f"scale:skipped-{reason}")
         if est.ok:
@@ -469,7 +471,10 @@ class RobotAgent:
     def record(self) -> RobotRecord:
         st = self.s.step_state()
         self.s.last_step = st.step
+        if self.late is not None:
+            self.late.step_done(st)
         return RobotRecord(step=st.step, stamp_s=st.stamp_s, robot=self.robot_id, T_odom_cam=self.s.X.copy(),
                            scale=float(st.scale), n_keyframes=len(self.s.memory), keyframe=st.keyframe,
                            bytes_sent=dict(st.bytes_sent), timings_s={k: float(v) for k, v in st.timings.items()},
-                           degradations=list(st.degradations))
+                           degradations=list(st.degradations), cpu_s={k: float(v) for k, v in st.cpu.items()},
+                           parts_s={k: float(v) for k, v in st.parts.items()})

@@ -41,6 +41,18 @@ def via_to_current(st: StepState, via: int, X: np.ndarray) -> np.ndarray | None:
 
 def direct_estimates(st: StepState, other: str, X: np.ndarray,
                      degrade: Callable[[str], None]) -> tuple[list[Estimate], str]:
+    """This step's direct estimates of ``other`` (:func:`pass_estimates`); online by stamps, where the
+    peer's view was captured at another instant, each is moved by the peer's motion since
+    (``st.collab_motion``; None: unknown, so none, ``peer-motion-unknown``)."""
+    ests, why = pass_estimates(st, other, X, degrade)
+    if other not in st.collab_motion:
+        return ests, why
+    M = st.collab_motion[other]
+    return ([], "peer-motion-unknown") if M is None else ([(k, v, M @ T, n) for k, v, T, n in ests], why)
+
+
+def pass_estimates(st: StepState, other: str, X: np.ndarray,
+                   degrade: Callable[[str], None]) -> tuple[list[Estimate], str]:
     """This step's direct estimates of ``other`` from the robot's own pass and ``reason`` when none.
 
     Through the collaborator's registrations against single own views, most inliers first,

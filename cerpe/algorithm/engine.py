@@ -84,8 +84,7 @@ class StepEngine:
         got = self._book(link.gather(t, "descriptor", peers, self.wait_s))
         for p in got.gone:
             a.peer_gone(p)
-        for p in peers:
-            a.score_descriptor(p, got.message(p))  # the message: a coded one is decoded by the agent
+        a.score_descriptors({p: got.message(p) for p in peers})  # coded messages are decoded by the agent
         asked = {p: ImageRequest(a.index, t, self.index_of[p]).encode() for p in peers if a.wants_image(p)}
         replies = self._book(link.request(t, asked, self.wait_s))
         for _ in range(int(a.config.messages.request_retries)):  # a lost request or reply: ask once more

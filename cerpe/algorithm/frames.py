@@ -36,17 +36,19 @@ def grey_std(image: np.ndarray) -> float:
 
 
 def describe(descriptor: DescriptorEncoder, view: View, where: str,
-             min_image_std: float) -> tuple[np.ndarray, str, Counter]:
-    """``([D] float32 descriptor, why the frame is blank or "", stage timings)``.
+             min_image_std: float) -> tuple[np.ndarray, str, Counter, Counter]:
+    """``([D] float32 descriptor, why the frame is blank or "", stage wall seconds, stage CPU seconds)``.
 
     Blank: the descriptor flags it ``low-texture`` (``flags(view)``, when it has
     one), has zero norm, or the image's grey-level std is below ``min_image_std``
     (so every descriptor is covered, also one that returns a random unit vector
-    for a blank image).
+    for a blank image). The split into ``encode`` and ``descriptor`` is the
+    descriptor's own (``last_timings_s``, ``last_cpu_s``) when it gives one.
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     d = np.asarray(descriptor.describe(view), dtype=np.float32)
     split = getattr(descriptor, "last_timings_s", None)
+    split_cpu = getattr(descriptor, "last_cpu_s", None)
     flags = getattr(descriptor, "flags", None)
     low_texture = callable(flags) and "low-texture" in (flags(view) or ())
     dim = int(getattr(descriptor, "dim", d.size))
@@ -57,12 +59,18 @@ def describe(descriptor: DescriptorEncoder, view: View, where: str,
     blank = ("zero-norm" if not np.linalg.norm(d) > 0 else "low-texture" if low_texture
              else "low-std" if grey_std(view.image) < min_image_std else "")
     timings: Counter = Counter()
+    cpu: Counter = Counter()
     if isinstance(split, dict) and "encode" in split and "descriptor" in split:
         timings["encode"] += float(split["encode"])
         timings["descriptor"] += float(split["descriptor"])
     else:  # the whole call, flags and the texture check included
         timings["descriptor"] += time.perf_counter() - t0
-    return d, blank, timings
+    if isinstance(split_cpu, dict) and "encode" in split_cpu and "descriptor" in split_cpu:
+        cpu["encode"] += float(split_cpu["encode"])
+        cpu["descriptor"] += float(split_cpu["descriptor"])
+    else:
+        cpu["descriptor"] += time.thread_time() - c0
+    return d, blank, timings, cpu
 
 
 def intrinsics_tuple(K: CameraIntrinsics | None) -> tuple[float, float, float, float]:

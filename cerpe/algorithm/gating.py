@@ -7,17 +7,18 @@ dequantised values).
 """
 from __future__ import annotations
 
-import time
+from typing import Mapping, Sequence
+
 import numpy as np
 
-from ..memory import Keyframe, cosine
+from ..memory import Keyframe
 from ..messages import DescriptorMessage, decode
 from .direct import SHARED_VIA
 from .policy import AskLog, PairView, after_request, decide, skip_for_shared
 
 from ..compress import DescriptorCodec
 from .config import AlgorithmConfig
-from .state import PairInfo, RobotState
+from .state import PairInfo, RobotState, StepState, timed
 
 
 class Gate:
@@ -74,48 +75,65 @@ class Gate:
         received descriptor is also scored against every keyframe; the best of all
         (and the keyframe that gave it) opens the gate with ``gate.memory_aware``.
         """
+        return self.score_descriptors({other: descriptor})[other]
+
+    def score_descriptors(self, received: Mapping[str, np.ndarray | DescriptorMessage | None]) -> dict[str, float]:
+        """:meth:`score_descriptor` of every peer at once: the received descriptors are checked one by one
+        (faults counted in the order given), then scored against the current frame and every keyframe
+        in one matrix product (:func:`cosines`). Returns each peer's score of the current frame."""
         st = self.s.step_state()
-        t0 = time.perf_counter()
+        with timed(st, "gate", "gate_score"):
+            ready: dict[str, np.ndarray] = {}
+            for other, descriptor in received.items():
+                st.scores[other] = float("nan")
+                d, reason = self._received(st, other, descriptor)
+                if reason:
+                    st.gate_reason[other] = reason
+                else:
+                    ready[other] = d
+            if ready:
+                own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
+                kfs = self.s.memory.newest_first()
+                cos = cosines([own] + [self._keyframe_values(kf) for kf in kfs], list(ready.values()))
+                for p, other in enumerate(ready):
+                    st.scores[other] = score = float(cos[0, p])
+                    best = (score, -1)
+                    if kfs:  # the best keyframe over the current frame (ties: the newest), as memory_scores
+                        c = np.where(np.isnan(cos[1:, p]), -np.inf, cos[1:, p])
+                        k = int(np.argmax(c))
+                        if c[k] > score:
+                            best = (float(c[k]), kfs[k].step)
+                    st.memory_scores[other] = best
+        return {other: st.scores[other] for other in received}
+
+    def _received(self, st: StepState, other: str, descriptor: np.ndarray | DescriptorMessage | None
+                  ) -> tuple[np.ndarray | None, str]:
+        """``(values to score, "")`` of a received descriptor, or ``(None, reason)`` (faults counted)."""
         own = st.wire_descriptor if st.wire_descriptor is not None else st.descriptor
-        score, reason = float("nan"), ""
+        reason = ""
         if isinstance(descriptor, DescriptorMessage):
             descriptor, fault = self.received_values(descriptor)
             if fault:
                 self.s.degrade(f"descriptor:{fault}")
-                reason = f"descriptor-{fault}"
+                return None, f"descriptor-{fault}"
         fresh = descriptor is not None
-        if not reason and descriptor is None:  # lost: the peer's last one if recent, else the gate waits
+        if descriptor is None:  # lost: the peer's last one if recent, else the gate waits
             self.s.degrade("descriptor:missing")
             descriptor = self._recent_descriptor(other, st.step)
             if descriptor is None:
-                reason = "descriptor-missing"
-        if reason:
-            pass  # counted above
-        elif st.blank:
-            reason = "own-descriptor-degenerate"
-        else:
-            d = np.asarray(descriptor, dtype=np.float32).ravel()
-            if d.size != own.size:
-                self.s.degrade("descriptor:wrong-length")
-                reason = "descriptor-length-mismatch"
-            elif not np.all(np.isfinite(d)) or not np.any(d):
-                self.s.degrade("descriptor:other-zero-norm")
-                reason = "other-descriptor-degenerate"
-            else:
-                score = cosine(own, d)
-                if fresh:
-                    self.s.last_descriptors[other] = (st.step, d)
-                best = (score, -1)
-                for kf in self.s.memory.newest_first():
-                    c = cosine(self._keyframe_values(kf), d)
-                    if c > best[0]:
-                        best = (c, kf.step)
-                st.memory_scores[other] = best
-        st.scores[other] = score
-        if reason:
-            st.gate_reason[other] = reason
-        st.timings["gate"] += time.perf_counter() - t0
-        return score
+                return None, "descriptor-missing"
+        if st.blank:
+            return None, "own-descriptor-degenerate"
+        d = np.asarray(descriptor, dtype=np.float32).ravel()
+        if d.size != own.size:
+            self.s.degrade("descriptor:wrong-length")
+            reason = "descriptor-length-mismatch"
+        elif not np.all(np.isfinite(d)) or not np.any(d):
+            self.s.degrade("descriptor:other-zero-norm")
+            reason = "other-descriptor-degenerate"
+        elif fresh:
+            self.s.last_descriptors[other] = (st.step, d)
+        return (None, reason) if reason else (d, "")
 
     def peer_absent(self, other: str) -> None:
         """Online by stamps: ``other`` is not up; the gate stays closed (reason ``peer-absent``)."""
@@ -139,11 +157,16 @@ class Gate:
     def gate_open(self, other: str) -> bool:
         """``score >= gate_tau``: the current frame's score, or with ``gate.memory_aware`` the best over the keyframes
         too (``tau`` is ``gate.tau``, or the codec's own threshold with a compressed descriptor)."""
-        st = self.s.step_state()
+        s = self.gate_score(self.s.step_state(), other)
+        return bool(np.isfinite(s) and s >= self.tau)
+
+    def gate_score(self, st: StepState, other: str) -> float:
+        """The score the gate compares with ``tau``: the current frame's, or with ``gate_memory`` the best over
+        the keyframes too (NaN: none)."""
         s = st.scores.get(other, float("nan"))
         if self.config.gate.memory_aware and np.isfinite(s):
             s = st.memory_scores[other][0]
-        return bool(np.isfinite(s) and s >= self.tau)
+        return s
 
     def wants_image(self, other: str) -> bool:
         """Whether to request ``other``'s image this step: the gate and the request policy
@@ -152,16 +175,35 @@ class Gate:
         reason ``request-skipped: <rule>``); the pair then propagates its anchor."""
         st = self.s.step_state()
         gate = self.gate_open(other)
-        conf = self.config.policy
-        shares = bool(self.config.messages.share_estimates and conf.mode != "always")
-        view = self.pair_view(other, st.step) if conf.mode == "pays" or shares else None
-        ask, why = decide(conf, gate, view)
-        if ask and shares and skip_for_shared(view):
-            ask, why = False, "peer-shares"
+        ask, why = self._decide(st, other)
+        limit = int(self.config.policy.max_requests)
+        if ask and limit > 0 and self._request_rank(st).get(other, 0) >= limit:
+            ask, why = False, "max-requests"
         st.requested[other] = ask
         if gate and not ask:
             st.skipped[other] = why
         return ask
+
+    def _decide(self, st: StepState, other: str) -> tuple[bool, str]:
+        """The request policy's word on ``other`` this step, before the per-step limit."""
+        conf = self.config.policy
+        shares = bool(self.config.messages.share_estimates and conf.mode != "always")
+        view = self.pair_view(other, st.step) if conf.mode == "pays" or shares else None
+        ask, why = decide(conf, self.gate_open(other), view)
+        if ask and shares and skip_for_shared(view):
+            ask, why = False, "peer-shares"
+        return ask, why
+
+    def _request_rank(self, st: StepState) -> dict[str, int]:
+        """Rank of each scored peer the policy would ask this step, highest gate score first (ties and NaN
+        scores: in the order they were scored); ``policy.max_requests`` asks the first ones only."""
+        if st.request_rank is None:
+            order = list(st.scores)
+            wanted = [o for o in order if self._decide(st, o)[0]]
+            score = {o: self.gate_score(st, o) for o in wanted}
+            key = {o: (-score[o] if np.isfinite(score[o]) else np.inf, order.index(o)) for o in wanted}
+            st.request_rank = {o: r for r, o in enumerate(sorted(wanted, key=key.__getitem__))}
+        return st.request_rank
 
     def note_request(self, other: str, info: PairInfo) -> None:
         """After the pass: what the request to ``other`` brought (:func:`~cerpe.algorithm.policy.after_request`).
@@ -187,3 +229,19 @@ class Gate:
                         travelled_m=abs(odo[0] - a.odo_i) + abs(odo[1] - a.odo_j),
                         sigma_rot_rad=rot, sigma_pos_m=pos, **tries)
 
+
+
+def cosines(rows: Sequence[np.ndarray], cols: Sequence[np.ndarray]) -> np.ndarray:
+    """``[len(rows), len(cols)]`` cosine similarities of 1-D vectors of one length, in float64 and clipped
+    to [-1, 1]; NaN where either has zero or non-finite norm. What :func:`cerpe.memory.cosine` gives
+    for each pair, from one matrix product (equal to it within float rounding)."""
+    A = np.asarray(np.stack([np.asarray(r, np.float64).ravel() for r in rows]))
+    B = np.asarray(np.stack([np.asarray(c, np.float64).ravel() for c in cols]))
+    na, nb = np.linalg.norm(A, axis=1), np.linalg.norm(B, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos = np.clip((A @ B.T) / (na[:, None] * nb[None, :]), -1.0, 1.0)
+    bad_a = ~((na > 0) & np.isfinite(na))
+    bad_b = ~((nb > 0) & np.isfinite(nb))
+    cos[bad_a, :] = np.nan
+    cos[:, bad_b] = np.nan
+    return cos

@@ -93,6 +93,8 @@ class PolicyConfig(Group):
     recheck_rot_rad: float = knob(0.0, "pays: ask again while the estimate that set the anchor disagreed by more "
                                   "than this with what verified it (rad; 0: off)", low=0)
     recheck_limit: int = knob(0, "pays: at most this many such rechecks in a row (0 with a threshold: 1)", low=0)
+    max_requests: int = knob(2, "images requested per step at most, the peers with the highest gate scores "
+                                "first (0: no limit), count", low=0)
 
 
 @dataclass(frozen=True)

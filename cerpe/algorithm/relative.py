@@ -8,7 +8,6 @@ pair's anchor propagated with both odometries; with ``backend="graph"`` the pair
 """
 from __future__ import annotations
 
-import time
 from typing import Any, Mapping
 
 import numpy as np
@@ -22,10 +21,11 @@ from .bridge import PoseLog
 from .direct import REASON_SHARED, SHARED_VIA, direct_estimates, estimate_message, shared_estimate
 from .graph import DirectEstimate, PairGraph, graph_model
 from .poses import check_pose
-from .state import PairInfo, RobotState, StepState
+from .state import PairInfo, RobotState, StepState, timed
 
 from .config import AlgorithmConfig
 from .gating import Gate
+from .late import LateRegistrations
 
 # reasons that describe the switch's anchors only (the graph keeps every direct estimate)
 _SWITCH_ONLY = frozenset({"no-anchor", "unverified", "unverified-expired", "unverified-held", "direct-rejected",
@@ -38,8 +38,9 @@ class Relative:
     reads its ``rel_sigma``), ``gate``: its :class:`~cerpe.algorithm.gating.Gate` (was the gate open,
     what did the request bring)."""
 
-    def __init__(self, state: RobotState, config: AlgorithmConfig, depth: Any, gate: Gate) -> None:
-        self.s, self.config, self.depth, self.gate = state, config, depth, gate
+    def __init__(self, state: RobotState, config: AlgorithmConfig, depth: Any, gate: Gate,
+                 late: LateRegistrations | None = None) -> None:
+        self.s, self.config, self.depth, self.gate, self.late = state, config, depth, gate, late
 
     # ---------------------------------------------------------------- 8. relative poses
     def note_pose(self, other: str, step: int, X_j: np.ndarray) -> None:
@@ -76,7 +77,7 @@ class Relative:
         holds none, so that a peer waiting for it need not wait out its deadline."""
         st = self.s.step_state()
         best = {}
-        for other in st.collab_index:
+        for other in list(st.collab_index) + [o for o in st.landed if o not in st.collab_index]:
             ests, _ = self._directs(st, other)
             if ests and other in index_of:
                 best[int(index_of[other])] = ests[0]
@@ -99,24 +100,21 @@ class Relative:
             self.s.shared_steps[other] = st.step
 
     def _directs(self, st: StepState, other: str) -> tuple[list, str]:
-        """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step."""
+        """:func:`~cerpe.algorithm.direct.direct_estimates` of ``other``, once per step; with a registrar,
+        those of the registration that landed this step, carried to it (:mod:`~cerpe.algorithm.late`)."""
         if other not in st.directs:
-            ests, why = direct_estimates(st, other, self.s.X, self.s.degrade)
-            if other in st.collab_motion:  # online by stamps: the peer's view was captured at another time
-                M = st.collab_motion[other]  # None: how far the peer moved since is unknown
-                ests, why = (([], "peer-motion-unknown") if M is None
-                             else ([(k, v, M @ T, n) for k, v, T, n in ests], why))
-            st.directs[other] = (ests, why)
+            landed = st.landed.get(other)
+            if landed is not None and self.late is not None:
+                st.directs[other] = self.late.bring_forward(st, other, landed)
+            else:
+                st.directs[other] = direct_estimates(st, other, self.s.X, self.s.degrade)
         return st.directs[other]
 
     def relative(self, other: str) -> tuple[str, np.ndarray | None, str, int]:
         """This step's estimate of ``T_cj_ci`` for robot ``other``: ``(source, T or None, reason, anchor_step)``."""
         st = self.s.step_state()
-        t0 = time.perf_counter()
-        try:
+        with timed(st, "propagation"):
             return self._relative(st, other)
-        finally:
-            st.timings["propagation"] += time.perf_counter() - t0
 
     def pair_record(self, other: str, bytes_pair: int = 0) -> PairRecord:
         """This step's :class:`~cerpe.records.PairRecord` about ``other`` (calls :meth:`relative`)."""
@@ -127,7 +125,9 @@ class Relative:
             switch = (source, T, reason, anchor_step)
             source, T, reason, anchor_step, cov = self._graph_relative(st, other, switch)
         info = st.pair_info.get(other, PairInfo())
-        if st.requested.get(other):  # what the request policy reads: did the image place, did it set the anchor?
+        # what the request policy reads: did the image place, did it set the anchor? (a registration
+        # apart from the step: when it lands)
+        if other in st.landed or (st.requested.get(other) and other not in st.pending_peers):
             self.gate.note_request(other, info)
         best, via = st.memory_scores.get(other, (float("nan"), -1))
         return PairRecord(step=st.step, stamp_s=st.stamp_s, ego=self.s.robot_id, other=other,
@@ -152,8 +152,12 @@ class Relative:
         the switch does, with the switch's translation direction and its own rotation (translation
         covariance unknown: NaN). So it is never worse than the estimates it fuses.
         """
+        with timed(st, "graph"):
+            return self._graph_step(st, other, switch)
+
+    def _graph_step(self, st: StepState, other: str,
+                    switch: tuple) -> tuple[str, np.ndarray | None, str, int, np.ndarray | None]:
         metric = bool(getattr(self.depth, "metric", True))
-        t0 = time.perf_counter()
         info = st.pair_info.get(other, PairInfo())
         graph = self.s.graphs.get(other)
         if graph is None:
@@ -165,7 +169,6 @@ class Relative:
                                  depth_rel_sigma=getattr(self.depth, "rel_sigma", None)))
         res = graph.step(st.step, self.s.X, None if pose is None else pose[1], -1 if pose is None else pose[0],
                          direct, own_ok=st.ego_status in ("ok", "first", "external"), stamp_s=st.stamp_s)
-        st.timings["graph"] += time.perf_counter() - t0
         for what in res.degradations:
             self.s.degrade(what)
         if res.cov is not None:  # what the request policy reads at the next gate
@@ -205,6 +208,8 @@ class Relative:
         # the peer's estimate (share_estimates) only while the pair's anchor (if any) is not this robot's own:
         # it stands in where this robot cannot place the peer, it does not replace what this robot measured
         asked, shared = st.requested.get(other, self.gate.gate_open(other)), st.shared.get(other)
+        late = other in st.landed and st.landed[other].step < st.step  # landed from an earlier step
+        asked = asked or other in st.landed
         if pair.anchor is not None and not any(pair.anchor is a for a in self.s.shared_anchors.get(other, ())):
             shared = None
         if asked or shared is not None:
@@ -235,7 +240,8 @@ class Relative:
                                                   if a is pair.anchor or st.step - a.step <= keep] + [est]
                 if not self.config.anchors.verify:  # the paper: every direct estimate is the new anchor
                     pair.anchor, info.verdict = est, "unchecked"
-                    return "direct", T, REASON_SHARED if via == SHARED_VIA else "", st.step
+                    return "direct", T, join(REASON_SHARED if via == SHARED_VIA else "",
+                                             "registration-late" if late else ""), st.step
                 others = [Anchor(st.step, T2, est.X_i, est.X_j, est.odo_i, est.odo_j, est.metric)
                           for k2, _, T2, _ in ests[1:] if k2 != ests[0][0]]
                 check = pair.offer(est, others)
@@ -253,7 +259,7 @@ class Relative:
                     reason = "direct-weak"
                 elif check.verdict not in NOT_REPORTED:  # accepted, verified, replaced, unverified
                     why = ("unverified" if check.verdict == "unverified" else "",
-                           REASON_SHARED if via == SHARED_VIA else "")
+                           REASON_SHARED if via == SHARED_VIA else "", "registration-late" if late else "")
                     return "direct", T, join(*why), st.step
                 else:
                     self.s.degrade("anchor:inconsistent")

@@ -3,9 +3,11 @@ a step (:class:`StepState`, dropped when the next begins); :class:`Previous` and
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -41,6 +43,7 @@ class StepState:
     pair_info: dict[str, "PairInfo"] = field(default_factory=dict)
     requested: dict[str, bool] = field(default_factory=dict)  # peer -> image asked (request policy)
     skipped: dict[str, str] = field(default_factory=dict)  # peer -> why the policy skipped an open gate
+    request_rank: dict[str, int] | None = None  # peer -> rank among those the policy asks (policy.max_requests)
     directs: dict[str, tuple[list, str]] = field(default_factory=dict)  # peer -> own direct estimates, reason
     shared: dict[str, tuple] = field(default_factory=dict)  # peer -> its estimate of this robot, as this robot's
     # online by stamps: peer -> T_cj(now)_cj(view), the peer camera's motion from its received view's capture
@@ -51,11 +54,35 @@ class StepState:
     metric_scale: bool = True  # False: s = 1 for want of metric depth (a depth source that never has any)
     ego_status: str = ""
     keyframe: bool = False
-    timings: Counter = field(default_factory=Counter)
+    timings: Counter = field(default_factory=Counter)  # wall seconds per stage
+    cpu: Counter = field(default_factory=Counter)  # CPU seconds per stage and part, of the thread that ran it
+    parts: Counter = field(default_factory=Counter)  # wall seconds of parts of stages (gate_score)
     degradations: list[str] = field(default_factory=list)
     bytes_sent: Counter = field(default_factory=Counter)
     reply_cache: ImageReply | None = None
     depth_cache: tuple[bool, np.ndarray | None] = (False, None)
+    # registrations apart from the step (cerpe.algorithm.late): peers whose image went to the registrar this
+    # step; peer -> what landed this step (Landed); whether this step collected
+    pending_peers: set[str] = field(default_factory=set)
+    landed: dict[str, Any] = field(default_factory=dict)
+    collected: bool = False
+
+
+@contextmanager
+def timed(st: StepState, stage: str, part: str = "") -> Iterator[None]:
+    """Add the wall (``perf_counter``) and CPU (``thread_time``: this thread's, so a worker's is not
+    counted here) seconds of the block to ``st``'s ``stage`` (a :data:`cerpe.records.STAGES` name), and
+    with ``part`` to that part of the stage too (``StepState.parts``, ``cpu``)."""
+    w, c = time.perf_counter(), time.thread_time()
+    try:
+        yield
+    finally:
+        dw, dc = time.perf_counter() - w, time.thread_time() - c
+        st.timings[stage] += dw
+        st.cpu[stage] += dc
+        if part:
+            st.parts[part] += dw
+            st.cpu[part] += dc
 
 
 @dataclass
@@ -113,6 +140,8 @@ class RobotState:
         pose_logs: peer -> poses seen (messages, replies): bridges a lost one.
         odometers: robot -> ``(step, position, metres travelled)``.
         kf_wire: keyframe step -> its codec values (the memory-aware gate with a compressed descriptor).
+        pending: step -> its registration job not landed yet (:class:`~cerpe.algorithm.late.Pending`).
+        registration_lateness: ``(steps, seconds)`` from submission to landing of every job that landed.
         last_step: the step of the last record (None before the first).
         cur: this step's :class:`StepState` (None between :meth:`begin` and the first step).
     """
@@ -136,6 +165,8 @@ class RobotState:
     pose_logs: dict[str, Any] = field(default_factory=dict)
     odometers: dict[str, tuple[int, np.ndarray, float]] = field(default_factory=dict)
     kf_wire: dict[int, np.ndarray] = field(default_factory=dict)
+    pending: dict[int, Any] = field(default_factory=dict)
+    registration_lateness: list[tuple[int, float]] = field(default_factory=list)
     last_step: int | None = None
     cur: StepState | None = None
 

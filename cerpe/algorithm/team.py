@@ -1,7 +1,7 @@
 """A team of robots in one process: N step engines over the in-process lossy channel."""
 from __future__ import annotations
 
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -13,6 +13,7 @@ from .agent import RobotAgent
 from .channel_link import ChannelHub
 from .config import AlgorithmConfig, AlgorithmError
 from .engine import StepEngine, drive
+from .registrar import Registrar
 
 
 class Team:
@@ -26,11 +27,15 @@ class Team:
         config: parameters; thresholds are resolved against the descriptor's
             calibration (see :class:`AlgorithmConfig`).
         channel: the medium; a lossless one by default.
+        registrar: makes each robot's registrar from the backbone (received images registered apart
+            from the step, landing when ready: :mod:`~cerpe.algorithm.late`); None: in the joint pass, every
+            estimate at the step it was requested for (Algorithm 1, ``cerpe run``).
     """
 
     def __init__(self, robot_ids: Sequence[str], descriptor: DescriptorEncoder, backbone: PoseBackbone,
                  depth: MetricDepthSource, config: AlgorithmConfig | None = None,
-                 channel: Channel | None = None) -> None:
+                 channel: Channel | None = None,
+                 registrar: Callable[[PoseBackbone], Registrar] | None = None) -> None:
         ids = [str(r) for r in robot_ids]
         if not ids or len(set(ids)) != len(ids) or len(ids) >= 2**16:
             raise AlgorithmError(f"team: robot ids must be unique and non-empty, got {ids}")
@@ -38,14 +43,27 @@ class Team:
         self.descriptor, self.backbone, self.depth = descriptor, backbone, depth
         self.config = (config or AlgorithmConfig()).resolved(getattr(descriptor, "thresholds", None))
         self.channel = channel if channel is not None else Channel()
+        self.make_registrar = registrar
+        self.registrars: list[Registrar] = []
         self.reset()
 
     def reset(self) -> None:
-        """Forget everything (memory, memos, odometry, anchors, frames in flight): a new encounter starts."""
+        """Forget everything (memory, memos, odometry, anchors, frames in flight, registrations): a new
+        encounter starts."""
+        self.close()
         hub = ChannelHub(self.channel, self.robot_ids)
-        self.agents = [RobotAgent(r, i, self.config, self.descriptor, self.backbone, self.depth)
+        make = self.make_registrar
+        self.registrars = [make(self.backbone) for _ in self.robot_ids] if make is not None else []
+        self.agents = [RobotAgent(r, i, self.config, self.descriptor, self.backbone, self.depth,
+                                  self.registrars[i] if self.registrars else None)
                        for i, r in enumerate(self.robot_ids)]
         self.engines = [StepEngine(a, hub.link(a.robot_id), self.robot_ids) for a in self.agents]
+
+    def close(self) -> None:
+        """Stop the robots' registration workers (none without a registrar)."""
+        for r in self.registrars:
+            r.close()
+        self.registrars = []
 
     def agent(self, robot_id: str) -> RobotAgent:
         for a in self.agents:

@@ -189,8 +189,10 @@ class XFeatSaladDescriptor:
         th = thresholds or default_thresholds()
         self.thresholds: dict[str, float] = {k: float(th[k]) for k in ("tau", "tau_m", "tau_k")}
         self._cache: LRUCache[tuple[np.ndarray, frozenset[str]]] = LRUCache(CACHE_SIZE)
-        # split of the last describe() call, read by cerpe.algorithm for its stage timings
+        # split of the last describe() call (wall; CPU of the calling thread), read by cerpe.algorithm for
+        # its stage timings
         self.last_timings_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
+        self.last_cpu_s: dict[str, float] = {"encode": 0.0, "descriptor": 0.0}
 
     def flags(self, view: View) -> frozenset[str]:
         """``{"low-texture"}`` when ``view``'s image has no usable texture (see the module
@@ -216,18 +218,19 @@ class XFeatSaladDescriptor:
         :attr:`last_timings_s`."""
         image = check_image(view.image, f"view {view.key!r}")
         ck = (view.key, content_key(image))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         hit = self._cache.get(ck)
         if hit is not None:
             if timed:
                 self.last_timings_s = {"encode": 0.0, "descriptor": time.perf_counter() - t0}
+                self.last_cpu_s = {"encode": 0.0, "descriptor": time.thread_time() - c0}
             return hit
-        t1 = t0
+        t1, c1 = t0, c0
         if grey_std(image) < BLANK_STD:
             d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         else:
             feats = self.encoder.encode(view)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.thread_time()
             try:
                 d, flags = self.centre(self.aggregate(feats, image)), frozenset()
             except DescriptorError:
@@ -237,6 +240,7 @@ class XFeatSaladDescriptor:
                 d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         if timed:
             self.last_timings_s = {"encode": t1 - t0, "descriptor": time.perf_counter() - t1}
+            self.last_cpu_s = {"encode": c1 - c0, "descriptor": time.thread_time() - c1}
         self._cache.put(ck, (d, flags))
         return d, flags
 

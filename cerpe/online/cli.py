@@ -98,6 +98,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--lockstep", action="store_true",
                    help="replay the manifest's team in lock-step rounds (every robot waits for its peers' frames "
                         "of each step): reproduces `cerpe run` exactly; on every robot or none")
+    g.add_argument("--registration", choices=("worker", "inline"), default="worker",
+                   help="worker (default): a peer's received image is registered on a worker thread and its "
+                        "estimate lands when ready, carried to the newest frame with both robots' odometry, so "
+                        "the robot keeps its pace; inline: in the frame's step (--lockstep always registers inline)")
     g.add_argument("--rate", type=float, default=node_defaults["rate_hz"],
                    help="--lockstep: replay rate in steps/s (default 0: as fast as the team allows)")
     g.add_argument("--use-odometry", action="store_true",
@@ -223,7 +227,7 @@ def main(args: argparse.Namespace) -> int:
                       method=args.method, preset=args.preset, seed=args.seed, overwrite=args.overwrite,
                       progress=not args.no_progress, sets=parse_sets(args.sets) or None, input=args.input,
                       robots=robots, speed=args.speed, use_odometry=args.use_odometry, ros_input=inp,
-                      stall_s=args.stall)
+                      stall_s=args.stall, registration=args.registration)
     print(f"run folder: {out}")
     if not done.peers_met:
         print(f"cerpe online: warning: robot {args.robot} never met any peer of its team {args.team!r}; "

@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any, Iterator, Mapping, NamedTuple
 
+import numpy as np
+
 from .. import knobs
 from ..atomicio import atomic_write_json, atomic_write_text, ensure_dir
 from ..config import merge_conf
@@ -134,23 +136,44 @@ def _roster(enc: Any, robots: list[str] | None, robot: str, manifest: Path | Non
     return ids
 
 
+REGISTRATIONS = ("worker", "inline")
+
+
+def _registration_report(registrar: Any, agent: Any) -> dict[str, Any]:
+    """What the robot's registrar did (empty when it registers in the step): its counts (submitted,
+    done, failed, dropped, worker restarts) and how late the landed estimates were, in steps and seconds."""
+    if registrar is None:
+        return {}
+    late = agent.s.registration_lateness
+    steps = [s for s, _ in late]
+    secs = [t for _, t in late]
+
+    def q(xs: list, p: float) -> float | None:
+        return float(np.percentile(xs, p)) if xs else None
+
+    return {**registrar.stats(), "landed": len(late), "late_steps_median": q(steps, 50), "late_steps_p90": q(steps, 90),
+            "late_s_median": q(secs, 50), "late_s_p90": q(secs, 90)}
+
+
 def run_online(manifest: Path | str | None, encounter: str | None, robot: str, out: Path | str, *,
                link_conf: Mapping[str, Any] | None = None, node_conf: Mapping[str, Any] | None = None,
                method: str = "cerpe", preset: str = "paper", seed: int = 0, overwrite: bool = False,
                progress: bool = True, setting: Any = None, plugins: Any = None, config: Any = None,
                sets: Mapping[str, Any] | None = None, input: str = "manifest", robots: list[str] | None = None,
                speed: float = 1.0, use_odometry: bool = False, ros_input: Mapping[str, Any] | None = None,
-               stall_s: float = 2.0) -> OnlineRun:
+               stall_s: float = 2.0, registration: str = "worker") -> OnlineRun:
     """Run robot ``robot`` online and write its run folder ``out`` (see the module docstring).
 
     ``link_conf``: options of :class:`~cerpe.online.zenoh_link.ZenohLink` (team, endpoints, mode,
     scouting, ``sync``); ``node_conf``: of :class:`~cerpe.online.node.RobotNode` (waits, ROS keys, TF);
-    ``ros_input``: of :class:`~cerpe.online.ros_input.RosInput` (topics). ``setting``, ``plugins`` (an
+    ``ros_input``: of :class:`~cerpe.online.ros_input.RosInput` (topics). ``registration``: ``worker``
+    registers a received image on a worker thread, its estimate landing when ready (by stamps only;
+    lock-step registers in the step, as ``cerpe run``), ``inline`` in the step. ``setting``, ``plugins`` (an
     object with ``descriptor``, ``backbone``, ``depth``) and ``config`` may be given instead of being
     loaded (tests, embedding). Raises a :class:`~cerpe.errors.CerpeError` naming the argument, file or
     endpoint at fault. A robot that never met any peer is logged as a warning (``peers_met`` empty).
     """
-    from ..algorithm import AlgorithmConfig, RobotAgent
+    from ..algorithm import AlgorithmConfig, RobotAgent, WorkerRegistrar
     from ..pipeline.cerpe_method import cerpe_plugins_and_config
     from ..pipeline.setting import load_manifest_setting
 
@@ -158,6 +181,8 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
         raise OnlineError(f"--method {method!r}: online runs support {list(CERPE_METHODS)}")
     if input not in INPUTS:
         raise OnlineError(f"--input {input!r}: expected one of {INPUTS}")
+    if registration not in REGISTRATIONS:
+        raise OnlineError(f"--registration {registration!r}: expected one of {REGISTRATIONS}")
     lconf, nconf = merge_conf(link_defaults, link_conf, "zenoh link conf"), dict(node_conf or {})
     if input == "manifest":  # a replay's stamps are the dataset's: one clock, nothing to map
         lconf["clock_tolerance_s"] = float("inf")
@@ -186,6 +211,7 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
     ensure_dir(write.check_out(out), "--out")  # before the link opens: an --out that cannot be written fails now
     link = ZenohLink(robot, roster, lconf)  # opens now: a bad endpoint fails before models load
     source: Any = None
+    registrar: Any = None
     try:
         if input == "ros":
             from .ros_input import RosInput
@@ -202,7 +228,9 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
             config = config if config is not None else AlgorithmConfig()
             mconf = {"tree": config_dict(knobs.as_dict(config)), "preset": "given", "plugins": "given"}
         k = roster.index(robot)
-        agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth)
+        if registration == "worker" and not lockstep:
+            registrar = WorkerRegistrar(plugins.backbone)
+        agent = RobotAgent(robot, k, config, plugins.descriptor, plugins.backbone, plugins.depth, registrar)
         node = RobotNode(agent, link, roster, conf=nconf)
         if input == "manifest" and not lockstep:
             from .sources import ManifestReplay
@@ -215,13 +243,16 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
     except BaseException:
         if source is not None and hasattr(source, "close"):
             source.close()
+        if registrar is not None:
+            registrar.close()
         link.close(0.0)
         raise
     run_conf = {"method": method, "preset": preset, "seed": int(seed), "setting": getattr(setting, "name", "live"),
                 "encounters": [name], "method_config": mconf, "code": code_hash(method),
                 "online": {"robot": robot, "team": link.team, "robots": list(roster), "input": input,
                            "link": config_dict(link.conf), "node": config_dict(node.conf),
-                           "speed": float(speed), "ros_input": config_dict(dict(getattr(source, "conf", {}) or {}))}}
+                           "speed": float(speed), "registration": "inline" if registrar is None else "worker",
+                           "ros_input": config_dict(dict(getattr(source, "conf", {}) or {}))}}
     record = {"method": method, "label": METHOD_LABELS[method] + " (online)",
               "metric_scale": depth_kind != "none", "manifest": str(manifest) if manifest else None,
               "seed": int(seed), "preset": preset, "setting": getattr(setting, "name", "live"), "zenoh_id": link.zid}
@@ -230,6 +261,8 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
     except BaseException:
         if hasattr(source, "close"):
             source.close()
+        if registrar is not None:
+            registrar.close()
         link.close(0.0)
         raise
     with folder, node:
@@ -262,8 +295,11 @@ def run_online(manifest: Path | str | None, encounter: str | None, robot: str, o
                 finally:
                     if hasattr(source, "close"):
                         source.close()
+                    if registrar is not None:
+                        registrar.close()
         report = {**node.report(), "wall_time_s": time.perf_counter() - t0,
-                  "input": dict(source.stats) if source is not None else {}}
+                  "input": dict(source.stats) if source is not None else {},
+                  "registration": _registration_report(registrar, agent)}
         atomic_write_json(out / name / "online.json", report)
         lost = {k: v for k, v in node.stats.items() if ":" in k}
         log.info("robot %s: %d steps, degradations %s", robot, report["n_steps"], lost or "none")

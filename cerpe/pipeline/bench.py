@@ -55,11 +55,13 @@ from typing import Any
 from ..atomicio import atomic_write_json, check_file_target
 from ..errors import CerpeError
 from .bench_graph import graph_latency
-from .bench_report import format_accuracy, format_graph, format_table
+from .bench_report import format_accuracy, format_graph, format_sweep, format_table
 from .bench_walk import bench_team, suite_accuracy
 from .paper import ROOT
 
 DEFAULT_MANIFEST = "datasets_manifest/synthetic-indoor.yaml"
+MAX_TEAM = 8  # the largest team the bench renders an encounter for
+TEAM_SEED = 7  # seed of that indoor-team encounter (not the paper-default suite's)
 
 
 class BenchError(CerpeError, ValueError):
@@ -74,13 +76,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="render these encounters of the paper-default suite in memory instead of "
                              "reading --manifest (e.g. synthetic-indoor:0 synthetic-cad:6)")
     parser.add_argument("--frames", type=int, default=None, help="frames per rendered encounter (--synth)")
-    parser.add_argument("--robots", type=int, nargs="+", default=[2, 3], help="team sizes to run (default: 2 3)")
+    parser.add_argument("--robots", type=int, nargs="+", default=[2, 3],
+                        help="team sizes to run (default: 2 3); a size beyond the manifest's encounters (up to "
+                             f"{MAX_TEAM}) runs every size on one rendered indoor-team encounter of that many robots")
     parser.add_argument("--steps", type=int, default=25, help="steps per team size (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=2, help="first steps left out of the statistics")
     parser.add_argument("--encounters", type=int, default=2, help="encounters to walk per team size")
     parser.add_argument("--all-encounters", action="store_true",
                         help="also walk every encounter of the suite, all steps, with all its robots, and print "
                              "the accuracy checks over the whole suite")
+    parser.add_argument("--registration", choices=("worker", "inline"), default="worker",
+                        help="worker (default): a received image is registered by a worker thread and its "
+                             "estimate lands when ready, as a robot online; inline: in the step's joint pass, "
+                             "as `cerpe run` (every estimate at its step)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--preset", default="paper", metavar="P",
@@ -106,9 +114,9 @@ def _check_args(args: argparse.Namespace) -> None:
                                ("--graph-seconds", args.graph_seconds, 1)):
         if value is not None and value < least:
             raise BenchError(f"{flag} {value}: must be >= {least}")
-    bad = [n for n in args.robots if n < 2]
+    bad = [n for n in args.robots if not 2 <= n <= MAX_TEAM]
     if bad:
-        raise BenchError(f"--robots {' '.join(map(str, args.robots))}: a team has at least 2 robots")
+        raise BenchError(f"--robots {' '.join(map(str, args.robots))}: a team has 2 to {MAX_TEAM} robots")
     if args.warmup >= args.steps:
         raise BenchError(f"--warmup {args.warmup} leaves none of --steps {args.steps} to measure; "
                          f"use fewer warm-up steps or more steps")
@@ -133,6 +141,16 @@ def _synth_specs(specs: list[str], suites: dict) -> list[tuple[str, int]]:
             raise BenchError(f"--synth {spec!r}: the paper-default suite has encounters 0..{n - 1} of {name}")
         out.append((name, int(index)))
     return out
+
+
+def _team_encounter(n: int, steps: int, width: int, height: int) -> Any:
+    """One indoor-team encounter of ``n`` robots, ``steps`` frames at 10 Hz, rendered in memory
+    (seed :data:`TEAM_SEED`)."""
+    from ..synth import render_encounter
+
+    print(f"bench: rendering an indoor-team encounter of {n} robots, {steps} frames at {width}x{height}", flush=True)
+    conf = {"n_robots": int(n), "n_frames": max(int(steps), 2), "fps": 10.0, "size": (int(width), int(height))}
+    return render_encounter("indoor-team", seed=TEAM_SEED, index=0, conf=conf, progress=True)
 
 
 def _load_encounters(args: argparse.Namespace) -> tuple[str, list, str | None, dict]:
@@ -183,12 +201,20 @@ def main(args: argparse.Namespace) -> int:
         return build_plugins(tree.backbone, depth=args.depth or metric_depth, depth_options=depth_conf)
 
     sizes = sorted({len(e.robots) for e in encounters})
-    for n in args.robots:
-        if not any(len(e.robots) >= n for e in encounters):
-            raise BenchError(f"{what} has no encounter with {n} robots (encounters have {sizes} robots)")
+    if max(args.robots) > max(sizes):  # a team sweep: every size on one encounter of the largest team
+        team = _team_encounter(max(args.robots), args.steps, args.width, args.height)
+        what = f"<in-memory: indoor-team seed {TEAM_SEED}, {len(team.robots)} robots, {team.n_steps} steps>"
+        encounters, metric_depth = [team], "sensor"
+        from ..synth import sensor_options
+
+        depth_conf = sensor_options("indoor-team") if args.depth_conf is None else depth_conf
     from ..threads import torch_threads
+    from ..algorithm import WorkerRegistrar
+
+    registrar = WorkerRegistrar if args.registration == "worker" else None
 
     print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}; {args.width}x{args.height}; "
+          f"registration {args.registration}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"torch threads {torch_threads()} "
           f"(CERPE_THREADS), OMP_NUM_THREADS="
           f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
@@ -196,16 +222,19 @@ def main(args: argparse.Namespace) -> int:
     results = []
     for n in args.robots:
         encs = [e for e in encounters if len(e.robots) >= n][: args.encounters]
-        results.append(bench_team(encs, n, fresh(), args.steps, args.warmup, args.width, args.height, tree))
+        results.append(bench_team(encs, n, fresh(), args.steps, args.warmup, args.width, args.height, tree,
+                                  registrar))
     plugins = fresh()
     d = plugins.descriptor
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
     report = {"manifest": what, "preset": args.preset, "sets": parse_sets(args.sets), "width": args.width,
-              "height": args.height,
+              "height": args.height, "registration": args.registration, "load_average": list(os.getloadavg()),
               "torch_threads": torch_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
     print(format_table(results, info))
+    if len(results) > 1:
+        print(format_sweep(results))
     report["graph"] = []
     for r in results:
         g = graph_latency(r["n_robots"], args.graph_seconds, direct_share=r["gate_open_ratio"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .bench_walk import OVERLAP_MIN
+from .bench_walk import OVERLAP_MIN, ROBOT_TARGET_P90_MS, TEAM_GROWTH_MAX
 from .evaluate import COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP
 
 def format_accuracy(a: dict[str, Any]) -> list[str]:
@@ -63,11 +63,37 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
                      f"per robot-step): team step median {ts['median']:.0f} ms, p90 {ts['p90']:.0f} ms"
                      f" over {ts['n']} steps{verdict}; peak RSS {r['peak_rss_mib']:.0f} MiB;"
                      f" gate open {100 * r['gate_open_ratio']:.0f} % of pairs")
-        lines.append(f"   {'stage (per robot-step)':<24}{'median ms':>10}{'p90 ms':>10}{'mean ms':>10}")
+        lines.append(f"   {'stage (per robot-step)':<24}{'median ms':>10}{'p90 ms':>10}{'mean ms':>10}"
+                     f"{'CPU med':>10}{'CPU p90':>10}{'CPU mean':>10}")
+        cpu = r.get("stage_cpu_ms", {})
         for s, v in r["stage_ms"].items():
-            lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
-        v = r["robot_step_ms"]
-        lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}")
+            c = cpu.get(s, {"median": float("nan"), "p90": float("nan"), "mean": float("nan")})
+            lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
+                         f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")
+        v, c = r["robot_step_ms"], r.get("robot_step_cpu_ms", r["robot_step_ms"])
+        lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
+                     f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")
+        g, gc = r.get("gate_score_ms"), r.get("gate_score_cpu_ms")
+        if g is not None:
+            lines.append(f"   {'  gate scoring (in gate)':<24}{g['median']:>10.3f}{g['p90']:>10.3f}{g['mean']:>10.3f}"
+                         f"{gc['median']:>10.3f}{gc['p90']:>10.3f}{gc['mean']:>10.3f}")
+        rt = r.get("robot_target_ms")
+        if rt is not None:
+            ok = v["median"] <= rt and v["p90"] <= ROBOT_TARGET_P90_MS
+            lines.append(f"   robot step targets: median <= {rt:.0f} ms, p90 <= {ROBOT_TARGET_P90_MS:.0f} ms: "
+                         f"{'met' if ok else 'NOT met'} (wall)")
+        if "process_cpu_ms_per_robot_step" in r:
+            lines.append(f"   process CPU per robot-step (every thread: workers', OpenCV's): "
+                         f"{r['process_cpu_ms_per_robot_step']:.1f} ms")
+        reg = r.get("registration")
+        if reg:
+            ls, lm = reg["late_steps"], reg["late_ms"]
+            lines.append(f"   registration apart from the step: {int(reg['submitted'])} jobs, {reg['landed']} landed "
+                         f"({reg['landed_late']} after their step; late steps median {ls['median']:.0f}, p90 "
+                         f"{ls['p90']:.0f}; submit-to-landing median {lm['median']:.0f} ms, p90 {lm['p90']:.0f} ms), "
+                         f"{int(reg['dropped'])} dropped, {int(reg['failed'])} failed, {int(reg['lost'])} lost, "
+                         f"{int(reg['restarts'])} worker restarts, {int(reg['unlanded_at_end'])} not landed at the end; "
+                         f"worker CPU {reg['worker_cpu_ms_per_robot_step']:.1f} ms per robot-step")
         lines.append(f"   {'bytes per robot-step':<24}{'median':>10}{'p90':>10}{'mean':>10}")
         for k, v in r["bytes_per_robot_step"].items():
             lines.append(f"   {k:<24}{v['median']:>10.0f}{v['p90']:>10.0f}{v['mean']:>10.0f}")
@@ -80,4 +106,26 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
         lines += format_accuracy(r["accuracy"])
     lines.append(f"descriptor: {descriptor_info['dim']} values; frame bytes " +
                  ", ".join(f"{k} {v}" for k, v in descriptor_info["wire_bytes"].items()))
+    return "\n".join(lines)
+
+
+def format_sweep(results: list[dict[str, Any]]) -> str:
+    """One line per team size: a robot's step (wall and CPU), bytes, gate scoring and lateness, and the
+    growth of the step from the smallest team (target: at most :data:`TEAM_GROWTH_MAX` times)."""
+    base = results[0]
+    lines = [f"== team sizes (per robot-step; growth: median wall against the {base['n_robots']}-robot team)",
+             f"   {'robots':>6}{'wall med':>10}{'wall p90':>10}{'CPU med':>9}{'CPU p90':>9}{'growth':>8}"
+             f"{'bytes':>9}{'score us':>10}{'late med':>9}{'late p90':>9}"]
+    for r in results:
+        v, c = r["robot_step_ms"], r.get("robot_step_cpu_ms", r["robot_step_ms"])
+        growth = v["median"] / base["robot_step_ms"]["median"]
+        reg = r.get("registration") or {}
+        late = reg.get("late_steps", {"median": float("nan"), "p90": float("nan")})
+        sc = r.get("gate_score_cpu_ms", {"median": float("nan")})
+        lines.append(f"   {r['n_robots']:>6}{v['median']:>10.1f}{v['p90']:>10.1f}{c['median']:>9.1f}{c['p90']:>9.1f}"
+                     f"{growth:>8.2f}{r['bytes_per_robot_step']['total']['mean']:>9.0f}{1000 * sc['median']:>10.0f}"
+                     f"{late['median']:>9.0f}{late['p90']:>9.0f}")
+    top = results[-1]["robot_step_ms"]["median"] / base["robot_step_ms"]["median"]
+    lines.append(f"   {results[-1]['n_robots']} robots against {base['n_robots']}: {top:.2f}x "
+                 f"(target <= {TEAM_GROWTH_MAX}x: {'met' if top <= TEAM_GROWTH_MAX else 'NOT met'})")
     return "\n".join(lines)

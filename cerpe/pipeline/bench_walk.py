@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import resource
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -18,6 +18,10 @@ from .paper import PAPER_NUMBERS
 
 # the paper's team update per robot count (never our measurement)
 TARGET_MS = {2: float(PAPER_NUMBERS["ms_2"]), 3: float(PAPER_NUMBERS["ms_3"])}
+# what a controller at 10 Hz asks of one robot's step at 640x480 (median, ms; the p90 asked: ROBOT_TARGET_P90_MS)
+ROBOT_TARGET_MS = {2: 100.0, 3: 120.0}
+ROBOT_TARGET_P90_MS = 150.0
+TEAM_GROWTH_MAX = 1.5  # a robot's step in the largest team at most this times its step in a team of two
 
 
 def _resize(image: np.ndarray, depth: np.ndarray | None, K: Any, w: int, h: int):
@@ -113,33 +117,44 @@ def _n_encoded(plugins: Any) -> int:
 
 
 def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
-         width: int, height: int, config: Any = None) -> dict[str, Any]:
+         width: int, height: int, config: Any = None, registrar: Callable | None = None) -> dict[str, Any]:
     """Walk ``encounters`` with an ``n_robots`` team (first ``steps`` steps, all when None) of
     configuration ``config`` (None: the paper's protocol, :class:`~cerpe.algorithm.AlgorithmConfig`).
+    ``registrar``: each robot's registrar from the backbone (received images registered apart from the
+    step, :class:`~cerpe.algorithm.WorkerRegistrar`); None: in the step's joint pass.
 
-    Returns latency (ms), bytes, ego-motion per robot id and direct rotation errors; the
-    plug-ins' caches are cleared first, so the figures are those of a cold start.
+    Returns latency (ms: wall, and CPU of the thread that ran each stage), bytes, ego-motion per robot
+    id, direct rotation errors and the registrations' lateness; the plug-ins' caches are cleared first,
+    so the figures are those of a cold start.
     """
     from tqdm.auto import tqdm
 
     from ..algorithm import Team
+    from ..algorithm.registrar import merge_stats
     from ..protocols import FrameContext
 
     _cold_start(plugins)
     enc0 = _n_encoded(plugins)
     team_ms: list[float] = []
+    team_cpu_ms: list[float] = []  # the whole process: every thread, workers' included
     stage_ms: dict[str, list[float]] = {s: [] for s in STAGES}
+    stage_cpu_ms: dict[str, list[float]] = {s: [] for s in STAGES}
     robot_ms: list[float] = []
+    robot_cpu_ms: list[float] = []
+    score_ms: list[float] = []
+    score_cpu_ms: list[float] = []
     bytes_kind: dict[str, list[int]] = {k: [] for k in ("descriptor", "pose", "request", "reply")}
     bytes_total: list[int] = []
     gate_open = pairs = robot_steps = all_robot_steps = gated_all = 0
     rot_direct: list[float] = []
     gate_rows: list[dict[str, Any]] = []
     ego: dict[str, list[dict[str, Any]]] = {}
+    lateness: list[tuple[int, float]] = []
+    reg_stats: list[dict[str, float]] = []
     for enc in encounters:
         robots = enc.robots[:n_robots]
         ids = [r.robot_id for r in robots]
-        team = Team(ids, plugins.descriptor, plugins.backbone, plugins.depth, config)
+        team = Team(ids, plugins.descriptor, plugins.backbone, plugins.depth, config, registrar=registrar)
         T = enc.n_steps if steps is None else min(enc.n_steps, steps)
         X: dict[str, list[np.ndarray]] = {r: [] for r in ids}
         for t in tqdm(range(T), desc=f"bench {n_robots} robots {enc.name}", unit="step", leave=False):
@@ -148,9 +163,9 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
                 img, d, K = _resize(r.image(t), r.depth_m(t), r.intrinsics, width, height)
                 imgs.append(img)
                 ctxs.append(FrameContext(r.robot_id, t, K, d, 0))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             res = team.step(imgs, ctxs)
-            dt = (time.perf_counter() - t0) * 1000
+            dt, dc = (time.perf_counter() - t0) * 1000, (time.process_time() - c0) * 1000
             all_robot_steps += len(res.robots)
             gated_all += sum(p.gate_open for p in res.pairs)
             for rec in res.robots:
@@ -167,11 +182,16 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             if t < warmup:
                 continue
             team_ms.append(dt)
+            team_cpu_ms.append(dc)
             robot_steps += len(res.robots)
             for rec in res.robots:
                 for s in STAGES:
                     stage_ms[s].append(1000 * float(rec.timings_s.get(s, 0.0)))
-                robot_ms.append(1000 * float(sum(rec.timings_s.values())))
+                    stage_cpu_ms[s].append(1000 * float(rec.cpu_s.get(s, 0.0)))
+                robot_ms.append(1000 * float(sum(rec.timings_s.get(s, 0.0) for s in STAGES)))
+                robot_cpu_ms.append(1000 * float(sum(rec.cpu_s.get(s, 0.0) for s in STAGES)))
+                score_ms.append(1000 * float(rec.parts_s.get("gate_score", 0.0)))
+                score_cpu_ms.append(1000 * float(rec.cpu_s.get("gate_score", 0.0)))
                 for k in bytes_kind:
                     bytes_kind[k].append(int(rec.bytes_sent.get(k, 0)))
                 bytes_total.append(rec.bytes_total)
@@ -179,9 +199,15 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
             pairs += len(res.pairs)
         for r in robots:
             ego.setdefault(r.robot_id, []).append(_ego_steps(X[r.robot_id], r.T_world_cam[:T]))
-    return {"team_ms": team_ms, "stage_ms": stage_ms, "robot_ms": robot_ms, "bytes_kind": bytes_kind,
-            "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs, "rot_direct": rot_direct,
-            "gate_rows": gate_rows,
+        lateness += [x for a in team.agents for x in a.s.registration_lateness]
+        unlanded = sum(len(a.s.pending) for a in team.agents)
+        reg_stats.append({**merge_stats([r.stats() for r in team.registrars]), "unlanded_at_end": unlanded})
+        team.close()
+    return {"team_ms": team_ms, "team_cpu_ms": team_cpu_ms, "stage_ms": stage_ms, "stage_cpu_ms": stage_cpu_ms,
+            "robot_ms": robot_ms, "robot_cpu_ms": robot_cpu_ms, "score_ms": score_ms, "score_cpu_ms": score_cpu_ms,
+            "bytes_kind": bytes_kind, "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs,
+            "rot_direct": rot_direct, "gate_rows": gate_rows, "lateness": lateness,
+            "registration": merge_stats(reg_stats) if registrar is not None else None,
             "ego": ego, "xfeat_passes": _n_encoded(plugins) - enc0, "robot_steps": robot_steps,
             "all_robot_steps": all_robot_steps, "cross": _cross_counts(plugins, gated_all)}
 
@@ -196,6 +222,9 @@ def _cross_counts(plugins: Any, gated: int) -> dict[str, int]:
 def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
     """Statistics of one :func:`walk` (the figures ``format_table`` prints)."""
     rs = max(w["all_robot_steps"], 1)  # XFeat passes are counted over warm-up steps too
+    n = max(w["robot_steps"], 1)
+    reg = w.get("registration")
+    late = w.get("lateness") or []
     return {
         "n_robots": n_robots,
         "accuracy": {
@@ -204,22 +233,33 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
         },
         "team_step_ms": median_p90(w["team_ms"]),
         "robot_step_ms": median_p90(w["robot_ms"]),
+        "robot_step_cpu_ms": median_p90(w["robot_cpu_ms"]),
+        # the process's CPU per robot-step: every thread (registration workers, OpenCV's) included
+        "process_cpu_ms_per_robot_step": float(np.sum(w["team_cpu_ms"])) / n,
         "stage_ms": {s: median_p90(v) for s, v in w["stage_ms"].items()},
+        "stage_cpu_ms": {s: median_p90(v) for s, v in w["stage_cpu_ms"].items()},
+        "gate_score_ms": median_p90(w["score_ms"]),
+        "gate_score_cpu_ms": median_p90(w["score_cpu_ms"]),
         "bytes_per_robot_step": {k: median_p90(v) for k, v in w["bytes_kind"].items()} | {"total": median_p90(w["bytes_total"])},
         "gate_open_ratio": w["gate_open"] / w["pairs"] if w["pairs"] else float("nan"),
         # XFeat network passes per robot-step (own image + received images): > 0 means the
         # encoder really ran, i.e. the run did not reuse features cached by an earlier one
         "xfeat_passes_per_robot_step": w["xfeat_passes"] / rs,
         "cross": w["cross"],
+        "registration": None if reg is None else {
+            **reg, "worker_cpu_ms_per_robot_step": 1000 * reg.get("worker_cpu_s", 0.0) / rs,
+            "late_steps": median_p90([s for s, _ in late]), "late_ms": median_p90([1000 * x for _, x in late]),
+            "landed_late": int(sum(s > 0 for s, _ in late)), "landed": len(late)},
         "target_ms": TARGET_MS.get(n_robots),
+        "robot_target_ms": ROBOT_TARGET_MS.get(n_robots),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
 
 
 def bench_team(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmup: int,
-               width: int, height: int, config: Any = None) -> dict[str, Any]:
+               width: int, height: int, config: Any = None, registrar: Callable | None = None) -> dict[str, Any]:
     """Walk ``encounters`` cold with an ``n_robots`` team; latency/bytes/accuracy statistics."""
-    return summarise(walk(encounters, n_robots, plugins, steps, warmup, width, height, config), n_robots)
+    return summarise(walk(encounters, n_robots, plugins, steps, warmup, width, height, config, registrar), n_robots)
 
 
 def suite_accuracy(encounters: list, plugins: Any, width: int, height: int, config: Any = None) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from .renderer import render
 log = logging.getLogger(__name__)
 
 WORLDS = ("cad-intersection", "indoor-team")
+MAX_ROBOTS = 8  # robots of one encounter at most (a team of eight: `cerpe bench --robots 2 3 5 8`)
 
 
 def check_conf(world: str, conf: dict) -> None:
@@ -34,8 +35,8 @@ def check_conf(world: str, conf: dict) -> None:
         raise SynthError(f"size {W}x{H}: width and height must be between 16 and 4096 pixels")
     if not 2 <= int(conf.get("n_frames", 0)) <= 2000:
         raise SynthError(f"n_frames {conf.get('n_frames')}: must be between 2 and 2000")
-    if not 2 <= int(conf.get("n_robots", 0)) <= 6:
-        raise SynthError(f"n_robots {conf.get('n_robots')}: must be between 2 and 6")
+    if not 2 <= int(conf.get("n_robots", 0)) <= MAX_ROBOTS:
+        raise SynthError(f"n_robots {conf.get('n_robots')}: must be between 2 and {MAX_ROBOTS}")
     if not 0.5 <= float(conf.get("fps", 0)) <= 60:
         raise SynthError(f"fps {conf.get('fps')}: must be between 0.5 and 60")
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from ...geometry import se3_inverse
 from ...protocols import BLANK_STD, BackboneOutput, View
+from ..cache import LRUCache
 from ..config import OfflineConfig
 from ..xfeat import ImageInputError, XFeatEncoder, check_image, shared_encoder
 from . import cross as cross_mod
@@ -40,6 +41,7 @@ from .two_view import MIN_MATCHES, bootstrap, merge_image_only, two_view_with_sc
 
 
 MATCH_CACHE_SIZE = 256  # matched image pairs kept (LRU by both images' content)
+GREY_CACHE_SIZE = 48  # blurred grey images kept (LRU by content and blur), about a memory's views at two blurs
 
 
 class OfflineGeometryBackbone:
@@ -72,6 +74,7 @@ class OfflineGeometryBackbone:
         self.conf = conf or OfflineConfig()
         self.encoder = encoder or shared_encoder(self.conf.keypoints)
         self.matcher = PairMatcher(MIN_COSSIM, RATIO, MATCH_CACHE_SIZE)
+        self.greys: LRUCache[np.ndarray] = LRUCache(GREY_CACHE_SIZE)
         self.counts: Counter[str] = Counter()
         self._learned = learned
 
@@ -84,6 +87,7 @@ class OfflineGeometryBackbone:
     def clear_caches(self) -> None:
         """Forget cached matches and learned features (a cold start; XFeat features live in the encoder's cache)."""
         self.matcher.clear()
+        self.greys.clear()
         if self._learned is not None and callable(getattr(self._learned, "clear_cache", None)):
             self._learned.clear_cache()
 
@@ -124,7 +128,7 @@ class OfflineGeometryBackbone:
         p = Pass(views=views, feats=feats, Ks=[None if i is None else i.K for i in intr],
                  cams=[None if i is None else pinhole_camera(i) for i in intr],
                  low_tex=[f.grey_std < BLANK_STD for f in feats], conf=self.conf,
-                 matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref)
+                 matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref, greys=self.greys)
         own = [s for s in range(S) if not is_collab[s]]
         rec, reasons = self._solve_own(p, own)
         cross_mod.check_joint_placements(p, rec, [s for s in own if views[s].role == "collaborator"], reasons)

@@ -28,6 +28,7 @@ from typing import Any, Hashable, Mapping, Sequence
 import numpy as np
 
 from ...protocols import BackboneError, View
+from ..cache import LRUCache
 from ..config import OfflineConfig
 from ..xfeat import XFeatFeatures
 from .matching import PairMatcher
@@ -114,6 +115,9 @@ class Pass:
     # the current view's (a, m) once measured
     scale_ref: float | None = None
     log_scale_out: tuple[float, float] | None = None
+    # blurred grey images by (content key, sigma): the vote, the frame scale and the appearance check
+    # read the same ones many times a pass, and a keyframe's again in every later pass
+    greys: LRUCache | None = None
 
     def subset(self, idx: Sequence[int]) -> "Pass":
         """A pass over views ``idx`` of this one (same matcher, timings and counters)."""
@@ -121,7 +125,25 @@ class Pass:
                     Ks=[self.Ks[s] for s in idx], cams=[self.cams[s] for s in idx],
                     low_tex=[self.low_tex[s] for s in idx], conf=self.conf, matcher=self.matcher,
                     memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts,
-                    scale_ref=self.scale_ref)
+                    scale_ref=self.scale_ref, greys=self.greys)
+
+    def grey(self, k: int, sigma: float) -> np.ndarray:
+        """``[H,W] float32`` grey image of view ``k`` blurred with ``sigma`` px (none at 0), read-only;
+        cached by the view's content key."""
+        import cv2
+
+        from ..rgbd_align import grey_image
+
+        key = (self.feats[k].fingerprint, float(sigma)) if k < len(self.feats) and self.feats[k].fingerprint else None
+        g = self.greys.get(key) if key is not None and self.greys is not None else None
+        if g is None:
+            g = grey_image(self.views[k].image)
+            if sigma > 0:
+                g = cv2.GaussianBlur(g, (0, 0), float(sigma))
+            g.setflags(write=False)
+            if key is not None and self.greys is not None:
+                self.greys.put(key, g)
+        return g
 
     def m(self, a: int, b: int) -> np.ndarray:
         """``[M,2]`` keypoint index pairs between views ``a`` and ``b`` (empty for low texture)."""

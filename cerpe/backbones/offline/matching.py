@@ -34,32 +34,38 @@ def match_mnn(desc0: np.ndarray, desc1: np.ndarray, min_cossim: float = MIN_COSS
 
     Returns:
         ``[M,2] int64`` index pairs ``(i0, i1)``, sorted by ``i0``.
+
+    The similarity matrix is one float32 product; the best and second-best of each row and of
+    each matched column come from row/column maxima (``argmax`` along rows, ``max`` along
+    columns, the best entries masked for the second): far cheaper than a top-k on both axes,
+    which needs a transposed copy of the matrix, and the same values.
     """
     if len(desc0) == 0 or len(desc1) == 0:
         return np.zeros((0, 2), np.int64)
     import torch
 
-    with torch.inference_mode():
-        sim = torch.from_numpy(np.ascontiguousarray(desc0, np.float32)) @ torch.from_numpy(
-            np.ascontiguousarray(desc1, np.float32)).T
-        k0 = min(2, sim.shape[1])
-        k1 = min(2, sim.shape[0])
-        top01, idx01 = torch.topk(sim, k0, dim=1)
-        # top-k along rows of a contiguous transpose: torch's column-wise topk is slower
-        top10, idx10 = torch.topk(sim.T.contiguous(), k1, dim=1)
-        top10, idx10 = top10.T, idx10.T
-        nn01 = idx01[:, 0].numpy()
-        nn10 = idx10[0, :].numpy()
-        best = top01[:, 0].numpy().astype(np.float64)
-        i0 = np.arange(len(desc0))
-        keep = (nn10[nn01] == i0) & (best > min_cossim)
-        if ratio < 1.0 and k0 == 2 and k1 == 2:
-            # distances of unit vectors: d^2 = 2 - 2 cos
-            second01 = top01[:, 1].numpy().astype(np.float64)
-            second10 = top10[1, :].numpy().astype(np.float64)[nn01]
-            d_best = np.sqrt(np.maximum(2 - 2 * best, 0))
-            keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second01, 0))
-            keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second10, 0))
+    with torch.inference_mode():  # the product as before: the same float32 similarities
+        sim = (torch.from_numpy(np.ascontiguousarray(desc0, np.float32)) @ torch.from_numpy(
+            np.ascontiguousarray(desc1, np.float32)).T).numpy()
+    i0 = np.arange(sim.shape[0])
+    nn01 = sim.argmax(axis=1)
+    best32 = sim[i0, nn01]
+    col_best = sim.max(axis=0)
+    mutual = best32 >= col_best[nn01]  # row i0 is the best of its best column
+    best = best32.astype(np.float64)
+    keep = mutual & (best > min_cossim)
+    if ratio < 1.0 and sim.shape[0] >= 2 and sim.shape[1] >= 2:
+        # the second best of every row: its best masked; of every matched column: only the
+        # mutual entries masked (a column's best is its mutual row's)
+        sim[i0, nn01] = -np.inf
+        second01 = sim.max(axis=1).astype(np.float64)
+        other = ~mutual
+        sim[i0[other], nn01[other]] = best32[other]
+        second10 = sim.max(axis=0).astype(np.float64)[nn01]
+        # distances of unit vectors: d^2 = 2 - 2 cos
+        d_best = np.sqrt(np.maximum(2 - 2 * best, 0))
+        keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second01, 0))
+        keep &= d_best < ratio * np.sqrt(np.maximum(2 - 2 * second10, 0))
     return np.stack([i0[keep], nn01[keep]], axis=1).astype(np.int64)
 
 
@@ -208,9 +214,12 @@ def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, in
     out = np.zeros(len(uv))
     ok = n >= min_valid
     if ok.any():
-        w = win[ok]
-        z = np.nanmedian(w, axis=1)
-        spread = (np.nanmax(w, axis=1) - np.nanmin(w, axis=1)) / z
+        # the median, max and min of the known values of each row from one sort (NaN sorts last):
+        # the values np.nanmedian / nanmax / nanmin give, several times faster
+        w = np.sort(win[ok], axis=1)
+        nv, r = n[ok], np.arange(int(ok.sum()))
+        z = (w[r, (nv - 1) // 2] + w[r, nv // 2]) / 2
+        spread = (w[r, nv - 1] - w[r, 0]) / z
         out[np.flatnonzero(ok)] = np.where(spread <= edge_tol, z, 0.0)
     return out
 

@@ -17,7 +17,6 @@ from typing import Sequence
 
 import numpy as np
 
-from ..rgbd_align import grey_image
 from .context import VOTE_CHAIN_HOPS, Pass
 from .matching import map_index, pixels_to_rays
 
@@ -206,11 +205,8 @@ def photometric_agreements(p: Pass, a: int, b: int, T_b_a: np.ndarray, highpass_
 
 
 def blurred_greys(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarray]:
-    """Grey images of ``views``, blurred with ``sigma`` px (none at 0)."""
-    import cv2
-
-    return [cv2.GaussianBlur(grey_image(p.views[k].image), (0, 0), sigma) if sigma > 0
-            else grey_image(p.views[k].image) for k in views]
+    """Grey images of ``views``, blurred with ``sigma`` px (none at 0); read-only (:meth:`Pass.grey`)."""
+    return [p.grey(k, sigma) for k in views]
 
 
 def grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
