@@ -219,6 +219,9 @@ class PoseBackbone(Protocol):
 
     def infer(self, views: Sequence[View]) -> BackboneOutput: ...
 
+    # Optional: ``serve_robots(n)``, called by a team of ``n`` robots sharing one backbone in one
+    # process, lets per-image caches grow with the team; it must not change any result.
+
 
 @runtime_checkable
 class MetricDepthSource(Protocol):

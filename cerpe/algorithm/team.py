@@ -41,6 +41,8 @@ class Team:
             raise AlgorithmError(f"team: robot ids must be unique and non-empty, got {ids}")
         self.robot_ids = ids
         self.descriptor, self.backbone, self.depth = descriptor, backbone, depth
+        if callable(getattr(backbone, "serve_robots", None)):  # the robots share its caches
+            backbone.serve_robots(len(ids))
         self.config = (config or AlgorithmConfig()).resolved(getattr(descriptor, "thresholds", None))
         self.channel = channel if channel is not None else Channel()
         self.make_registrar = registrar

@@ -65,6 +65,11 @@ class LRUCache(Generic[V]):
             while len(self._data) > self.maxsize:
                 self._data.popitem(last=False)
 
+    def reserve(self, maxsize: int) -> None:
+        """Keep at least ``maxsize`` entries from now on (never fewer than before)."""
+        with self._lock:
+            self.maxsize = max(self.maxsize, int(maxsize))
+
     def clear(self) -> None:
         with self._lock:
             self._data.clear()

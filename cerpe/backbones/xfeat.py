@@ -158,6 +158,11 @@ class XFeatEncoder:
     def clear_cache(self) -> None:
         self._cache.clear()
 
+    def serve_robots(self, n_robots: int) -> None:
+        """Robots of one process share this encoder: keep :data:`CACHE_PER_ROBOT` images each, so that a
+        team's memories do not push each other's features out (a hit equals a recomputation)."""
+        self._cache.reserve(int(n_robots) * CACHE_PER_ROBOT)
+
     # ------------------------------------------------------------------ encoding
     def encode(self, view: View) -> XFeatFeatures:
         """Features of ``view.image``, from the cache when the same pixels were encoded before.
@@ -316,6 +321,7 @@ def _quadratic_offsets(heat: "torch.Tensor", pos: "torch.Tensor") -> "torch.Tens
     return torch.where(interior[:, None], off, torch.zeros_like(off))
 
 
+CACHE_PER_ROBOT = 32  # encoded images kept per robot served (a memory's keyframes, received views, the descriptor's frames)
 _SHARED: dict[tuple, XFeatEncoder] = {}
 _SHARED_LOCK = threading.Lock()
 

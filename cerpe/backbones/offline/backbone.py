@@ -42,6 +42,8 @@ from .two_view import MIN_MATCHES, bootstrap, merge_image_only, two_view_with_sc
 
 MATCH_CACHE_SIZE = 256  # matched image pairs kept (LRU by both images' content)
 GREY_CACHE_SIZE = 48  # blurred grey images kept (LRU by content and blur), about a memory's views at two blurs
+MATCH_CACHE_PER_ROBOT = 128  # matched pairs kept per robot when a team shares the backbone (serve_robots)
+GREY_CACHE_PER_ROBOT = 24  # blurred grey images kept per robot when a team shares the backbone
 
 
 class OfflineGeometryBackbone:
@@ -83,6 +85,16 @@ class OfflineGeometryBackbone:
         if self._learned is None:
             self._learned = cross_mod.LearnedMatcher(self.conf.cross)
         return self._learned
+
+    def serve_robots(self, n_robots: int) -> None:
+        """``n_robots`` robots of one process share this backbone (a team in one process): its caches
+        and the encoder's grow to hold each robot's working set, so that a larger team does not
+        recompute what a smaller one finds cached. Results do not change (a hit equals a recomputation)."""
+        n = max(int(n_robots), 1)
+        self.matcher.cache.reserve(n * MATCH_CACHE_PER_ROBOT)
+        self.greys.reserve(n * GREY_CACHE_PER_ROBOT)
+        if callable(getattr(self.encoder, "serve_robots", None)):
+            self.encoder.serve_robots(n)
 
     def clear_caches(self) -> None:
         """Forget cached matches and learned features (a cold start; XFeat features live in the encoder's cache)."""
