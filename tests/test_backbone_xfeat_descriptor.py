@@ -236,6 +236,19 @@ def test_nms_gives_kornias_keypoints():
     assert torch.equal(got, want)
 
 
+@pytest.mark.parametrize("hw", [(480, 640), (64, 96), (33, 70), (250, 333)])
+def test_resize_to_multiples_of_32_is_kornias(encoder, hw):
+    """Sides already multiples of 32 skip XFeat's resize, which there is the identity; others
+    are resized by it: the same tensor and ratios either way."""
+    import torch
+
+    from cerpe.backbones.xfeat import _resize_to_32
+
+    x = torch.rand(1, 3, *hw, generator=torch.Generator().manual_seed(1))
+    want, got = encoder.model._preprocess_tensor(x), _resize_to_32(encoder.model, x)
+    assert torch.equal(got[0], want[0]) and got[1:] == want[1:]
+
+
 def test_fast_cpu_network_is_the_same_function(encoder, room):
     """Batch norms folded into the convolutions, channels-last layout: the same outputs up to
     float rounding, so the same keypoints, descriptors and dense map."""
