@@ -214,6 +214,10 @@ def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone)
     from cerpe.backbones.offline.reconstruction import MIN_PNP_INLIERS
 
     assert out.support[1] >= MIN_PNP_INLIERS
+    prof = out.timings_s  # the pass's own profile (cerpe bench): disjoint parts adding up to its total
+    assert set(prof) == {"encode", "match", "vote", "dense", "cross", "pose", "total"}
+    assert min(prof.values()) >= 0 and prof["match"] > 0 and prof["dense"] > 0
+    assert sum(v for k, v in prof.items() if k != "total") == pytest.approx(prof["total"])
     # pure rotation has no parallax for the essential matrix, but the prior places it
     img, depth = room.render(pose((0.2, 0, 0.5)))
     r0 = View(("q", 0), img, K, depth_m=depth)

@@ -160,3 +160,5 @@ def test_team_sweep_beyond_the_suite_renders_one_team_encounter(tmp_path, monkey
     for r in report["results"]:
         assert set(r["stage_cpu_ms"]) == set(r["stage_ms"]) and r["gate_score_cpu_ms"]["n"] == 2 * r["n_robots"]
         assert (r["registration"] is None) == (registration == "inline")
+        assert {"match", "vote", "dense", "pose", "total"} <= set(r["backbone_pass_ms"])
+    assert "\n     dense " in out and "\n     pose " in out  # the backbone's profile, under its stage

@@ -70,6 +70,11 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
             c = cpu.get(s, {"median": float("nan"), "p90": float("nan"), "mean": float("nan")})
             lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
                          f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")
+            if s == "backbone":  # the backbone's own profile of its pass, by part (wall; steps with a pass)
+                for part, pv in r.get("backbone_pass_ms", {}).items():
+                    if part == "total":
+                        continue
+                    lines.append(f"   {'  ' + part:<24}{pv['median']:>10.1f}{pv['p90']:>10.1f}{pv['mean']:>10.1f}")
         v, c = r["robot_step_ms"], r.get("robot_step_cpu_ms", r["robot_step_ms"])
         lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
                      f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")

@@ -143,6 +143,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
     robot_cpu_ms: list[float] = []
     score_ms: list[float] = []
     score_cpu_ms: list[float] = []
+    pass_ms: dict[str, list[float]] = {}  # the backbone's own profile of its pass, by part (robot-steps with a pass)
     bytes_kind: dict[str, list[int]] = {k: [] for k in ("descriptor", "pose", "request", "reply")}
     bytes_total: list[int] = []
     gate_open = pairs = robot_steps = all_robot_steps = gated_all = 0
@@ -192,6 +193,9 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
                 robot_cpu_ms.append(1000 * float(sum(rec.cpu_s.get(s, 0.0) for s in STAGES)))
                 score_ms.append(1000 * float(rec.parts_s.get("gate_score", 0.0)))
                 score_cpu_ms.append(1000 * float(rec.cpu_s.get("gate_score", 0.0)))
+                for k, v in rec.parts_s.items():
+                    if k.startswith("backbone:"):
+                        pass_ms.setdefault(k.split(":", 1)[1], []).append(1000 * float(v))
                 for k in bytes_kind:
                     bytes_kind[k].append(int(rec.bytes_sent.get(k, 0)))
                 bytes_total.append(rec.bytes_total)
@@ -205,6 +209,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
         team.close()
     return {"team_ms": team_ms, "team_cpu_ms": team_cpu_ms, "stage_ms": stage_ms, "stage_cpu_ms": stage_cpu_ms,
             "robot_ms": robot_ms, "robot_cpu_ms": robot_cpu_ms, "score_ms": score_ms, "score_cpu_ms": score_cpu_ms,
+            "pass_ms": pass_ms,
             "bytes_kind": bytes_kind, "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs,
             "rot_direct": rot_direct, "gate_rows": gate_rows, "lateness": lateness,
             "registration": merge_stats(reg_stats) if registrar is not None else None,
@@ -240,6 +245,7 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
         "stage_cpu_ms": {s: median_p90(v) for s, v in w["stage_cpu_ms"].items()},
         "gate_score_ms": median_p90(w["score_ms"]),
         "gate_score_cpu_ms": median_p90(w["score_cpu_ms"]),
+        "backbone_pass_ms": {k: median_p90(v) for k, v in w.get("pass_ms", {}).items()},
         "bytes_per_robot_step": {k: median_p90(v) for k, v in w["bytes_kind"].items()} | {"total": median_p90(w["bytes_total"])},
         "gate_open_ratio": w["gate_open"] / w["pairs"] if w["pairs"] else float("nan"),
         # XFeat network passes per robot-step (own image + received images): > 0 means the

@@ -174,7 +174,7 @@ class OfflineGeometryBackbone:
         # a pass that placed only view 0 is in metres when its registrations are (P3P on depth priors)
         metric = rec.metric if rec is not None else bool(regs) and any(views[s].depth_m is not None for s in own)
         return BackboneOutput(T_frame_cam=T, valid=valid, depth=depth, depth_conf=conf,
-                              intrinsics=list(intr), reasons=reasons, timings_s=timings,
+                              intrinsics=list(intr), reasons=reasons, timings_s=pass_profile(timings),
                               metric_unit=metric, reference=reference,
                               memos=[p.memo_out] + [None] * (S - 1), registrations=regs, support=support,
                               extra={"cross_learned_pairs": float(p.counts["cross-learned-pairs"])})
@@ -278,6 +278,22 @@ class OfflineGeometryBackbone:
         return rec, reasons
 
 
+#: disjoint parts of a pass's wall time (BackboneOutput.timings_s, seconds), besides "pose" (P3P,
+#: two-view geometry and the rest: what the others leave of "total"): XFeat (a view cached before costs its hash),
+#: mutual-NN matching of own views, the motion vote and moving mask, the dense RGB-D refinement, and the
+#: registration of collaborators apart from the joint pass (its matching included)
+PASS_PARTS = ("encode", "match", "vote", "dense", "cross")
+
+
+def pass_profile(timings: dict[str, float]) -> dict[str, float]:
+    """:data:`PASS_PARTS`, ``pose`` and ``total`` of a pass's raw timers (seconds)."""
+    out = {k: float(timings.get(k, 0.0)) for k in PASS_PARTS}
+    total = float(timings.get("total", 0.0))
+    out["pose"] = max(total - sum(out.values()), 0.0)
+    out["total"] = total
+    return out
+
+
 def _retry_image_only(p: Pass, rec: Recon) -> bool:
     """Whether the image-only solve could place a view ``rec`` left out: one with at least
     :data:`.reconstruction.MIN_PNP_INLIERS` matches with the current view. A collaborator image without
@@ -290,12 +306,9 @@ def _solve_once(p: Pass, metric: bool) -> tuple[Recon | None, list[str]]:
     """One reconstruction (metric: on a depth prior; else image-only) and every view placed on it."""
     S = len(p.views)
     reasons = [""] + ["no-reference"] * (S - 1)
-    tg = time.perf_counter()
     rec, why = bootstrap_depth(p) if metric else bootstrap(p, 0, range(1, S))
-    p.timings["two_view"] = p.timings.get("two_view", 0.0) + time.perf_counter() - tg
     if rec is None:
         return None, [""] + [why.get(s) or "no-reference" for s in range(1, S)]
-    tp = time.perf_counter()
     anchors = (0,) + tuple(a for a in rec.pair if a != 0)[:1]
     for s in range(1, S):
         if s in rec.T:
@@ -307,7 +320,6 @@ def _solve_once(p: Pass, metric: bool) -> tuple[Recon | None, list[str]]:
             reasons[s] = (why.get(s) or reasons[s]) if reasons[s] else ""
     for s in rec.T:
         reasons[s] = ""
-    p.timings["pnp"] = p.timings.get("pnp", 0.0) + time.perf_counter() - tp
     return rec, reasons
 
 

@@ -176,7 +176,6 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
         if best[s][1] < need_mnn:
             best[s] = (None, best[s][1], best[s][2])
     if targets and max(n for _, n, _ in best.values()) < need and learned is not None and c.matcher != "none":
-        tl = time.perf_counter()
         lm = learned()
         n_views = FALLBACK_MAX_VIEWS if strict else c.max_views
         order = sorted(targets, key=lambda s: -len(p.m(s, k)))[:n_views]
@@ -190,7 +189,6 @@ def _register(p: Pass, k: int, own: Sequence[int], rec: Recon | None,
                           rec, need)
             if res[1] >= need and res[1] > best[s][1]:
                 best[s] = res
-        p.timings["cross_learned"] = p.timings.get("cross_learned", 0.0) + time.perf_counter() - tl
     out = [Registration(s, T, n, m) for s, (T, n, m) in best.items() if T is not None]
     placed = bool(out)
     if mode == "pnp":

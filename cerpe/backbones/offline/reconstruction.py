@@ -69,7 +69,9 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
             # the scale would absorb that pose's error along the optical axis, and the dense depth
             # term would then confirm it
             framescale.update_current(p, d, se3_inverse(rec.T[0]))
+        tv = time.perf_counter()
         moving = moving_pixels(p, d, rec.T[0])
+        p.timings["vote"] = p.timings.get("vote", 0.0) + time.perf_counter() - tv
         # re-anchor the frame on the current camera: rec.T[0] maps current-camera points into camera d
         T_c0_d = se3_inverse(rec.T.pop(0))
         p.remember(d, T_c0_d, moving)
@@ -175,7 +177,9 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
     T_s_f, inl = hyps[0]
     if len(hyps) > 1 and s == 0 and ref_depth is not None and p.views[0].depth_m is not None:
         # rec's frame is camera ref_depth here, so each T_h maps ref_depth's points into view 0
+        tv = time.perf_counter()
         votes = total_votes(p, ref_depth, [T_h for T_h, _ in hyps])
+        p.timings["vote"] = p.timings.get("vote", 0.0) + time.perf_counter() - tv
         T_s_f, inl = hyps[int(np.argmax(votes))]
     rec.T[s] = se3_inverse(T_s_f)
     rec.obs[s] = (pt[inl], kp[inl])
