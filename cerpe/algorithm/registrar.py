@@ -22,6 +22,7 @@ failed result (counted); a worker that dies (an exception that escapes its loop)
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -35,6 +36,9 @@ log = logging.getLogger(__name__)
 #: jobs waiting for the worker at most; one more drops the oldest (a robot submits one job per step, so
 #: a worker slower than the camera falls at most this many steps behind before estimates are skipped)
 QUEUE_SIZE = 2
+#: the worker thread's scheduling niceness (Linux; 0 leaves it as is): on cores the robot's step also
+#: needs, the kernel gives the step the time first and the worker what is left
+WORKER_NICE = 19
 
 
 @dataclass
@@ -169,6 +173,7 @@ class WorkerRegistrar:
         self._thread.start()
 
     def _loop(self) -> None:
+        lower_priority(WORKER_NICE)
         while True:
             with self._cond:
                 while not self._queue and not self._closed:
@@ -195,6 +200,18 @@ class WorkerRegistrar:
         return RegistrationResult(step=job.step, out=out, error=error, cpu_s=time.thread_time() - c,
                                   wall_s=time.perf_counter() - w, submitted_s=job.submitted_s,
                                   finished_s=time.perf_counter())
+
+
+def lower_priority(nice: int) -> bool:
+    """Make the calling thread ``nice`` steps nicer (Linux: a thread's niceness is its own); whether it took."""
+    if nice <= 0 or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return False
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + int(nice), 19))
+    except OSError:
+        return False
+    return True
 
 
 def merge_stats(stats: Sequence[dict[str, Any]]) -> dict[str, float]:
