@@ -56,6 +56,25 @@ def test_worker_runs_jobs_and_counts_failures():
     reg.close()
 
 
+@pytest.mark.skipif(not hasattr(threading, "get_native_id") or not hasattr(__import__("os"), "getpriority"),
+                    reason="per-thread niceness is Linux's")
+def test_worker_runs_nicer_than_the_step():
+    """The worker thread lowers its own priority (the step's thread keeps its own)."""
+    import os
+
+    from cerpe.algorithm.registrar import WORKER_NICE
+
+    seen = {}
+    main = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    reg = WorkerRegistrar(_Fake(lambda step: seen.setdefault(
+        "nice", os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))))
+    reg.submit(_job(1))
+    assert reg.wait(10)
+    reg.close()
+    assert seen["nice"] == min(main + WORKER_NICE, 19) > main
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
+
+
 def test_full_queue_drops_the_oldest_job_counted():
     release, started = threading.Event(), threading.Event()
 
