@@ -71,7 +71,7 @@ def test_worker_runs_nicer_than_the_step():
     reg.submit(_job(1))
     assert reg.wait(10)
     reg.close()
-    assert seen["nice"] == min(main + WORKER_NICE, 19) > main
+    assert seen["nice"] == min(main + WORKER_NICE, 19) and (seen["nice"] > main or main == 19)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
 
 
