@@ -93,7 +93,9 @@ class OfflineConfig(Group):
     pnp_px: float = knob(3.0, "absolute-pose RANSAC inlier threshold of views placed on the points, px",
                          low=0.0, low_open=True)
     ransac_max_iterations: int = knob(4000, "most RANSAC iterations of one pose estimate, count", low=1)
-    motion_hypotheses: int = knob(3, "rigid motions RANSAC looks for on a depth prior before the dense vote, "
+    # 2: the static scene and one other (a moving object, a facade one window off); a third was the
+    # vote's rarely, and each costs a RANSAC on outliers and a vote
+    motion_hypotheses: int = knob(2, "rigid motions RANSAC looks for on a depth prior before the dense vote, "
                                      "count", low=1)
     mask_moving: bool = knob(True, "pixels the chosen motion did not explain (a moving object) do not vote "
                                    "in later passes")
