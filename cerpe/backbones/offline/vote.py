@@ -6,9 +6,9 @@ surfaces instead. Every :data:`VOTE_STRIDE`-th pixel of the depth-prior view is 
 each candidate motion into the current view. It counts for the motions under which it
 lands on a consistent depth *and* grey level. Depth alone cannot tell forward motion
 over a flat floor from standing still; grey level alone cannot tell motions apart
-over blank walls. Older keyframes reached through the memos' motion chains vote
-too: an object that moved with the camera agrees with a wrong motion in the newest
-frame only. Pixels a view's own motion did not explain (its memo's ``moving`` mask)
+over blank walls. An older keyframe reached through the memo's motion chain votes
+too (:data:`VOTE_VIEWS`): an object that moved with the camera agrees with a wrong motion
+in the newest frame only. Pixels a view's own motion did not explain (its memo's ``moving`` mask)
 do not vote.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ VOTE_DEPTH_SCALE_SEARCH = 0.15
 # motion's depth residuals, at most VOTE_DEPTH_TOL_MAX (0: off)
 VOTE_MOVING_SPREAD_K = 3.0
 VOTE_DEPTH_TOL_MAX = 0.2
-VOTE_VIEWS = 2  # older views (reached through the memos' motion chains) that vote too
+VOTE_VIEWS = 1  # older views (reached through the memos' motion chains) that vote too
 
 
 def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
