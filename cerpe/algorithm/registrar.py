@@ -36,9 +36,10 @@ log = logging.getLogger(__name__)
 #: jobs waiting for the worker at most; one more drops the oldest (a robot submits one job per step, so
 #: a worker slower than the camera falls at most this many steps behind before estimates are skipped)
 QUEUE_SIZE = 2
-#: the worker thread's scheduling niceness (Linux; 0 leaves it as is): on cores the robot's step also
-#: needs, the kernel gives the step the time first and the worker what is left
-WORKER_NICE = 19
+#: how much nicer the worker thread runs than the step's (Linux; 0: the same): on cores both need, the
+#: kernel favours the step, and the worker still gets a share (at the nicest, +19, a saturated robot's
+#: worker lands few registrations and drops the rest)
+WORKER_NICE = 10
 
 
 @dataclass
