@@ -148,6 +148,31 @@ def test_backbone_with_wrong_number_of_views_raises(world):
         team.step(*_inputs(world, 0))
 
 
+class _NotAnOutputBackbone(GTBackbone):
+    def infer(self, views):
+        return {"T_frame_cam": super().infer(views).T_frame_cam}
+
+
+class _OddTimingsBackbone(GTBackbone):
+    def infer(self, views):
+        out = super().infer(views)
+        out.timings_s = {"solve": 0.01, "note": "fast", "nan": float("nan")}
+        return out
+
+
+def test_backbone_returning_something_else_raises_the_algorithm_error(world):
+    team = _team(world, backbone=_NotAnOutputBackbone(world))
+    with pytest.raises(AlgorithmError, match="backbone returned dict views for 1 given"):
+        team.step(*_inputs(world, 0))
+
+
+def test_backbone_timings_that_are_not_seconds_are_left_out(world):
+    team = _team(world, backbone=_OddTimingsBackbone(world))
+    rec = team.step(*_inputs(world, 0)).robots[0]
+    assert rec.parts_s.get("backbone:solve") == pytest.approx(0.01)
+    assert "backbone:note" not in rec.parts_s and "backbone:nan" not in rec.parts_s
+
+
 def test_backbone_nan_pose_is_counted_and_robot_keeps_going(world):
     team = _team(world, backbone=_NaNPoseBackbone(world))
     results = list(team.run_encounter(world.to_encounter()))

@@ -277,9 +277,10 @@ class RobotAgent:
             st.collab_index.update(collab_index)
         with timed(st, "backbone"):
             out = self.backbone.infer(views)
-        for part, seconds in out.timings_s.items():  # the backbone's own profile of its pass (cerpe bench)
-            st.parts[f"backbone:{part}"] += float(seconds)
         st.out = out = checked_output(out, len(views), self.s.where(), self.s.degrade)
+        for part, seconds in (out.timings_s or {}).items():  # the backbone's own profile of its pass (cerpe bench)
+            if isinstance(seconds, (int, float)) and np.isfinite(seconds):
+                st.parts[f"backbone:{part}"] += float(seconds)
         st.view = dataclasses.replace(st.view, memo=out.memos[0])  # travels with the frame if it is kept
         return out
 
