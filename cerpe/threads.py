@@ -1,4 +1,4 @@
-"""How many threads torch (intra-op) and numpy's BLAS may use inside one operation, for all cerpe runs.
+"""How many threads torch (intra-op) and numpy's BLAS may use inside one operation.
 
 Why one setting, and why 1 by default: a convolution or attention on the CPU gives
 results that differ in the last bits with the number of intra-op threads. ALIKED
@@ -13,7 +13,9 @@ e.g. for one robot's online process on a many-core computer.
 numpy's BLAS (OpenBLAS) gets the same count, through ``threadpoolctl``. Left to itself it starts a
 thread per core, and those threads spin after each matrix product: in ``cerpe bench`` they burned
 100 ms of CPU per robot-step on the core a registration worker needed. ``make`` already sets
-``OMP_NUM_THREADS=1``, which OpenBLAS reads at start-up; this makes a bare ``cerpe`` command the same.
+``OMP_NUM_THREADS=1``, which OpenBLAS reads at start-up. :func:`apply_threads` runs when XFeat or
+LightGlue is built and at the start of ``cerpe bench``, so those commands run bare as under ``make``;
+a command that builds neither (a SIFT-only ``cerpe run``) keeps OpenBLAS's own count.
 """
 from __future__ import annotations
 
