@@ -151,3 +151,27 @@ def test_a_foreign_memo_is_refused(walk_b):
     assert bb.infer([views[0]]).memos == [None]
     no_depth = [dataclasses.replace(v, depth_m=None) for v in (views[1], views[0])]
     assert bb.infer(no_depth).memos == [None, None]
+
+
+def test_views_not_wanted_are_left_out_of_a_metric_pass(room, walk_b):
+    """Keyframes sent with ``pose_wanted`` False come back unplaced (``not-wanted``), except the
+    reference. The current view, the reference and the memo are the bits of the full pass. A pass
+    anchored on the current view's own prior places every view: the caller reads them."""
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+
+    views, ref = walk_b
+    older = [dataclasses.replace(views[k], memo=ref[k - 1].memos[0] if k else None) for k in (2, 1, 0)]
+    full = ref[-1]
+    out = OfflineGeometryBackbone().infer([views[3]] + [dataclasses.replace(v, pose_wanted=False) for v in older])
+    r = full.reference
+    assert r is not None and out.reference == r and out.metric_unit
+    assert out.valid.tolist() == [s in (0, r) for s in range(4)]
+    assert [out.reasons[s] for s in range(1, 4) if s != r] == ["not-wanted"] * 2
+    assert np.array_equal(out.T_frame_cam[[0, r]], full.T_frame_cam[[0, r]])
+    m, mf = out.memos[0], full.memos[0]
+    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(m["chain"], mf["chain"]))
+    assert np.array_equal(m["moving"], mf["moving"])
+    # only the current view has a prior: it anchors the pass, and the others are placed on its points
+    bare = [dataclasses.replace(v, depth_m=None, memo=None, pose_wanted=False) for v in (views[2], views[1])]
+    out = OfflineGeometryBackbone().infer([views[3]] + bare)
+    assert out.metric_unit and out.reference is None and out.valid.all(), out.reasons

@@ -326,6 +326,45 @@ class _ReferenceBackbone(GTBackbone):
         return out
 
 
+class _LazyBackbone(GTBackbone):
+    """A metric pass that leaves the own views the agent does not want (``View.pose_wanted``) unplaced,
+    but for the reference: the newest own view besides the current one."""
+
+    def __init__(self, world, **kw):
+        super().__init__(world, unit_range=(1.0, 1.0), claim_metric=True, **kw)
+        self.wanted: list[tuple[bool, list[bool]]] = []  # per pass: collaborators in it, pose_wanted per view
+
+    def infer(self, views):
+        out = super().infer(views)
+        self.wanted.append((any(v.role == "collaborator" for v in views), [v.pose_wanted for v in views]))
+        own = [s for s in range(1, len(views)) if views[s].role in ("keyframe", "previous")]
+        if own:
+            out.reference = max(own, key=lambda s: views[s].key[1])
+        for s in own:
+            if s != out.reference and not views[s].pose_wanted:
+                out.T_frame_cam[s], out.valid[s], out.reasons[s] = np.nan, False, "not-wanted"
+        return out
+
+
+@pytest.mark.parametrize("metric_unit", [True, False])
+def test_the_agent_asks_for_the_poses_it_reads(metric_unit):
+    """Without collaborators in the pass only the current view's pose is wanted (the reference's is
+    read, whatever it is); with collaborators, or when a metric pass is scaled anyway
+    (``scale.metric_unit`` off), every pose is. A backbone that skips the others loses nothing."""
+    world = make_world(2, 25, seed=4)
+    bb = _LazyBackbone(world)
+    cfg = AlgorithmConfig().override({"scale.min_pixels": 20, "scale.metric_unit": metric_unit})
+    _, _, results = run(world, cfg, backbone=bb)
+    collab = [w for c, w in bb.wanted if c]
+    lean = [w for c, w in bb.wanted if not c and len(w) > 1]
+    assert collab and lean
+    assert all(all(w) for w in collab)
+    assert all(w == [True] + [not metric_unit] * (len(w) - 1) for w in lean)
+    for res in results:
+        for k, r in enumerate(res.robots):
+            np.testing.assert_allclose(r.T_odom_cam, world.gt_odometry(k, res.step), atol=1e-5)
+
+
 def test_ego_motion_chains_through_the_backbones_reference_view():
     """The pass's reference view (what the backbone measured the current view against) is
     used for the odometry even when the previous frame and newer keyframes are placed too."""

@@ -241,7 +241,9 @@ class RobotAgent:
         """ONE backbone pass over ``[current] + keyframes (newest first) (+ previous frame) + collaborators``.
 
         Kept views come with the memo the backbone gave them as current view, every view
-        with its role (``View.role``). None for a blank frame (no pass).
+        with its role (``View.role``). In a pass without collaborators the own views besides the
+        current one go with ``pose_wanted`` False (:class:`~cerpe.protocols.View`): ego-motion reads
+        the reference alone, so a backbone may skip placing the others. None for a blank frame (no pass).
         """
         st = self.s.step_state()
         st.passed = True
@@ -275,6 +277,9 @@ class RobotAgent:
             views = views[:n_own]
         else:
             st.collab_index.update(collab_index)
+        if len(views) == n_own and self.config.scale.metric_unit:
+            # no collaborator to place through them: ego-motion reads the reference view alone
+            views = [views[0]] + [dataclasses.replace(v, pose_wanted=False) for v in views[1:]]
         with timed(st, "backbone"):
             out = self.backbone.infer(views)
         st.out = out = checked_output(out, len(views), self.s.where(), self.s.degrade)

@@ -10,7 +10,8 @@ confidence ``n_obs / (1 + reprojection error px)``.
 
 Views that cannot be placed are ``valid=False`` with a reason (``few-matches``,
 ``few-inliers``, ``no-parallax``, ``few-3d-points``, ``few-depth-points``,
-``no-reference``, ``low-texture``) and NaN poses. No exception leaves :meth:`infer`
+``no-reference``, ``low-texture``; ``not-wanted``: the caller did not ask for it,
+:attr:`~cerpe.protocols.View.pose_wanted`) and NaN poses. No exception leaves :meth:`infer`
 for data reasons; a view without intrinsics, a malformed image or a memo that is
 not this backbone's raise :class:`OfflineBackboneError`.
 
@@ -266,7 +267,7 @@ class OfflineGeometryBackbone:
         if p.low_tex[0] or p.feats[0].n < MIN_MATCHES:
             return None, [""] + ["low-texture" if p.low_tex[0] else "few-matches"] * (S - 1)
         rec, reasons = _solve_once(p, metric=True)
-        if rec is not None and not _retry_image_only(p, rec):
+        if rec is not None and not _retry_image_only(p, rec, _unwanted(p, rec)):
             return rec, reasons
         rec_i, reasons_i = _solve_once(p, metric=False)
         if rec is None:
@@ -294,12 +295,21 @@ def pass_profile(timings: dict[str, float]) -> dict[str, float]:
     return out
 
 
-def _retry_image_only(p: Pass, rec: Recon) -> bool:
-    """Whether the image-only solve could place a view ``rec`` left out: one with at least
-    :data:`.reconstruction.MIN_PNP_INLIERS` matches with the current view. A collaborator image without
-    overlap has fewer, and re-solving for it would only double the pass's cost."""
+def _retry_image_only(p: Pass, rec: Recon, unwanted: set[int]) -> bool:
+    """Whether the image-only solve could place a view ``rec`` left out (``unwanted`` ones aside): one
+    with at least :data:`.reconstruction.MIN_PNP_INLIERS` matches with the current view. A collaborator
+    image without overlap has fewer, and re-solving for it would only double the pass's cost."""
     need = MIN_PNP_INLIERS
-    return any(s not in rec.T and not p.low_tex[s] and len(p.m(0, s)) >= need for s in range(1, len(p.views)))
+    return any(s not in rec.T and s not in unwanted and not p.low_tex[s] and len(p.m(0, s)) >= need
+               for s in range(1, len(p.views)))
+
+
+def _unwanted(p: Pass, rec: Recon) -> set[int]:
+    """Views the pass need not place (:attr:`View.pose_wanted` False): only in a metric pass whose
+    reference is another view than the current one, since the caller then reads that one alone."""
+    if not rec.metric or rec.pair[1] == 0:
+        return set()
+    return {s for s in range(1, len(p.views)) if not p.views[s].pose_wanted and s != rec.pair[1]}
 
 
 def _solve_once(p: Pass, metric: bool) -> tuple[Recon | None, list[str]]:
@@ -310,10 +320,13 @@ def _solve_once(p: Pass, metric: bool) -> tuple[Recon | None, list[str]]:
     if rec is None:
         return None, [""] + [why.get(s) or "no-reference" for s in range(1, S)]
     anchors = (0,) + tuple(a for a in rec.pair if a != 0)[:1]
+    unwanted = _unwanted(p, rec)
     for s in range(1, S):
         if s in rec.T:
             continue
-        if p.low_tex[s]:
+        if s in unwanted:
+            reasons[s] = "not-wanted"
+        elif p.low_tex[s]:
             reasons[s] = "low-texture"
         elif not place_pnp(p, s, anchors, rec):
             reasons[s] = two_view_with_scale(p, s, rec)
