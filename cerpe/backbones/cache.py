@@ -7,12 +7,12 @@ reuse the keys ``(robot, step)`` with other pixels never share an entry.
 """
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections import OrderedDict
 from typing import Generic, Hashable, TypeVar
 
 import numpy as np
+import xxhash
 
 __all__ = ["LRUCache", "content_key"]
 
@@ -20,16 +20,17 @@ V = TypeVar("V")
 
 
 def content_key(array: np.ndarray) -> bytes:
-    """16-byte digest (SHA-256) of an array's shape, dtype and values.
+    """16-byte digest (XXH3-128) of an array's shape, dtype and values.
 
-    Equal arrays give equal keys; different ones collide with odds of 2^-64 per pair.
-    SHA-256 runs at the speed of a CRC on CPUs with SHA extensions: negligible next to
-    encoding the image.
+    Equal arrays give equal keys; different ones collide with odds of about 2^-128 per pair.
+    A pass hashes each of its views, so the hash must be cheap: XXH3 reads a 640x480 image in
+    0.02 ms, SHA-256 in 0.5 ms. It is not a cryptographic hash: the caches trust the images
+    they are given (a robot's own frames and its team's) not to be crafted to collide.
     """
     a = np.ascontiguousarray(array)
-    h = hashlib.sha256(f"{a.shape}|{a.dtype.str}|".encode())
+    h = xxhash.xxh3_128(f"{a.shape}|{a.dtype.str}|".encode())
     h.update(a.reshape(-1).view(np.uint8))
-    return h.digest()[:16]
+    return h.digest()
 
 
 class LRUCache(Generic[V]):
