@@ -62,7 +62,10 @@ MIN_INLIER_RATIO = 0.3  # refused when fewer than this fraction of the used pixe
 # right to well within a pixel; a big move is a wrong basin)
 MAX_CHANGE_M = 0.05
 MAX_CHANGE_DEG = 1.0
-CONVERGED_PX = 0.005  # stop a level when an update moves the pixels by less than this on average (px)
+CONVERGED_PX = 0.005  # stop the finest level when an update moves the pixels by less than this on average (px)
+# stop a coarser level when an update moves its pixels by less than this (its px): it only has to
+# bring the pose within the next level's basin
+COARSE_CONVERGED_PX = 0.05
 # refused when the last update on the finest level still moved them by more than this (px): the
 # pose was on its way somewhere else (a start outside the basin)
 MAX_FINAL_PX = 0.1
@@ -372,7 +375,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
                 break
             R, t, sc, last_px = out
             result.iterations += 1
-            if last_px < CONVERGED_PX:
+            if last_px < (CONVERGED_PX if lev == 0 else COARSE_CONVERGED_PX):
                 break
 
     rr = fine.residuals(R, t, False)
