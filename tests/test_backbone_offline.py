@@ -379,3 +379,20 @@ def test_object_filling_the_prior_view_does_not_win(room, guarded, monkeypatch):
         assert err < 0.04
     else:
         assert err > 0.15
+
+
+def test_ransac_stops_where_poselib_would_with_a_model_worth_keeping():
+    """The iteration bound of a search that keeps only models with ``need`` inliers: poselib's own
+    stopping rule at that inlier ratio (3 x log(1e-4) / log(1 - w^3) for P3P), never below the least."""
+    from cerpe.backbones.config import OfflineConfig
+    from cerpe.backbones.offline.context import RANSAC_MIN_ITERATIONS, Pass, bounded, iterations_to_find
+
+    assert iterations_to_find(50, 100, 3) == int(np.ceil(3 * np.log(1e-4) / np.log(1 - 0.5 ** 3)))  # 207
+    assert iterations_to_find(25, 47, 3) < iterations_to_find(25, 110, 3) < iterations_to_find(25, 305, 3)
+    assert iterations_to_find(30, 30, 3) == 1 and iterations_to_find(0, 30, 3) == 2**31 - 1
+    p = Pass(views=[], feats=[], Ks=[], cams=[], low_tex=[], conf=OfflineConfig(), matcher=None)
+    assert p.ransac()["max_iterations"] == OfflineConfig().ransac_max_iterations
+    assert p.ransac((25, 47, 3))["max_iterations"] == iterations_to_find(25, 47, 3)
+    assert p.ransac((25, 305, 3))["max_iterations"] == OfflineConfig().ransac_max_iterations
+    assert p.ransac((30, 30, 3))["max_iterations"] == RANSAC_MIN_ITERATIONS
+    assert bounded({"min_iterations": 10, "max_iterations": 4000}, 50, 100, 5)["max_iterations"] == iterations_to_find(50, 100, 5)

@@ -40,6 +40,8 @@ VOTE_CHAIN_HOPS = 12
 # poselib's least RANSAC iterations (its default costs a pair without overlap far more than the
 # inlier ratios of overlapping frames need); the most: OfflineConfig.ransac_max_iterations
 RANSAC_MIN_ITERATIONS = 100
+P3P_SAMPLE = 3  # 2D-3D pairs of P3P's minimal sample
+FIVE_POINT_SAMPLE = 5  # image pairs of the essential matrix's minimal sample
 
 Chain = tuple[tuple[Hashable, np.ndarray], ...]
 
@@ -91,6 +93,31 @@ def check_memo(view: View, s: int, feats: XFeatFeatures) -> Mapping[str, Any] | 
         raise OfflineBackboneError(f"offline backbone: view {s} (key {view.key!r}) carries the memo of "
                                    f"another image")
     return memo
+
+
+def iterations_to_find(inliers: int, points: int, sample: int) -> int:
+    """RANSAC iterations after which poselib stops once it holds a model with ``inliers`` of ``points``:
+    its own rule, ``dyn_num_trials_mult * log(1 - success_prob) / log(1 - w ** sample)`` with
+    ``w = inliers / points`` and poselib's defaults. A better model stops it sooner, so a search that
+    keeps only such models gains nothing from more: a failing search (the second motion hypothesis on
+    the first one's outliers, mostly) no longer runs to the iteration bound."""
+    import poselib
+
+    w = min(max(inliers, 0) / max(points, 1), 1.0)
+    if w >= 1.0:
+        return 1
+    if w <= 0.0:
+        return 2**31 - 1
+    o = poselib.RansacOptions()
+    n = np.log(1.0 - o["success_prob"]) / np.log1p(-(w ** sample)) * o["dyn_num_trials_mult"]
+    return int(min(np.ceil(n), 2**31 - 1))
+
+
+def bounded(ransac: dict[str, float], inliers: int, points: int, sample: int) -> dict[str, float]:
+    """``ransac`` (poselib options) with ``max_iterations`` lowered to :func:`iterations_to_find`,
+    never below its ``min_iterations``."""
+    most = min(int(ransac["max_iterations"]), iterations_to_find(inliers, points, sample))
+    return {**ransac, "max_iterations": max(most, int(ransac.get("min_iterations", 0)))}
 
 
 @dataclass
@@ -158,9 +185,12 @@ class Pass:
         finally:
             self.timings["match"] = self.timings.get("match", 0.0) + time.perf_counter() - t0
 
-    def ransac(self, **extra: float) -> dict[str, float]:
-        """poselib RANSAC options with this pass's iteration bounds."""
-        return {"min_iterations": RANSAC_MIN_ITERATIONS, "max_iterations": self.conf.ransac_max_iterations, **extra}
+    def ransac(self, need: tuple[int, int, int] | None = None, **extra: float) -> dict[str, float]:
+        """poselib RANSAC options with this pass's iteration bounds. ``need = (inliers, points, sample)``:
+        a model is kept only with at least ``inliers`` of ``points`` (minimal sample ``sample``), so the
+        iterations stop where poselib would stop had it found one (:func:`iterations_to_find`)."""
+        opts = {"min_iterations": RANSAC_MIN_ITERATIONS, "max_iterations": self.conf.ransac_max_iterations, **extra}
+        return opts if need is None else bounded(opts, *need)
 
     def chain(self, k: int) -> Chain:
         """The motion chain of view ``k`` from its memo (empty without one)."""

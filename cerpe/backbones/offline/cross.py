@@ -55,7 +55,7 @@ from ...geometry import se3_inverse
 from ...protocols import REASON_APPEARANCE, Registration
 from ..cache import LRUCache
 from ..config import CrossConfig
-from .context import Pass, Recon
+from .context import P3P_SAMPLE, Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T
 from .two_view import MIN_SCALE_POINTS, relative_pose, triangulate_pair
 from .vote import photometric_agreements
@@ -223,7 +223,7 @@ def _verify(p: Pass, mode: str, s: int, k: int, uv_s: np.ndarray, uv_k: np.ndarr
         return None, 0, n_match
     X = pixels_to_rays(uv_s[ok], p.Ks[s]) * z[ok, None]
     pose, info = poselib.estimate_absolute_pose(uv_k[ok].astype(np.float64), X, p.cams[k],
-                                                p.ransac(max_reproj_error=PNP_PX), {})
+                                                p.ransac((need, len(X), P3P_SAMPLE), max_reproj_error=PNP_PX), {})
     n = int(np.sum(info["inliers"]))
     T_k_s = pose_to_T(pose.R, pose.t)
     if n < need or not np.all(np.isfinite(T_k_s)):

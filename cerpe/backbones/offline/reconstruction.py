@@ -21,7 +21,7 @@ import numpy as np
 from ...geometry import se3_inverse
 from ..rgbd_align import align_rgbd
 from . import framescale
-from .context import Pass, Recon
+from .context import P3P_SAMPLE, Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
 from .vote import moving_pixels, total_votes
 
@@ -159,7 +159,7 @@ def place_pnp(p: Pass, s: int, anchors: Sequence[int], rec: Recon, min_inliers: 
             break
         idx = np.flatnonzero(left)
         pose, info = poselib.estimate_absolute_pose(uv[idx], rec.X[pt[idx]], p.cams[s],
-                                                    p.ransac(max_reproj_error=rpx), {})
+                                                    p.ransac((need, len(idx), P3P_SAMPLE), max_reproj_error=rpx), {})
         inl_sub = np.asarray(info["inliers"], bool)
         T_h = pose_to_T(pose.R, pose.t)
         if inl_sub.sum() < need or not np.all(np.isfinite(T_h)):

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
-from .context import Pass, Recon
+from .context import FIVE_POINT_SAMPLE, Pass, Recon, bounded
 from .matching import (keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error, triangulate,
                        triangulation_angle_deg)
 
@@ -49,7 +49,8 @@ def relative_pose(ransac: dict[str, float], uv0: np.ndarray, uv1: np.ndarray, ca
 
     if len(uv0) < min_matches:
         return None, np.zeros(len(uv0), bool), "few-matches"
-    ransac = {**ransac, "max_epipolar_error": float(epipolar_px)}
+    need = max(int(min_inliers), int(np.ceil(min_inlier_ratio * len(uv0))))
+    ransac = {**bounded(ransac, need, len(uv0), FIVE_POINT_SAMPLE), "max_epipolar_error": float(epipolar_px)}
     pose, info = poselib.estimate_relative_pose(uv0.astype(np.float64), uv1.astype(np.float64), cam0, cam1,
                                                 ransac, {})
     inl = np.asarray(info["inliers"], bool)
