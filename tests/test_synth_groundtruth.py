@@ -118,3 +118,28 @@ def test_mono_sim_has_a_per_frame_scale_bias(indoor):
     assert ratios.std() > 0.01  # the bias changes from frame to frame
     other = MonoDepthSim(seed=4).depth_m(*_ctx(indoor, t=0))
     assert not np.allclose(other, MonoDepthSim(seed=3).depth_m(*_ctx(indoor, t=0)))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_depth_edges_are_pixels_next_to_a_jump_or_a_hole(seed):
+    """:func:`depth_edges` against its definition, pixel by pixel: a 4-neighbour whose depth jumps by
+    more than ``rel_jump`` of the nearer one, or only one of the two has depth; then dilated."""
+    import cv2
+
+    from cerpe.depthsim import depth_edges
+
+    rng = np.random.default_rng(seed)
+    H, W = rng.integers(1, 24, 2)
+    z = (rng.uniform(0.5, 3.0, (H, W)) * (rng.random((H, W)) < 0.8)).astype(np.float32)
+    if seed % 2:
+        z = np.round(z, 1)  # plateaus: equal neighbours are never an edge
+    want = np.zeros((H, W), bool)
+    for i in range(H):
+        for j in range(W):
+            for a, b in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+                if 0 <= a < H and 0 <= b < W:
+                    c, n = z[i, j], z[a, b]
+                    want[i, j] |= bool(abs(n - c) > 0.05 * max(min(n, c), 1e-3)) or (n > 0) != (c > 0)
+    assert np.array_equal(depth_edges(z, dilate_px=0), want)
+    grown = cv2.dilate(want.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.array_equal(depth_edges(z, dilate_px=2), grown)
