@@ -75,6 +75,30 @@ def test_worker_runs_nicer_than_the_step():
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
 
 
+def test_worker_shortens_the_thread_switch_interval():
+    """The step waits for the GIL at most WORKER_SWITCH_S between two calls while the worker runs."""
+    import sys
+
+    from cerpe.algorithm.registrar import WORKER_SWITCH_S
+
+    before = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.005)
+        reg = WorkerRegistrar(_Fake())
+        reg.submit(_job(1))
+        assert reg.wait(10)
+        reg.close()
+        assert sys.getswitchinterval() == pytest.approx(WORKER_SWITCH_S)
+        sys.setswitchinterval(0.0001)  # a shorter one set by the program stays
+        reg = WorkerRegistrar(_Fake())
+        reg.submit(_job(1))
+        assert reg.wait(10)
+        reg.close()
+        assert sys.getswitchinterval() == pytest.approx(0.0001)
+    finally:
+        sys.setswitchinterval(before)
+
+
 def test_full_queue_drops_the_oldest_job_counted():
     release, started = threading.Event(), threading.Event()
 

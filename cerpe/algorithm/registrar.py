@@ -15,7 +15,8 @@ A :class:`Registrar` takes jobs and hands back results; it never blocks a step:
 * :meth:`Registrar.stats` counts jobs submitted, done, failed, dropped, lost and worker restarts, and the
   worker's CPU seconds (measured apart from the step's).
 
-:class:`WorkerRegistrar` runs the jobs on a worker thread, oldest first. A job whose pass raises is a
+:class:`WorkerRegistrar` runs the jobs on a worker thread, oldest first, at a lower priority, with the
+interpreter switching threads more often (:data:`WORKER_SWITCH_S`). A job whose pass raises is a
 failed result (counted); a worker that dies (an exception that escapes its loop) loses the job it ran
 (counted ``lost``) and is started again on the next call (counted ``restarts``).
 """
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -40,6 +42,10 @@ QUEUE_SIZE = 2
 #: kernel favours the step, and the worker still gets a share (at the nicest, +19, a saturated robot's
 #: worker lands few registrations and drops the rest)
 WORKER_NICE = 10
+#: the interpreter's thread switch interval while a worker runs, seconds (Python's default is 0.005): a
+#: step that wants the GIL back from the worker, between two numpy or torch calls, waits up to this long
+#: each time. The kernel's priority cannot help there: the GIL is Python's
+WORKER_SWITCH_S = 0.0005
 
 
 @dataclass
@@ -175,6 +181,8 @@ class WorkerRegistrar:
 
     def _loop(self) -> None:
         lower_priority(WORKER_NICE)
+        if sys.getswitchinterval() > WORKER_SWITCH_S:  # process-wide, and left so: the next worker wants it too
+            sys.setswitchinterval(WORKER_SWITCH_S)
         while True:
             with self._cond:
                 while not self._queue and not self._closed:
