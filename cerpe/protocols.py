@@ -70,12 +70,13 @@ class View:
             anchor of the sender yet (first contact, or a pair that lost its anchor); tries
             that failed back off (:func:`cerpe.algorithm.policy.try_hard`). A backbone may
             ignore it; the offline backbone's ``cross.fallback`` reads it.
-        pose_wanted: False when the caller reads this view's pose only if the pass is in metres
-            (:attr:`BackboneOutput.metric_unit`) and names this view its ``reference``. The agent
-            says so for its keyframes and previous frame in a pass without collaborators: ego-motion
-            chains through the reference alone, and a metric pass needs no scale. A backbone may
-            then leave the view unplaced (``valid`` False, reason ``not-wanted``) to save the time;
-            placing it anyway is right too (VGGT places every view jointly).
+        pose_wanted: False: in a pass in metres (:attr:`BackboneOutput.metric_unit`) whose
+            ``reference`` is another view than the current one, the caller reads this view's pose
+            only if it is that reference. The agent says so for its keyframes and previous frame in
+            a pass without collaborators: ego-motion chains through the reference, and a metric pass
+            needs no scale. A backbone may then leave the view unplaced in such a pass (``valid``
+            False, reason ``not-wanted``) to save the time; placing it anyway is right too (VGGT
+            places every view jointly).
     """
 
     key: Hashable
