@@ -13,7 +13,10 @@ import pytest
 from cerpe.runfolder.layout import LOCK_FILE
 from cerpe.runfolder.lock import RunBusy, RunLock
 
-HOLD = ("import sys; from cerpe.runfolder.lock import RunLock\n"
+# Ctrl-C raises KeyboardInterrupt in the holder even when it was started with SIGINT ignored (a background
+# job of a non-interactive shell, as some CI runners start their commands)
+HOLD = ("import signal, sys; from cerpe.runfolder.lock import RunLock\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "with RunLock(sys.argv[1]):\n"
         "    print('held', flush=True)\n"
         "    sys.stdin.read()\n")
