@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -77,6 +78,7 @@ class SensorDepthSim:
     edge_px: int = 1
     seed: int = 0
     name: str = "sensor"
+    sensor: ClassVar[bool] = True  # a sensor's depth comes with the frame: simulating it is not the robot's work
 
     @classmethod
     def outdoor(cls, **kw) -> "SensorDepthSim":

@@ -242,7 +242,11 @@ class MetricDepthSource(Protocol):
     on them along its line of sight; per-pixel noise averages out. The pose graph's noise model
     reads it (:class:`cerpe.algorithm.graph.DirectEstimate`); absent: unknown. Optionally
     ``metric: bool``: False for a source that never has metric depth (no depth at all). The
-    algorithm then takes s = 1 (counted ``scale:unit-no-depth``) instead of giving up.
+    algorithm then takes s = 1 (counted ``scale:unit-no-depth``) instead of giving up. Optionally
+    ``sensor: bool``: True for depth a sensor hands over with the frame (a recorded map, or its
+    simulation). What computing it costs here is then the reader's or the simulation's, not the
+    robot's: the step times it as the ``sensor`` part of ``scale``, and ``cerpe bench`` leaves it out
+    of the robot's step.
     """
 
     name: str

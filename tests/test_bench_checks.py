@@ -114,6 +114,27 @@ def test_printout_carries_the_cross_robot_registration_counters():
     assert "cross-robot" not in format_table([r], {"dim": 8, "wire_bytes": {}})
 
 
+def test_printout_leaves_a_sensors_depth_out_of_the_robots_work():
+    """With depth from a sensor, the robot's step is all stages less the sensor's part, and the line
+    below it gives the step with it; a depth network (no sensor part) keeps the "all stages" row."""
+    from cerpe.pipeline.bench_report import format_table
+    from cerpe.pipeline.bench_walk import median_p90
+
+    r = {"n_robots": 2, "team_step_ms": median_p90([300.0]), "target_ms": 438.0, "xfeat_passes_per_robot_step": 1.0,
+         "peak_rss_mib": 1.0, "gate_open_ratio": 0.5, "stage_ms": {"scale": median_p90([9.0])},
+         "robot_step_ms": median_p90([92.0]), "sensor_ms": median_p90([8.0]),
+         "robot_step_with_sensor_ms": median_p90([100.0]), "robot_target_ms": 100.0,
+         "bytes_per_robot_step": {}, "accuracy": {"direct_rot_err_rad": median_p90([]), "ego_per_robot": {}}}
+    lines = format_table([r], {"dim": 8, "wire_bytes": {}}).splitlines()
+    row = next(line.split() for line in lines if line.strip().startswith("robot's work"))
+    assert row[2:5] == ["92.0", "92.0", "92.0"]
+    assert next(line.split() for line in lines if line.strip().startswith("sensor"))[1:4] == ["8.0"] * 3
+    assert next(line.split() for line in lines if "with the sensor" in line)[3:6] == ["100.0"] * 3
+    r["sensor_ms"] = median_p90([0.0])
+    text = format_table([r], {"dim": 8, "wire_bytes": {}})
+    assert "all stages" in text and "robot's work" not in text and "with the sensor" not in text
+
+
 def _sweep_row(n: int, wall_ms: float, late: list[int] | None) -> dict:
     from cerpe.pipeline.bench_walk import median_p90
 
@@ -161,4 +182,7 @@ def test_team_sweep_beyond_the_suite_renders_one_team_encounter(tmp_path, monkey
         assert set(r["stage_cpu_ms"]) == set(r["stage_ms"]) and r["gate_score_cpu_ms"]["n"] == 2 * r["n_robots"]
         assert (r["registration"] is None) == (registration == "inline")
         assert {"match", "vote", "dense", "pose", "total"} <= set(r["backbone_pass_ms"])
+        # the simulated depth sensor's part of "scale", left out of the robot's work (sensor: true)
+        assert r["sensor_ms"]["median"] > 0
+        assert r["robot_step_with_sensor_ms"]["median"] > r["robot_step_ms"]["median"]
     assert "\n     dense " in out and "\n     pose " in out  # the backbone's profile, under its stage

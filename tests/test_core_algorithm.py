@@ -7,6 +7,7 @@ propagation in the right frames.
 """
 from __future__ import annotations
 
+import time
 from collections import Counter
 
 import numpy as np
@@ -137,6 +138,27 @@ def test_bytes_and_records():
             ego = next(r for r in res.robots if r.robot == p.ego)
             assert p.bytes_pair == ego.bytes_sent.get("request", 0) + other.bytes_sent.get("reply", 0)
             assert p.gate_open == gate and p.gate_score == pytest.approx(0.6 if gate else 0.05, abs=2e-3)
+
+
+@pytest.mark.parametrize("sensor", [True, False])
+def test_a_sensors_depth_is_timed_apart_inside_scale(sensor):
+    """A depth source that says its depth comes with the frame (``sensor``): the step times reading it as
+    the ``sensor`` part of ``scale``, which ``cerpe bench`` leaves out of the robot's work; a depth
+    network's time (no ``sensor``) is the robot's and has no such part."""
+    class Slow(SensorDepthDouble):
+        def depth_m(self, view, frame):
+            time.sleep(0.002)
+            return super().depth_m(view, frame)
+
+    depth = Slow()
+    if sensor:
+        depth.sensor = True
+    world = make_world(2, 4, seed=2)
+    _, _, results = run(world, depth=depth)
+    for res in results:
+        for r in res.robots:
+            part = r.parts_s.get("sensor", 0.0)
+            assert (part >= 0.002) == sensor and part <= r.timings_s["scale"]
 
 
 def test_three_robots_pair_specific_windows():

@@ -295,7 +295,8 @@ class RobotAgent:
         done, d = st.depth_cache
         if done:
             return d
-        with timed(st, "scale"):
+        # a sensor's depth comes with the frame: its reading (or simulation) is timed apart (MetricDepthSource)
+        with timed(st, "scale", "sensor" if getattr(self.depth, "sensor", False) is True else ""):
             d = self.depth.depth_m(st.view, st.context)
         if d is not None:
             d = np.asarray(d, dtype=np.float32)

@@ -44,6 +44,7 @@ class DatasetDepth:
     """
 
     name = "dataset"
+    sensor = True  # recorded with the frame: reading it is not the robot's work
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = _known_options(conf, ("rel_sigma",), self.name)

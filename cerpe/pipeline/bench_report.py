@@ -70,14 +70,23 @@ def format_table(results: list[dict[str, Any]], descriptor_info: dict[str, Any])
             c = cpu.get(s, {"median": float("nan"), "p90": float("nan"), "mean": float("nan")})
             lines.append(f"   {s:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
                          f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")
+            sn = r.get("sensor_ms")
+            if s == "scale" and sn is not None and sn["mean"] > 0:
+                lines.append(f"   {'  sensor':<24}{sn['median']:>10.1f}{sn['p90']:>10.1f}{sn['mean']:>10.1f}")
             if s == "backbone":  # the backbone's own profile of its pass, by part (wall; steps with a pass)
                 for part, pv in r.get("backbone_pass_ms", {}).items():
                     if part == "total":
                         continue
                     lines.append(f"   {'  ' + part:<24}{pv['median']:>10.1f}{pv['p90']:>10.1f}{pv['mean']:>10.1f}")
         v, c = r["robot_step_ms"], r.get("robot_step_cpu_ms", r["robot_step_ms"])
-        lines.append(f"   {'all stages':<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
+        sn = r.get("sensor_ms") or {"mean": 0.0}
+        label = "robot's work" if sn["mean"] > 0 else "all stages"
+        lines.append(f"   {label:<24}{v['median']:>10.1f}{v['p90']:>10.1f}{v['mean']:>10.1f}"
                      f"{c['median']:>10.1f}{c['p90']:>10.1f}{c['mean']:>10.1f}")
+        if sn["mean"] > 0:
+            w = r["robot_step_with_sensor_ms"]
+            lines.append(f"   {'  with the sensor':<24}{w['median']:>10.1f}{w['p90']:>10.1f}{w['mean']:>10.1f}"
+                         "   (all stages: the depth a sensor hands over with the frame, read or simulated here)")
         g, gc = r.get("gate_score_ms"), r.get("gate_score_cpu_ms")
         if g is not None:
             lines.append(f"   {'  gate scoring (in gate)':<24}{g['median']:>10.3f}{g['p90']:>10.3f}{g['mean']:>10.3f}"

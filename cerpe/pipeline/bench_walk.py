@@ -139,8 +139,9 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
     team_cpu_ms: list[float] = []  # the whole process: every thread, workers' included
     stage_ms: dict[str, list[float]] = {s: [] for s in STAGES}
     stage_cpu_ms: dict[str, list[float]] = {s: [] for s in STAGES}
-    robot_ms: list[float] = []
+    robot_ms: list[float] = []  # the robot's own work: all stages less a depth sensor's part (MetricDepthSource)
     robot_cpu_ms: list[float] = []
+    sensor_ms: list[float] = []  # reading or simulating a sensor's depth (in "scale")
     score_ms: list[float] = []
     score_cpu_ms: list[float] = []
     pass_ms: dict[str, list[float]] = {}  # the backbone's own profile of its pass, by part (robot-steps with a pass)
@@ -189,8 +190,11 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
                 for s in STAGES:
                     stage_ms[s].append(1000 * float(rec.timings_s.get(s, 0.0)))
                     stage_cpu_ms[s].append(1000 * float(rec.cpu_s.get(s, 0.0)))
-                robot_ms.append(1000 * float(sum(rec.timings_s.get(s, 0.0) for s in STAGES)))
-                robot_cpu_ms.append(1000 * float(sum(rec.cpu_s.get(s, 0.0) for s in STAGES)))
+                sensor = float(rec.parts_s.get("sensor", 0.0))
+                sensor_ms.append(1000 * sensor)
+                robot_ms.append(1000 * (float(sum(rec.timings_s.get(s, 0.0) for s in STAGES)) - sensor))
+                robot_cpu_ms.append(1000 * (float(sum(rec.cpu_s.get(s, 0.0) for s in STAGES))
+                                            - float(rec.cpu_s.get("sensor", 0.0))))
                 score_ms.append(1000 * float(rec.parts_s.get("gate_score", 0.0)))
                 score_cpu_ms.append(1000 * float(rec.cpu_s.get("gate_score", 0.0)))
                 for k, v in rec.parts_s.items():
@@ -208,7 +212,7 @@ def walk(encounters: list, n_robots: int, plugins: Any, steps: int | None, warmu
         reg_stats.append({**merge_stats([r.stats() for r in team.registrars]), "unlanded_at_end": unlanded})
         team.close()
     return {"team_ms": team_ms, "team_cpu_ms": team_cpu_ms, "stage_ms": stage_ms, "stage_cpu_ms": stage_cpu_ms,
-            "robot_ms": robot_ms, "robot_cpu_ms": robot_cpu_ms, "score_ms": score_ms, "score_cpu_ms": score_cpu_ms,
+            "robot_ms": robot_ms, "robot_cpu_ms": robot_cpu_ms, "sensor_ms": sensor_ms, "score_ms": score_ms, "score_cpu_ms": score_cpu_ms,
             "pass_ms": pass_ms,
             "bytes_kind": bytes_kind, "bytes_total": bytes_total, "gate_open": gate_open, "pairs": pairs,
             "rot_direct": rot_direct, "gate_rows": gate_rows, "lateness": lateness,
@@ -239,6 +243,9 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
         "team_step_ms": median_p90(w["team_ms"]),
         "robot_step_ms": median_p90(w["robot_ms"]),
         "robot_step_cpu_ms": median_p90(w["robot_cpu_ms"]),
+        # the depth sensor's part of "scale" (0 for a depth network): left out of robot_step_ms
+        "sensor_ms": median_p90(w.get("sensor_ms") or [0.0]),
+        "robot_step_with_sensor_ms": median_p90([a + b for a, b in zip(w["robot_ms"], w.get("sensor_ms") or [0.0] * len(w["robot_ms"]))]),
         # the process's CPU per robot-step: every thread (registration workers, OpenCV's) included
         "process_cpu_ms_per_robot_step": float(np.sum(w["team_cpu_ms"])) / n,
         "stage_ms": {s: median_p90(v) for s, v in w["stage_ms"].items()},
