@@ -117,3 +117,37 @@ def test_at_rest_with_a_moving_object_stays_at_rest(at_rest, factor):
     room[40:200, 100:280] = False  # the object in either view
     assert moving[50:190, 110:240].mean() > 0.8  # the object, where the current view sees it
     assert moving[room].mean() < 0.1
+
+
+def test_a_priors_vote_grid_is_cached_by_its_content(room):
+    """The vote grid of a prior comes from the cache when the same prior votes again (as the previous
+    frame, as an older keyframe): equal to a recomputation, read-only, and ``exclude`` taken out of it
+    without touching the cached grid; another prior is another entry."""
+    from cerpe.backbones.cache import LRUCache
+    from cerpe.backbones.config import OfflineConfig
+    from cerpe.backbones.offline.context import Pass
+    from cerpe.backbones.offline.vote import grid_points
+    from cerpe.backbones.xfeat import XFeatFeatures
+
+    img, d = room.render(pose((0, 0, 0)))
+    feats = XFeatFeatures(*(np.zeros((0, 2)),) * 5, image_hw=(K.height, K.width))
+    d_far = np.where(np.arange(K.width)[None] < K.width // 2, d, 0.0)  # another prior: left half only
+    passes = [Pass(views=[View(("r0", 0), img, K, dm)], feats=[feats], Ks=[K.K], cams=[None], low_tex=[False],
+                   conf=OfflineConfig(), matcher=None, derived_cache=cache)
+              for dm, cache in ((d, LRUCache(4)), (d, None), (d_far, None))]
+    p, fresh, other = passes
+    first = grid_points(p, 0)
+    again = grid_points(p, 0)
+    assert all(a is b for a, b in zip(first, again)) and len(p.derived_cache) == 1
+    for a, b in zip(first, grid_points(fresh, 0)):
+        np.testing.assert_array_equal(a, b)
+    assert not any(a.flags.writeable for a in first)
+    exclude = np.zeros_like(first[2])
+    exclude[::3] = True
+    _, _, ok, X = grid_points(p, 0, exclude)
+    assert ok.sum() == (first[2] & ~exclude).sum() == len(X) and first[2][::3].any()
+    np.testing.assert_array_equal(X, first[3][~exclude[first[2]]])
+    assert first[2][::3].any() and grid_points(p, 0)[2] is first[2]
+    passes[0].views[0] = View(("r0", 0), img, K, d_far)
+    assert grid_points(p, 0)[2].sum() == grid_points(other, 0)[2].sum() < first[2].sum()
+    assert len(p.derived_cache) == 2

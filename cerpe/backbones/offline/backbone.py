@@ -45,6 +45,8 @@ MATCH_CACHE_SIZE = 256  # matched image pairs kept (LRU by both images' content)
 GREY_CACHE_SIZE = 48  # blurred grey images kept (LRU by content and blur), about a memory's views at two blurs
 MATCH_CACHE_PER_ROBOT = 128  # matched pairs kept per robot when a team shares the backbone (serve_robots)
 GREY_CACHE_PER_ROBOT = 24  # blurred grey images kept per robot when a team shares the backbone
+DERIVED_CACHE_SIZE = 16  # other per-view arrays kept (Pass.derived: the vote grids of a memory's priors)
+DERIVED_CACHE_PER_ROBOT = 8  # ... per robot when a team shares the backbone
 
 
 class OfflineGeometryBackbone:
@@ -78,6 +80,7 @@ class OfflineGeometryBackbone:
         self.encoder = encoder or shared_encoder(self.conf.keypoints)
         self.matcher = PairMatcher(MIN_COSSIM, RATIO, MATCH_CACHE_SIZE)
         self.greys: LRUCache[np.ndarray] = LRUCache(GREY_CACHE_SIZE)
+        self.derived: LRUCache = LRUCache(DERIVED_CACHE_SIZE)
         self.counts: Counter[str] = Counter()
         self._learned = learned
 
@@ -94,6 +97,7 @@ class OfflineGeometryBackbone:
         n = max(int(n_robots), 1)
         self.matcher.cache.reserve(n * MATCH_CACHE_PER_ROBOT)
         self.greys.reserve(n * GREY_CACHE_PER_ROBOT)
+        self.derived.reserve(n * DERIVED_CACHE_PER_ROBOT)
         if callable(getattr(self.encoder, "serve_robots", None)):
             self.encoder.serve_robots(n)
 
@@ -101,6 +105,7 @@ class OfflineGeometryBackbone:
         """Forget cached matches and learned features (a cold start; XFeat features live in the encoder's cache)."""
         self.matcher.clear()
         self.greys.clear()
+        self.derived.clear()
         if self._learned is not None and callable(getattr(self._learned, "clear_cache", None)):
             self._learned.clear_cache()
 
@@ -141,7 +146,8 @@ class OfflineGeometryBackbone:
         p = Pass(views=views, feats=feats, Ks=[None if i is None else i.K for i in intr],
                  cams=[None if i is None else pinhole_camera(i) for i in intr],
                  low_tex=[f.grey_std < BLANK_STD for f in feats], conf=self.conf,
-                 matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref, greys=self.greys)
+                 matcher=self.matcher, memos=memos, timings=timings, scale_ref=scale_ref, greys=self.greys,
+                 derived_cache=self.derived)
         own = [s for s in range(S) if not is_collab[s]]
         rec, reasons = self._solve_own(p, own)
         cross_mod.check_joint_placements(p, rec, [s for s in own if views[s].role == "collaborator"], reasons)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Hashable, Mapping, Sequence
+from typing import Any, Callable, Hashable, Mapping, Sequence
 
 import numpy as np
 
@@ -146,6 +146,9 @@ class Pass:
     # blurred grey images by (content key, sigma): the vote, the frame scale and the appearance check
     # read the same ones many times a pass, and a keyframe's again in every later pass
     greys: LRUCache | None = None
+    # other arrays derived from one view's pixels or prior alone, by a key naming what and of what
+    # (the vote's grid of a prior): a frame's comes back as the previous frame and as a keyframe
+    derived_cache: LRUCache | None = None
 
     def subset(self, idx: Sequence[int]) -> "Pass":
         """A pass over views ``idx`` of this one (same matcher, timings and counters)."""
@@ -153,7 +156,17 @@ class Pass:
                     Ks=[self.Ks[s] for s in idx], cams=[self.cams[s] for s in idx],
                     low_tex=[self.low_tex[s] for s in idx], conf=self.conf, matcher=self.matcher,
                     memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts,
-                    scale_ref=self.scale_ref, greys=self.greys)
+                    scale_ref=self.scale_ref, greys=self.greys, derived_cache=self.derived_cache)
+
+    def derived(self, key: Hashable, make: Callable[[], Any]) -> Any:
+        """``make()``, cached under ``key`` (:attr:`derived_cache`); ``key`` must name all ``make`` reads."""
+        if self.derived_cache is None:
+            return make()
+        out = self.derived_cache.get(key)
+        if out is None:
+            out = make()
+            self.derived_cache.put(key, out)
+        return out
 
     def grey(self, k: int, sigma: float) -> np.ndarray:
         """``[H,W] float32`` grey image of view ``k`` blurred with ``sigma`` px (none at 0), read-only;

@@ -17,6 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..cache import content_key
 from .context import VOTE_CHAIN_HOPS, Pass
 from .matching import map_index, pixels_to_rays
 
@@ -49,7 +50,7 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
     tolerance of each motion to ``spread_k`` robust sigmas of its log depth residuals
     (:func:`depth_scale`), at most :data:`VOTE_DEPTH_TOL_MAX`. That is for one motion already
     chosen (the moving mask), never between motions (a wrong one would widen its own)."""
-    Db = np.asarray(p.views[b].depth_m, np.float64)
+    Db = np.asarray(p.views[b].depth_m)
     grey = blurred_greys(p, (a, b), VOTE_BLUR_SIGMA)
     Hb, Wb = p.feats[b].image_hw
     hb, wb = Db.shape
@@ -62,7 +63,7 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
         Xb, ub, vb, ins = project_points(p, b, X, T)
         inside[h, sel] = ins
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
-        meas = Db[map_index(vb, hb, Hb), map_index(ub, wb, Wb)]
+        meas = Db.ravel()[map_index(vb, hb, Hb) * wb + map_index(ub, wb, Wb)].astype(np.float64)
         g = bilinear(grey[1], ub, vb)
         grey_ok = np.abs(g - gi) <= VOTE_GREY_TOL
         s, spread = depth_scale(zi, meas, grey_ok, VOTE_DEPTH_TOL, VOTE_DEPTH_SCALE_MAX, VOTE_DEPTH_SCALE_SEARCH)
@@ -212,18 +213,34 @@ def blurred_greys(p: Pass, views: Sequence[int], sigma: float) -> list[np.ndarra
 def grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """View ``a``'s :data:`VOTE_STRIDE` grid: rows ``vv``, columns ``uu`` ``[n_grid]``, the mask ``ok`` of
-    grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``."""
-    Da = np.asarray(p.views[a].depth_m, np.float64)
+    grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``.
+    Read-only arrays; the grid of a prior is cached (:meth:`Pass.derived`): a frame votes again as
+    the previous frame and as an older keyframe."""
+    K = p.Ks[a]
+    depth = p.views[a].depth_m
+    key = ("vote-grid", VOTE_STRIDE, p.feats[a].image_hw, np.asarray(K, np.float64).tobytes(), content_key(depth))
+    vv, uu, ok, X = p.derived(key, lambda: _grid(depth, K, p.feats[a].image_hw))
+    if exclude is not None and exclude.shape == ok.shape:
+        X = X[~exclude[ok]]
+        ok = ok & ~exclude
+    return vv, uu, ok, X
+
+
+def _grid(depth_m: np.ndarray, K: np.ndarray, image_hw: tuple[int, int]
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`grid_points` of a depth prior ``[h,w]`` of an image ``image_hw`` with intrinsics ``K``, read-only."""
+    Da = np.asarray(depth_m, np.float64)
     st = max(VOTE_STRIDE, 1)
-    H, W = p.feats[a].image_hw
+    H, W = image_hw
     vv, uu = np.mgrid[st // 2:H:st, st // 2:W:st]
     vv, uu = vv.ravel(), uu.ravel()
     z = Da[map_index(vv.astype(np.float64), Da.shape[0], H), map_index(uu.astype(np.float64), Da.shape[1], W)]
     ok = np.isfinite(z) & (z > 0)
-    if exclude is not None and exclude.shape == ok.shape:
-        ok &= ~exclude
     uv = np.column_stack([uu[ok], vv[ok]]).astype(np.float64)
-    return vv, uu, ok, pixels_to_rays(uv, p.Ks[a]) * z[ok, None]
+    out = (vv, uu, ok, pixels_to_rays(uv, K) * z[ok, None])
+    for arr in out:
+        arr.setflags(write=False)
+    return out
 
 
 def project_points(p: Pass, b: int, X: np.ndarray, T_b_a: np.ndarray
@@ -243,5 +260,7 @@ def bilinear(g: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     h, w = g.shape[:2]
     x0, y0 = np.minimum(u.astype(np.int64), w - 2), np.minimum(v.astype(np.int64), h - 2)
     ax, ay = u - x0, v - y0
-    return ((1 - ax) * (1 - ay) * g[y0, x0] + ax * (1 - ay) * g[y0, x0 + 1]
-            + (1 - ax) * ay * g[y0 + 1, x0] + ax * ay * g[y0 + 1, x0 + 1])
+    i = y0 * w + x0  # flat indices: one gather each, cheaper than a pair of index arrays
+    gf = np.ascontiguousarray(g).reshape(h * w, *g.shape[2:])
+    return ((1 - ax) * (1 - ay) * gf[i] + ax * (1 - ay) * gf[i + 1]
+            + (1 - ax) * ay * gf[i + w] + ax * ay * gf[i + w + 1])
