@@ -200,6 +200,32 @@ def test_keypoint_depths_median_edges_and_resolution():
     assert keypoint_depths(np.zeros((0, 2)), D, (24, 32)).shape == (0,)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_keypoint_depths_equal_nan_statistics_of_each_window(dtype):
+    """Random maps with holes (0, negative, NaN, inf) at the image's and at half its resolution, keypoints
+    up to and past the border: each depth is what np.nanmedian / nanmax / nanmin of the padded 3x3 window
+    give (0 with fewer than 5 known or a spread above DEPTH_EDGE_TOL), to the last bit."""
+    from cerpe.backbones.offline import keypoint_depths
+    from cerpe.backbones.offline.matching import DEPTH_EDGE_TOL, map_index
+
+    rng = np.random.default_rng(3)
+    for hd, wd in ((24, 32), (12, 16)):
+        D = (2 + 0.5 * rng.random((hd, wd))).astype(dtype)  # window spreads either side of the tolerance
+        m = rng.random(D.shape)
+        D[m < 0.1], D[m > 0.95], D[(m > 0.5) & (m < 0.52)], D[(m > 0.9) & (m < 0.92)] = 0, np.nan, -1, np.inf
+        uv = np.column_stack([rng.random(400) * 34 - 1.5, rng.random(400) * 26 - 1.5])
+        z = keypoint_depths(uv, D, (24, 32))
+        P = np.pad(np.where(np.isfinite(D) & (D > 0), D.astype(np.float64), np.nan), 1, constant_values=np.nan)
+        for (x, y), got in zip(uv, z):
+            r, c = map_index(np.array([y]), hd, 24)[0] + 1, map_index(np.array([x]), wd, 32)[0] + 1
+            w = P[r - 1:r + 2, c - 1:c + 2]
+            if np.isfinite(w).sum() < 5:
+                assert got == 0
+                continue
+            med = np.nanmedian(w)
+            assert got == (med if (np.nanmax(w) - np.nanmin(w)) / med <= DEPTH_EDGE_TOL else 0.0)
+
+
 def test_depth_prior_gives_metric_pose_and_handles_pure_rotation(room, backbone):
     Tw = [pose((0, 0, 0)), pose((0.25, -0.05, 0.4), (1, -3, 0))]
     v0 = _view(room, ("p", 1), Tw[1])

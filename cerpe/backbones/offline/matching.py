@@ -201,15 +201,24 @@ def keypoint_depths(uv: np.ndarray, depth_m: np.ndarray, image_hw: tuple[int, in
     Returns:
         ``[N] float64`` depths in metres, 0 where unknown.
     """
-    D = np.asarray(depth_m, np.float64)
+    D = np.asarray(depth_m)
     if D.ndim != 2 or D.size == 0 or len(uv) == 0:
         return np.zeros(len(uv))
     H, W = image_hw
     hd, wd = D.shape
-    u = map_index(uv[:, 0], wd, W) + 1  # + 1: the padded border
-    v = map_index(uv[:, 1], hd, H) + 1
-    P = np.pad(np.where(np.isfinite(D) & (D > 0), D, np.nan), 1, constant_values=np.nan)
-    win = np.stack([P[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)  # [N,9]
+    u = map_index(uv[:, 0], wd, W)
+    v = map_index(uv[:, 1], hd, H)
+    # the 3x3 windows gathered from the map as it is (no float64 copy of the whole map): NaN
+    # outside it and where the depth is unknown
+    flat = np.ascontiguousarray(D).reshape(-1)
+    cols = []
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            vv, uu = v + dv, u + du
+            inside = (vv >= 0) & (vv < hd) & (uu >= 0) & (uu < wd)
+            vals = flat[np.clip(vv, 0, hd - 1) * wd + np.clip(uu, 0, wd - 1)].astype(np.float64)
+            cols.append(np.where(inside & np.isfinite(vals) & (vals > 0), vals, np.nan))
+    win = np.stack(cols, axis=1)  # [N,9]
     n = np.sum(np.isfinite(win), axis=1)
     out = np.zeros(len(uv))
     ok = n >= min_valid
