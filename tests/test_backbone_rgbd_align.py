@@ -152,3 +152,27 @@ def test_backbone_refines_the_depth_prior_pose(pair):
         err[on] = _errors(out.T_frame_cam[1])[0]  # the pass frame is the current camera
         assert bb.counts["dense-refined"] == int(on)
     assert err[True] < 5e-4 and err[True] < err[False], err
+
+
+def test_pyramids_kept_by_the_caller_give_the_same_result(pair):
+    """A frame is the current view of one alignment and the reference of the next: pyramids the caller
+    keeps (built once per image, read-only, the current one with or without its depth) give bit for
+    bit what align_rgbd builds itself; one too shallow, or without the depth it needs, is refused."""
+    from cerpe.backbones.rgbd_align import rgbd_pyramid
+
+    img0, d0, img1, d1 = pair
+    T_init = _perturbed(np.random.default_rng(2), 0.01, 0.3)
+    ref = rgbd_pyramid(img0, d0, K.K, 3)
+    assert [lv.grey.shape for lv in ref] == [(K.height, K.width), (K.height // 2, K.width // 2),
+                                             (K.height // 4, K.width // 4)]
+    assert all(not a.flags.writeable for lv in ref for a in (lv.grey, lv.blurred, lv.depth_m, lv.K))
+    for use_depth in (True, False):
+        cur = rgbd_pyramid(img1, d1 if use_depth else None, K.K, 3)
+        own = align_rgbd(img0, d0, img1, d1, K.K, K.K, T_init, levels=3, use_depth=use_depth)
+        kept = align_rgbd(img0, d0, img1, d1, K.K, K.K, T_init, levels=3, use_depth=use_depth, pyramids=(ref, cur))
+        assert own.ok and np.array_equal(own.T_cur_ref, kept.T_cur_ref) and own.iterations == kept.iterations
+        assert (own.cost0, own.cost, own.n_pixels) == (kept.cost0, kept.cost, kept.n_pixels)
+    with pytest.raises(RGBDAlignError, match="levels deep"):
+        align_rgbd(img0, d0, img1, d1, K.K, K.K, T_init, levels=3, pyramids=(ref[:2], ref[:2]))
+    with pytest.raises(RGBDAlignError, match="with depth"):
+        align_rgbd(img0, d0, img1, d1, K.K, K.K, T_init, levels=3, pyramids=(ref, cur))  # cur: no depth

@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import CerpeError
 from ..geometry import se3_inverse
 
-__all__ = ["RGBDAlignError", "AlignResult", "grey_image", "align_rgbd"]
+__all__ = ["RGBDAlignError", "AlignResult", "Level", "grey_image", "rgbd_pyramid", "align_rgbd"]
 
 
 class RGBDAlignError(CerpeError, ValueError):
@@ -149,41 +149,57 @@ def _robust_cost(x: np.ndarray, k: float) -> np.ndarray:
     return (k * k / 6.0) * (1.0 - (1.0 - a) ** 3)
 
 
-def _half(g_ref, D_ref, g_cur, D_cur, Kr, Kc):
-    """One pyramid level down: images by ``pyrDown``, depth by taking every other pixel
-    (averaging would blend across depth edges), intrinsics for pixel centres at integers."""
+@dataclass(frozen=True)
+class Level:
+    """One image's pyramid level: ``grey`` ``[h,w]`` float32, the same blurred with :data:`BLUR_SIGMA`
+    (``blurred``), ``depth_m`` ``[h,w]`` float32 (0: unknown; None without depth) and ``K`` ``[3,3]``."""
+
+    grey: np.ndarray
+    blurred: np.ndarray
+    depth_m: np.ndarray | None
+    K: np.ndarray
+
+
+def rgbd_pyramid(image: np.ndarray, depth_m: np.ndarray | None, K: np.ndarray, levels: int,
+                 what: str = "depth") -> list[Level]:
+    """``levels`` :class:`Level` of one image (finest first), read-only. A level down halves the image by
+    ``pyrDown``, takes every other depth pixel (averaging would blend across depth edges) and moves
+    the intrinsics for pixel centres at integers. It depends on the one image alone, so a caller may
+    keep it: a frame is the current view of one alignment and the reference of the next."""
     import cv2
 
-    def K2(K: np.ndarray) -> np.ndarray:
+    def level(g: np.ndarray, D: np.ndarray | None, K: np.ndarray) -> Level:
+        b = cv2.GaussianBlur(g, (0, 0), BLUR_SIGMA) if BLUR_SIGMA > 0 else g
+        for a in (g, b, D, K):
+            if a is not None:
+                a.setflags(write=False)
+        return Level(g, b, D, K)
+
+    K = np.array(K, np.float64)
+    g = grey_image(image)
+    D = None if depth_m is None else _depth_at_image(depth_m, g.shape, what)
+    out = [level(g, D, K)]
+    for _ in range(max(int(levels), 1) - 1):
         K = K.copy()
         K[0, 0] /= 2
         K[1, 1] /= 2
         K[0, 2] = (K[0, 2] + 0.5) / 2 - 0.5
         K[1, 2] = (K[1, 2] + 0.5) / 2 - 0.5
-        return K
-
-    def D2(D: np.ndarray | None) -> np.ndarray | None:
-        return None if D is None else np.ascontiguousarray(D[::2, ::2])
-
-    g_r, g_c = cv2.pyrDown(g_ref), cv2.pyrDown(g_cur)
-    D_r, D_c = D2(D_ref), D2(D_cur)
-    # pyrDown rounds sizes up like the slicing above; keep the depth at the image size
-    D_r = _depth_at_image(D_r, g_r.shape, "reference depth")
-    D_c = None if D_c is None else _depth_at_image(D_c, g_c.shape, "current depth")
-    return g_r, D_r, g_c, D_c, K2(Kr), K2(Kc)
+        g = cv2.pyrDown(g)
+        # pyrDown rounds sizes up like the slicing; keep the depth at the image size
+        D = None if D is None else _depth_at_image(np.ascontiguousarray(D[::2, ::2]), g.shape, what)
+        out.append(level(g, D, K))
+    return out
 
 
 class _Level:
     """One pyramid level: the reference points and the current view's sampled maps."""
 
-    def __init__(self, g_ref: np.ndarray, D_ref: np.ndarray, g_cur: np.ndarray, D_cur: np.ndarray | None,
-                 Kr: np.ndarray, Kc: np.ndarray, stride: int) -> None:
+    def __init__(self, ref: Level, cur: Level, use_depth: bool, stride: int) -> None:
         import cv2
 
-        sigma = BLUR_SIGMA
-        if sigma > 0:
-            g_ref = cv2.GaussianBlur(g_ref, (0, 0), sigma)
-            g_cur = cv2.GaussianBlur(g_cur, (0, 0), sigma)
+        g_ref, D_ref, Kr = ref.blurred, ref.depth_m, ref.K
+        g_cur, D_cur, Kc = cur.blurred, cur.depth_m if use_depth else None, cur.K
         H, W = g_ref.shape
         self.Hc, self.Wc = g_cur.shape
         # reference points: every stride-th pixel with a depth, off depth edges
@@ -311,7 +327,7 @@ class _Level:
 def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.ndarray,
                depth_cur_m: np.ndarray | None, K_ref: np.ndarray, K_cur: np.ndarray,
                T_cur_ref: np.ndarray, stride: int = 8, iterations: int = 6, levels: int = 3,
-               use_depth: bool = True) -> AlignResult:
+               use_depth: bool = True, pyramids: tuple[list[Level], list[Level]] | None = None) -> AlignResult:
     """Refine ``T_cur_ref`` by dense photometric (+ depth) alignment; see the module docstring.
 
     Args:
@@ -326,6 +342,9 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
         levels: pyramid levels (1: full resolution only); each coarser level halves the image and
             doubles the basin, for an initial pose a few pixels off.
         use_depth: weight the depth residual at all (False: photometric only).
+        pyramids: ``(reference, current)`` :func:`rgbd_pyramid` of these images (the current one's
+            with its depth when ``use_depth``), at least ``levels`` deep, when the caller keeps them;
+            None: built here.
 
     Returns:
         :class:`AlignResult`; never raises for a pose it cannot refine (``ok`` False and a
@@ -337,17 +356,17 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     Kr, Kc = np.asarray(K_ref, np.float64), np.asarray(K_cur, np.float64)
     if Kr.shape != (3, 3) or Kc.shape != (3, 3) or not (np.all(np.isfinite(Kr)) and np.all(np.isfinite(Kc))):
         raise RGBDAlignError("align_rgbd: K_ref and K_cur must be finite [3,3]")
-    g_ref, g_cur = grey_image(image_ref), grey_image(image_cur)
-    D_ref = _depth_at_image(depth_ref_m, g_ref.shape, "reference depth")
     use_depth = bool(use_depth) and depth_cur_m is not None
-    D_cur = _depth_at_image(depth_cur_m, g_cur.shape, "current depth") if use_depth else None
+    n_levels = max(int(levels), 1)
+    if pyramids is None:
+        pyramids = (rgbd_pyramid(image_ref, depth_ref_m, Kr, n_levels, "reference depth"),
+                    rgbd_pyramid(image_cur, depth_cur_m if use_depth else None, Kc, n_levels, "current depth"))
+    ref, cur = pyramids
+    if len(ref) < n_levels or len(cur) < n_levels or ref[0].depth_m is None or (use_depth and cur[0].depth_m is None):
+        raise RGBDAlignError(f"align_rgbd: pyramids must be {n_levels} levels deep, with depth")
     result = AlignResult(T_cur_ref=T0.copy(), ok=False)
     k = TUKEY_K
-    n_levels = max(int(levels), 1)
-    pyramid = [(g_ref, D_ref, g_cur, D_cur, Kr, Kc)]
-    for _ in range(n_levels - 1):
-        pyramid.append(_half(*pyramid[-1]))
-    fine = _Level(*pyramid[0], stride=int(stride))
+    fine = _Level(ref[0], cur[0], use_depth, stride=int(stride))
     if fine.n < MIN_PIXELS:
         result.reason = "few-pixels"
         return result
@@ -362,7 +381,7 @@ def align_rgbd(image_ref: np.ndarray, depth_ref_m: np.ndarray, image_cur: np.nda
     R, t = T0[:3, :3].copy(), T0[:3, 3].copy()
     last_px = float("inf")
     for lev in range(n_levels - 1, -1, -1):
-        L = fine if lev == 0 else _Level(*pyramid[lev], stride=COARSE_STRIDE)
+        L = fine if lev == 0 else _Level(ref[lev], cur[lev], use_depth, stride=COARSE_STRIDE)
         if L.n < MIN_PIXELS // (4 ** lev):
             continue
         sc = fine_scales if lev == 0 else None

@@ -19,7 +19,8 @@ from typing import Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
-from ..rgbd_align import align_rgbd
+from ..cache import content_key
+from ..rgbd_align import align_rgbd, rgbd_pyramid
 from . import framescale
 from .context import P3P_SAMPLE, Pass, Recon
 from .matching import keypoint_depths, pixels_to_rays, pose_to_T, reprojection_error
@@ -89,15 +90,33 @@ def refine_dense(p: Pass, d: int, rec: Recon) -> None:
     if not c.refine or p.views[d].depth_m is None:
         return
     t0 = time.perf_counter()
+    use_depth = c.use_depth and p.views[0].depth_m is not None
+    pyramids = (pyramid(p, d, True, c.levels), pyramid(p, 0, use_depth, c.levels))
     res = align_rgbd(p.views[d].image, p.views[d].depth_m, p.views[0].image, p.views[0].depth_m,
                      p.Ks[d], p.Ks[0], se3_inverse(rec.T[0]), stride=c.stride, iterations=c.iterations,
-                     levels=c.levels, use_depth=c.use_depth)
+                     levels=c.levels, use_depth=c.use_depth, pyramids=pyramids)
     if res.ok:
         rec.T[0] = se3_inverse(res.T_cur_ref)
         p.counts["dense-refined"] += 1
     else:
         p.counts[f"dense-refused:{res.reason}"] += 1
     p.timings["dense"] = p.timings.get("dense", 0.0) + time.perf_counter() - t0
+
+
+def pyramid(p: Pass, k: int, with_depth: bool, levels: int) -> list:
+    """View ``k``'s :func:`~cerpe.backbones.rgbd_align.rgbd_pyramid` (with its prior when ``with_depth``),
+    kept by content (:meth:`Pass.derived`): this pass's current view is the next one's reference."""
+    v = p.views[k]
+    depth = v.depth_m if with_depth else None
+
+    def make() -> list:
+        return rgbd_pyramid(v.image, depth, p.Ks[k], levels, "reference depth" if k else "current depth")
+
+    if not p.feats[k].fingerprint:
+        return make()
+    key = ("rgbd-pyramid", p.feats[k].fingerprint, None if depth is None else content_key(depth),
+           np.asarray(p.Ks[k], np.float64).tobytes(), int(levels))
+    return p.derived(key, make)
 
 
 def add_current_prior_points(p: Pass, rec: Recon) -> None:
