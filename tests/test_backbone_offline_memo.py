@@ -175,3 +175,28 @@ def test_views_not_wanted_are_left_out_of_a_metric_pass(room, walk_b):
     bare = [dataclasses.replace(v, depth_m=None, memo=None, pose_wanted=False) for v in (views[2], views[1])]
     out = OfflineGeometryBackbone().infer([views[3]] + bare)
     assert out.metric_unit and out.reference is None and out.valid.all(), out.reasons
+
+
+def test_anchor_candidates_are_ranked_by_an_estimate_and_the_best_two_by_full_matches(room):
+    """The depth-prior views a pass may anchor on: all ranked by their matches among the best keypoints
+    (no full match), the first two of those by their full matches (two full matches, whatever the count);
+    with two candidates or fewer, by full matches alone, as a full ranking would."""
+    from cerpe.backbones.config import OfflineConfig
+    from cerpe.backbones.offline import OfflineGeometryBackbone, Pass
+    from cerpe.backbones.offline.context import RANK_FULL
+    from cerpe.backbones.offline.matching import pinhole_camera
+
+    views = _frames(room, "r0", POSES)[::-1]  # the current frame, then the older ones newest first
+    bb = OfflineGeometryBackbone(OfflineConfig())
+    feats = [bb.encoder.encode(v) for v in views]
+    p = Pass(views=views, feats=feats, Ks=[K.K] * 4, cams=[pinhole_camera(K)] * 4, low_tex=[False] * 4,
+             conf=bb.conf, matcher=bb.matcher)
+    est = {d: p.shared_estimate(0, d) for d in (1, 2, 3)}
+    assert bb.matcher.n_computed == 0 and all(n > 0 for n in est.values())
+    ranked = p.rank_by_shared(0, [1, 2, 3])
+    assert bb.matcher.n_computed == RANK_FULL == 2
+    by_est = sorted((1, 2, 3), key=lambda d: -est[d])
+    assert sorted(ranked[:2]) == sorted(by_est[:2]) and ranked[2] == by_est[2]
+    assert len(p.m(0, ranked[0])) >= len(p.m(0, ranked[1]))
+    full = {d: len(p.m(0, d)) for d in (1, 2, 3)}
+    assert p.rank_by_shared(0, [2, 1]) == sorted([2, 1], key=lambda d: -full[d])

@@ -42,6 +42,10 @@ VOTE_CHAIN_HOPS = 12
 RANSAC_MIN_ITERATIONS = 100
 P3P_SAMPLE = 3  # 2D-3D pairs of P3P's minimal sample
 FIVE_POINT_SAMPLE = 5  # image pairs of the essential matrix's minimal sample
+# the depth-prior views a pass may anchor on are ranked by their matches among the RANK_KEYPOINTS best
+# keypoints of each view (Pass.shared_estimate); the first RANK_FULL of them by their full matches
+RANK_KEYPOINTS = 512
+RANK_FULL = 2
 
 Chain = tuple[tuple[Hashable, np.ndarray], ...]
 
@@ -195,6 +199,29 @@ class Pass:
         t0 = time.perf_counter()
         try:
             return self.matcher(self.feats[a], self.feats[b])
+        finally:
+            self.timings["match"] = self.timings.get("match", 0.0) + time.perf_counter() - t0
+
+    def rank_by_shared(self, a: int, cands: Sequence[int]) -> list[int]:
+        """``cands`` by the matches they share with view ``a``, most first (stable). All are ranked by
+        :meth:`shared_estimate`; the first :data:`RANK_FULL` of them then by their full matches, which
+        only the view the pass anchors on needs: one full match is sixteen estimates."""
+        est = sorted(cands, key=lambda d: -self.shared_estimate(a, d)) if len(cands) > RANK_FULL else list(cands)
+        head = sorted(est[:RANK_FULL], key=lambda d: -len(self.m(a, d)))
+        return head + est[RANK_FULL:]
+
+    def shared_estimate(self, a: int, b: int) -> int:
+        """Matches of views ``a`` and ``b`` among their :data:`RANK_KEYPOINTS` best keypoints each (a
+        view's features sort by score), with the thresholds of the full match."""
+        if self.low_tex[a] or self.low_tex[b]:
+            return 0
+        from .matching import match_mnn
+
+        t0 = time.perf_counter()
+        try:
+            n = RANK_KEYPOINTS
+            return len(match_mnn(self.feats[a].descriptors[:n], self.feats[b].descriptors[:n],
+                                 self.matcher.min_cossim, self.matcher.ratio))
         finally:
             self.timings["match"] = self.timings.get("match", 0.0) + time.perf_counter() - t0
 

@@ -41,7 +41,7 @@ def bootstrap_depth(p: Pass) -> tuple[Recon | None, dict[int, str]]:
     c = p.conf
     why: dict[int, str] = {}
     cands = [d for d in range(1, len(p.views)) if p.views[d].depth_m is not None and not p.low_tex[d]]
-    cands.sort(key=lambda d: -len(p.m(0, d)))  # the view sharing most matches first
+    cands = p.rank_by_shared(0, cands)  # the view sharing most matches first
     if p.views[0].depth_m is not None:
         cands.append(0)  # the current view's own points: only when no other view can anchor
     for d in cands:
