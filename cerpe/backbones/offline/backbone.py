@@ -45,7 +45,7 @@ MATCH_CACHE_SIZE = 256  # matched image pairs kept (LRU by both images' content)
 GREY_CACHE_SIZE = 48  # blurred grey images kept (LRU by content and blur), about a memory's views at two blurs
 MATCH_CACHE_PER_ROBOT = 128  # matched pairs kept per robot when a team shares the backbone (serve_robots)
 GREY_CACHE_PER_ROBOT = 24  # blurred grey images kept per robot when a team shares the backbone
-DERIVED_CACHE_SIZE = 16  # other per-view arrays kept (Pass.derived: the vote grids of a memory's priors)
+DERIVED_CACHE_SIZE = 16  # other per-view arrays kept (Pass.derived: vote grids, dense-alignment pyramids)
 DERIVED_CACHE_PER_ROBOT = 8  # ... per robot when a team shares the backbone
 
 

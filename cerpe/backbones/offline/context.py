@@ -151,7 +151,8 @@ class Pass:
     # read the same ones many times a pass, and a keyframe's again in every later pass
     greys: LRUCache | None = None
     # other arrays derived from one view's pixels or prior alone, by a key naming what and of what
-    # (the vote's grid of a prior): a frame's comes back as the previous frame and as a keyframe
+    # (the vote's grid of a prior, the dense alignment's pyramid of an image): a frame's come back
+    # when it is the previous frame and a keyframe
     derived_cache: LRUCache | None = None
 
     def subset(self, idx: Sequence[int]) -> "Pass":
