@@ -62,7 +62,7 @@ MIN_INLIER_RATIO = 0.3  # refused when fewer than this fraction of the used pixe
 # right to well within a pixel; a big move is a wrong basin)
 MAX_CHANGE_M = 0.05
 MAX_CHANGE_DEG = 1.0
-CONVERGED_PX = 0.005  # stop the finest level when an update moves the pixels by less than this on average (px)
+CONVERGED_PX = 0.01  # stop the finest level when an update moves the pixels by less than this on average (px)
 # stop a coarser level when an update moves its pixels by less than this (its px): it only has to
 # bring the pose within the next level's basin
 COARSE_CONVERGED_PX = 0.05
