@@ -29,7 +29,7 @@ from typing import Any, Callable, Hashable, Mapping, Sequence
 import numpy as np
 
 from ...protocols import BackboneError, View
-from ..cache import LRUCache
+from ..cache import LRUCache, content_key
 from ..config import OfflineConfig
 from ..xfeat import XFeatFeatures
 from .matching import PairMatcher
@@ -162,6 +162,13 @@ class Pass:
                     low_tex=[self.low_tex[s] for s in idx], conf=self.conf, matcher=self.matcher,
                     memos=[self.memos[s] for s in idx], timings=self.timings, counts=self.counts,
                     scale_ref=self.scale_ref, greys=self.greys, derived_cache=self.derived_cache)
+
+    def prior_key(self, k: int, with_depth: bool = True) -> tuple:
+        """What identifies view ``k``'s geometry for :meth:`derived`: image size, intrinsics and the
+        content key of its depth prior (None without one, or without ``with_depth``)."""
+        depth = self.views[k].depth_m if with_depth else None
+        return (self.feats[k].image_hw, np.asarray(self.Ks[k], np.float64).tobytes(),
+                None if depth is None else content_key(depth))
 
     def derived(self, key: Hashable, make: Callable[[], Any]) -> Any:
         """``make()``, cached under ``key`` (:attr:`derived_cache`); ``key`` must name all ``make`` reads."""

@@ -19,7 +19,6 @@ from typing import Sequence
 import numpy as np
 
 from ...geometry import se3_inverse
-from ..cache import content_key
 from ..rgbd_align import align_rgbd, rgbd_pyramid
 from . import framescale
 from .context import P3P_SAMPLE, Pass, Recon
@@ -114,9 +113,7 @@ def pyramid(p: Pass, k: int, with_depth: bool, levels: int) -> list:
 
     if not p.feats[k].fingerprint:
         return make()
-    key = ("rgbd-pyramid", p.feats[k].fingerprint, None if depth is None else content_key(depth),
-           np.asarray(p.Ks[k], np.float64).tobytes(), int(levels))
-    return p.derived(key, make)
+    return p.derived(("rgbd-pyramid", p.feats[k].fingerprint, int(levels), *p.prior_key(k, with_depth)), make)
 
 
 def add_current_prior_points(p: Pass, rec: Recon) -> None:

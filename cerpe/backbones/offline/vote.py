@@ -17,7 +17,6 @@ from typing import Sequence
 
 import numpy as np
 
-from ..cache import content_key
 from .context import VOTE_CHAIN_HOPS, Pass
 from .matching import map_index, pixels_to_rays
 
@@ -54,6 +53,7 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
     grey = blurred_greys(p, (a, b), VOTE_BLUR_SIGMA)
     Hb, Wb = p.feats[b].image_hw
     hb, wb = Db.shape
+    D_flat = np.ascontiguousarray(Db).reshape(-1)
     vv, uu, ok, X = grid_points(p, a, exclude)
     sel = np.flatnonzero(ok)
     g_a = grey[0][vv[sel], uu[sel]]
@@ -63,7 +63,7 @@ def consistency(p: Pass, a: int, b: int, T_b_a: Sequence[np.ndarray],
         Xb, ub, vb, ins = project_points(p, b, X, T)
         inside[h, sel] = ins
         ub, vb, zi, gi = ub[ins], vb[ins], Xb[ins, 2], g_a[ins]
-        meas = Db.ravel()[map_index(vb, hb, Hb) * wb + map_index(ub, wb, Wb)].astype(np.float64)
+        meas = D_flat[map_index(vb, hb, Hb) * wb + map_index(ub, wb, Wb)].astype(np.float64)
         g = bilinear(grey[1], ub, vb)
         grey_ok = np.abs(g - gi) <= VOTE_GREY_TOL
         s, spread = depth_scale(zi, meas, grey_ok, VOTE_DEPTH_TOL, VOTE_DEPTH_SCALE_MAX, VOTE_DEPTH_SCALE_SEARCH)
@@ -216,10 +216,8 @@ def grid_points(p: Pass, a: int, exclude: np.ndarray | None = None
     grid pixels with a prior depth (and not in ``exclude``), their points ``X [ok.sum(),3]`` in camera ``a``.
     Read-only arrays; the grid of a prior is cached (:meth:`Pass.derived`): a frame votes again as
     the previous frame and as an older keyframe."""
-    K = p.Ks[a]
-    depth = p.views[a].depth_m
-    key = ("vote-grid", VOTE_STRIDE, p.feats[a].image_hw, np.asarray(K, np.float64).tobytes(), content_key(depth))
-    vv, uu, ok, X = p.derived(key, lambda: _grid(depth, K, p.feats[a].image_hw))
+    depth, K, hw = p.views[a].depth_m, p.Ks[a], p.feats[a].image_hw
+    vv, uu, ok, X = p.derived(("vote-grid", VOTE_STRIDE, *p.prior_key(a)), lambda: _grid(depth, K, hw))
     if exclude is not None and exclude.shape == ok.shape:
         X = X[~exclude[ok]]
         ok = ok & ~exclude
