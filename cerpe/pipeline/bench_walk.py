@@ -244,8 +244,8 @@ def summarise(w: dict[str, Any], n_robots: int) -> dict[str, Any]:
         "robot_step_ms": median_p90(w["robot_ms"]),
         "robot_step_cpu_ms": median_p90(w["robot_cpu_ms"]),
         # the depth sensor's part of "scale" (0 for a depth network): left out of robot_step_ms
-        "sensor_ms": median_p90(w.get("sensor_ms") or [0.0]),
-        "robot_step_with_sensor_ms": median_p90([a + b for a, b in zip(w["robot_ms"], w.get("sensor_ms") or [0.0] * len(w["robot_ms"]))]),
+        "sensor_ms": median_p90(w["sensor_ms"]),
+        "robot_step_with_sensor_ms": median_p90([a + b for a, b in zip(w["robot_ms"], w["sensor_ms"])]),
         # the process's CPU per robot-step: every thread (registration workers, OpenCV's) included
         "process_cpu_ms_per_robot_step": float(np.sum(w["team_cpu_ms"])) / n,
         "stage_ms": {s: median_p90(v) for s, v in w["stage_ms"].items()},

@@ -32,7 +32,7 @@ from ...protocols import BackboneError, View
 from ..cache import LRUCache, content_key
 from ..config import OfflineConfig
 from ..xfeat import XFeatFeatures
-from .matching import PairMatcher
+from .matching import PairMatcher, match_mnn
 
 MEMO_FIELDS = ("image", "chain", "moving")
 # hops of a memo's motion chain: how far back older views can still vote (:func:`.vote.chained_views`)
@@ -223,8 +223,6 @@ class Pass:
         view's features sort by score), with the thresholds of the full match."""
         if self.low_tex[a] or self.low_tex[b]:
             return 0
-        from .matching import match_mnn
-
         t0 = time.perf_counter()
         try:
             n = RANK_KEYPOINTS
