@@ -249,6 +249,31 @@ def test_resize_to_multiples_of_32_is_kornias(encoder, hw):
     assert torch.equal(got[0], want[0]) and got[1:] == want[1:]
 
 
+def test_grey_network_input_is_the_channel_mean_torch_takes(encoder, room):
+    """A 640x480 image reaches the network as the grey image computed in numpy: for every one of the
+    2^24 colours the bits of torch's channel mean, so the network's outputs are those of the
+    three-channel input, bit for bit; other sizes keep XFeat's resize (three channels)."""
+    import torch
+
+    from cerpe.backbones.xfeat import _network_input
+
+    v = np.arange(256, dtype=np.uint8)
+    every = np.stack(np.meshgrid(v, v, v, indexing="ij"), -1).reshape(4096, 4096, 3)
+    grey, rh, rw = _network_input(encoder.model, every)
+    rgb = torch.from_numpy(every).permute(2, 0, 1)[None].float() / 255.0
+    assert grey.shape == (1, 1, 4096, 4096) and (rh, rw) == (1.0, 1.0)
+    assert torch.equal(grey, rgb.contiguous(memory_format=torch.channels_last).mean(dim=1, keepdim=True))
+    import cv2
+
+    img = cv2.resize(room.render(pose((0.2, 0, 0.1), (0, 10, 0)))[0], (640, 480))  # the room renders 320x240
+    x3 = (torch.from_numpy(img).permute(2, 0, 1)[None].float() / 255.0).contiguous(memory_format=torch.channels_last)
+    with torch.inference_mode():
+        for a, b in zip(encoder.net(_network_input(encoder.model, img)[0]), encoder.net(x3)):
+            assert torch.equal(a, b)
+    x, rh, rw = _network_input(encoder.model, np.zeros((250, 333, 3), np.uint8))
+    assert x.shape == (1, 3, 224, 320) and rh != 1.0 and rw != 1.0
+
+
 def test_fast_cpu_network_is_the_same_function(encoder, room):
     """Batch norms folded into the convolutions, channels-last layout: the same outputs up to
     float rounding, so the same keypoints, descriptors and dense map."""
