@@ -43,18 +43,49 @@ def _exact(frame: FrameContext, who: str) -> np.ndarray | None:
 def depth_edges(depth_m: np.ndarray, rel_jump: float = 0.05, dilate_px: int = 1) -> np.ndarray:
     """``[H,W] bool``: pixels next to a depth discontinuity (relative jump > ``rel_jump``),
     or next to no-surface pixels, dilated by ``dilate_px``."""
-    d = depth_m.astype(np.float32)
-    edge = np.zeros(d.shape, bool)
+    d = np.ascontiguousarray(depth_m, np.float32)
+    edge = np.zeros(d.shape, np.uint8)
     # the test is symmetric in the two pixels of a pair: each horizontal and vertical pair once,
-    # marking both of its pixels (a pixel past the border is the pixel itself: never an edge)
+    # marking both of its pixels (a pixel past the border is the pixel itself: never an edge).
+    # OpenCV's element-wise float32 operations, the arithmetic of numpy's (|b - a| > rel_jump *
+    # max(min(a, b), 1e-3)), without numpy's temporaries: the same pixels, twice as fast
+    jump_tol, floor = np.float32(rel_jump), np.float32(1e-3)
     for a, b, mark_a, mark_b in ((d[:, :-1], d[:, 1:], edge[:, :-1], edge[:, 1:]),
                                  (d[:-1, :], d[1:, :], edge[:-1, :], edge[1:, :])):
-        jump = (np.abs(b - a) > rel_jump * np.maximum(np.minimum(a, b), 1e-3)) | ((a > 0) != (b > 0))
-        mark_a |= jump
-        mark_b |= jump
+        tol = cv2.max(cv2.min(a, b), float(floor))
+        tol *= jump_tol
+        jump = cv2.compare(cv2.absdiff(a, b), tol, cv2.CMP_GT)
+        jump |= cv2.compare(a > 0, b > 0, cv2.CMP_NE)
+        cv2.bitwise_or(mark_a, jump, dst=mark_a)
+        cv2.bitwise_or(mark_b, jump, dst=mark_b)
     if dilate_px > 0:
-        edge = cv2.dilate(edge.astype(np.uint8), np.ones((2 * dilate_px + 1,) * 2, np.uint8)).astype(bool)
-    return edge
+        edge = cv2.dilate(edge, np.ones((2 * dilate_px + 1,) * 2, np.uint8))
+    return edge.astype(bool)
+
+
+def upper_quantile(values: np.ndarray, q: float) -> float:
+    """``np.quantile(values, q)`` (linear interpolation), bit for bit, for ``q`` near 1 in a large array.
+
+    The two order statistics it interpolates lie in the top ``n (1 - q)`` values, so only the values
+    above a bound taken from a strided sample are partitioned (a quarter of the time at 640x480);
+    the interpolation itself is numpy's, on those two values. When the bound keeps too few values
+    it is ``np.quantile`` on all of them."""
+    a = np.asarray(values).reshape(-1)
+    n = a.size
+    k = int(np.floor((n - 1) * np.float64(q)))  # numpy's lower index, (n - 1) q floored
+    top = n - k  # values at or above the lower order statistic
+    if n < 4096 or top < 2 or top > n // 8:  # small, the largest value, or not near 1
+        return float(np.quantile(a, q))
+    sample = a[::16]
+    j = max(len(sample) - 2 * (top // 16) - 16, 0)  # about twice the values needed above the bound
+    bound = np.partition(sample, j)[j]
+    cand = a[a >= bound]
+    if len(cand) < top:
+        return float(np.quantile(a, q))
+    kc = k - (n - len(cand))  # every value left out is below every candidate
+    cand.partition((kc, kc + 1))
+    gamma = float((n - 1) * np.float64(q) - k)
+    return float(np.quantile(np.array([cand[kc], cand[kc + 1]], a.dtype), gamma))
 
 
 @dataclass
@@ -97,16 +128,21 @@ class SensorDepthSim:
             return None
         rng = _rng(self.seed ^ frame.seed, frame.robot_id, frame.step, 1)
         H, W = z.shape
-        out = z + rng.standard_normal(z.shape).astype(np.float32) * (self.sigma_at_1m * z * z)
-        keep = (z >= self.min_m) & (z <= self.max_m)
+        # z + N(0,1) * (sigma z^2), in float32, in place (the same operations, fewer temporaries)
+        out = z * np.float32(self.sigma_at_1m)
+        out *= z
+        out *= rng.standard_normal(z.shape).astype(np.float32)
+        out += z
+        keep = (z >= np.float32(self.min_m)) & (z <= np.float32(self.max_m))
         keep &= rng.random(z.shape) >= self.dropout
         if self.hole_fraction > 0:
             field = cv2.resize(rng.standard_normal((max(H // 24, 2), max(W // 24, 2))).astype(np.float32), (W, H),
                                interpolation=cv2.INTER_CUBIC)
-            keep &= field < np.quantile(field, 1.0 - self.hole_fraction)
+            keep &= field < upper_quantile(field, 1.0 - self.hole_fraction)
         if self.edge_px > 0:
             keep &= ~depth_edges(z, dilate_px=self.edge_px)
-        return np.where(keep, out, 0.0).astype(np.float32)
+        np.copyto(out, np.float32(0.0), where=~keep)
+        return out
 
 
 @dataclass

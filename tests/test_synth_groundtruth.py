@@ -143,3 +143,20 @@ def test_depth_edges_are_pixels_next_to_a_jump_or_a_hole(seed):
     assert np.array_equal(depth_edges(z, dilate_px=0), want)
     grown = cv2.dilate(want.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert np.array_equal(depth_edges(z, dilate_px=2), grown)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_upper_quantile_is_numpys(seed):
+    """:func:`upper_quantile` partitions only the values above a sampled bound: the same float as
+    ``np.quantile`` (linear), bit for bit, with ties, plateaus, small arrays and low quantiles too."""
+    from cerpe.depthsim import upper_quantile
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.choice([7, 4095, 4096, 30_000, 307_200]))
+    v = rng.standard_normal(n).astype(np.float32)
+    if seed % 3 == 1:
+        v = np.round(v, 1)  # many ties
+    if seed % 3 == 2:
+        v[: n // 2] = v.max()  # half the values equal to the largest
+    for q in (0.97, 0.999, 0.9, 0.5, 0.0, 1.0):
+        assert upper_quantile(v.reshape(-1, 1) if seed % 2 else v, q) == float(np.quantile(v, q))
