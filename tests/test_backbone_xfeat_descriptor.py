@@ -54,6 +54,17 @@ def test_features_shapes_and_cache(encoder, room):
     assert g is not f and encoder.n_encoded == n0 + 2
 
 
+def test_features_keep_the_grey_std_the_descriptor_measured(descriptor, encoder, room):
+    """The descriptor measures the grey level's spread before encoding and hands it over: the
+    features keep the value the encoder computes itself."""
+    from cerpe.backbones.xfeat import grey_std
+
+    img = room.render(pose((0.1, 0, 0.2), (0, 15, 0)))[0]
+    descriptor.describe(View(("std", 0), img, K))
+    assert encoder.encode(View(("std", 0), img, K)).grey_std == grey_std(img) > 0
+    assert encoder.encode_image(img).grey_std == grey_std(img)
+
+
 def test_truncated_or_missing_weights(tmp_path):
     from cerpe.backbones.xfeat import XFeatEncoder, XFeatError, default_weights_path
 

@@ -226,10 +226,11 @@ class XFeatSaladDescriptor:
                 self.last_cpu_s = {"encode": 0.0, "descriptor": time.thread_time() - c0}
             return hit
         t1, c1 = t0, c0
-        if grey_std(image) < BLANK_STD:
+        std = grey_std(image)
+        if std < BLANK_STD:
             d, flags = self._placeholder(view.key), frozenset({"low-texture"})
         else:
-            feats = self.encoder.encode(view)
+            feats = self.encoder.encode(view, std=std)
             t1, c1 = time.perf_counter(), time.thread_time()
             try:
                 d, flags = self.centre(self.aggregate(feats, image)), frozenset()

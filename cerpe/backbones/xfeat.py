@@ -164,8 +164,9 @@ class XFeatEncoder:
         self._cache.reserve(int(n_robots) * CACHE_PER_ROBOT)
 
     # ------------------------------------------------------------------ encoding
-    def encode(self, view: View) -> XFeatFeatures:
+    def encode(self, view: View, std: float | None = None) -> XFeatFeatures:
         """Features of ``view.image``, from the cache when the same pixels were encoded before.
+        ``std``: the image's :func:`grey_std` when the caller has it (not computed again).
 
         Raises:
             ImageInputError: the image is not ``[H,W,3] uint8`` or is too small.
@@ -175,13 +176,13 @@ class XFeatEncoder:
         feats = self._cache.get(key)
         if feats is not None:
             return feats
-        feats = self.encode_image(view.image, what=f"view {view.key!r}")
+        feats = self.encode_image(view.image, what=f"view {view.key!r}", std=std)
         feats.fingerprint = key
         self._cache.put(key, feats)
         return feats
 
-    def encode_image(self, image: np.ndarray, what: str = "image") -> XFeatFeatures:
-        """Run XFeat once (no cache): sparse keypoints and the dense map."""
+    def encode_image(self, image: np.ndarray, what: str = "image", std: float | None = None) -> XFeatFeatures:
+        """Run XFeat once (no cache): sparse keypoints and the dense map (``std`` as in :meth:`encode`)."""
         import torch
         import torch.nn.functional as F
 
@@ -214,7 +215,7 @@ class XFeatEncoder:
             dense=dense[0].numpy().astype(np.float32),
             reliability=rel[0, 0].numpy().astype(np.float32),
             image_hw=(int(image.shape[0]), int(image.shape[1])),
-            grey_std=grey_std(image),
+            grey_std=grey_std(image) if std is None else float(std),
         )
 
 
