@@ -83,7 +83,8 @@ def upper_quantile(values: np.ndarray, q: float) -> float:
     The two order statistics it interpolates lie in the top ``n (1 - q)`` values, so only the values
     above a bound taken from a strided sample are partitioned (a quarter of the time at 640x480);
     the interpolation itself is numpy's, on those two values. When the bound keeps too few values
-    it is ``np.quantile`` on all of them."""
+    it is ``np.quantile`` on all of them. ``values`` must be finite (a NaN would be ranked apart from
+    where numpy ranks it), as the simulation's random fields are."""
     a = np.asarray(values).reshape(-1)
     n = a.size
     k = int(np.floor((n - 1) * np.float64(q)))  # numpy's lower index, (n - 1) q floored
