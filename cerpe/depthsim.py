@@ -40,6 +40,9 @@ def _exact(frame: FrameContext, who: str) -> np.ndarray | None:
     return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
 
 
+_CV_MIN_SIDE = 8  # the smallest side (px) of a map depth_edges hands to OpenCV
+
+
 def depth_edges(depth_m: np.ndarray, rel_jump: float = 0.05, dilate_px: int = 1) -> np.ndarray:
     """``[H,W] bool``: pixels next to a depth discontinuity (relative jump > ``rel_jump``),
     or next to no-surface pixels, dilated by ``dilate_px``."""
@@ -72,9 +75,6 @@ def _jumps(a: np.ndarray, b: np.ndarray, rel_jump: float) -> np.ndarray:
     jump = cv2.compare(cv2.absdiff(a, b), tol, cv2.CMP_GT)
     jump |= cv2.compare((a > 0).view(np.uint8), (b > 0).view(np.uint8), cv2.CMP_NE)
     return jump
-
-
-_CV_MIN_SIDE = 8  # the smallest side (px) of a map depth_edges hands to OpenCV
 
 
 def upper_quantile(values: np.ndarray, q: float) -> float:
