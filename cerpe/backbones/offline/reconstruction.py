@@ -1,9 +1,10 @@
 """Metric reconstruction: points from a view's depth prior, the current view placed on them.
 
 The view sharing most matches with the current one whose depth prior gives enough
-keypoint depths (:data:`MIN_DEPTH_POINTS`) anchors the pass (the current view's own prior only when no other
-view can); views are ranked by a cheap estimate first (:meth:`.context.Pass.rank_by_shared`). The current view is placed on its points by P3P RANSAC. Its candidates are up
-to ``motion_hypotheses`` rigid motions (each on the previous ones' outliers: the static
+keypoint depths (:data:`MIN_DEPTH_POINTS`) anchors the pass (the current view's own prior only when
+no other view can); views are ranked by a cheap estimate first
+(:meth:`.context.Pass.rank_by_shared`). The current view is placed on its points by P3P RANSAC.
+Its candidates are up to ``motion_hypotheses`` rigid motions (each on the previous ones' outliers: the static
 scene, a moving object, a facade matched one window off) plus the memo's previous
 motion (constant velocity). The dense vote (:mod:`.vote`) decides between them, and
 dense RGB-D alignment (:func:`cerpe.backbones.rgbd_align.align_rgbd`) refines the winner. This is how
