@@ -52,6 +52,7 @@ PRESETS: dict[str, dict[str, Any]] = {
              "policy.recheck_rot_rad": 0.03, "policy.recheck_limit": 1, **_COMPRESSED,
              "messages.reply_codec": "webp-grey"},
     "share": {"messages.share_estimates": True},
+    "robot": {"backbone.offline.precision": "auto"},
 }
 #: name -> one line: what the preset is for.
 PRESET_NOTES: dict[str, str] = {
@@ -63,6 +64,8 @@ PRESET_NOTES: dict[str, str] = {
     "lean": "ours at its leanest: pays + back-off from gates whose images place nothing + one recheck, "
             "compressed descriptor, grey WebP-75 replies",
     "share": "ours: robots also share their direct estimates (62 B each)",
+    "robot": "the paper's protocol at a robot's speed: XFeat's deeper convolutions in bfloat16 where the CPU "
+             "has it natively (the tables use fp32)",
 }
 #: method -> what it sets on top of the preset.
 METHOD_OVERRIDES: dict[str, dict[str, Any]] = {

