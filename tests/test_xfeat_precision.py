@@ -71,3 +71,11 @@ def test_precision_knob_and_preset():
     assert method_config.build("robot").backbone.offline.precision == "auto"
     with pytest.raises(method_config.ConfigError, match="precision"):
         method_config.build("paper", sets={"backbone.offline.precision": "fp16"})
+
+
+def test_backbone_built_alone_takes_the_precision_of_its_conf():
+    from cerpe.backbones.config import OfflineConfig
+    from cerpe.backbones.offline import OfflineGeometryBackbone
+
+    assert OfflineGeometryBackbone(OfflineConfig(precision="bf16")).encoder.precision == "bf16"
+    assert OfflineGeometryBackbone(OfflineConfig()).encoder.precision == "fp32"

@@ -59,7 +59,7 @@ class OfflineGeometryBackbone:
             (:mod:`.matching`, :mod:`.two_view`, :mod:`.reconstruction`, :mod:`.vote`,
             :mod:`.framescale`, :mod:`.cross`).
         encoder: the shared :class:`XFeatEncoder` (None: :func:`shared_encoder` with
-            ``conf.keypoints``).
+            ``conf.keypoints`` and ``conf.precision``).
         learned: the cross-robot learned matcher to use (default: a :class:`.cross.LearnedMatcher`
             of ``conf.cross``, built on first use).
 
@@ -77,7 +77,7 @@ class OfflineGeometryBackbone:
     def __init__(self, conf: OfflineConfig | None = None, encoder: XFeatEncoder | None = None,
                  learned: Any = None) -> None:
         self.conf = conf or OfflineConfig()
-        self.encoder = encoder or shared_encoder(self.conf.keypoints)
+        self.encoder = encoder or shared_encoder(self.conf.keypoints, precision=self.conf.precision)
         self.matcher = PairMatcher(MIN_COSSIM, RATIO, MATCH_CACHE_SIZE)
         self.greys: LRUCache[np.ndarray] = LRUCache(GREY_CACHE_SIZE)
         self.derived: LRUCache = LRUCache(DERIVED_CACHE_SIZE)
