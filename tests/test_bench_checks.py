@@ -178,6 +178,7 @@ def test_team_sweep_beyond_the_suite_renders_one_team_encounter(tmp_path, monkey
     assert ("registration apart from the step:" in out) == (registration == "worker")
     report = json.loads(out_json.read_text())
     assert report["registration"] == registration and [r["n_robots"] for r in report["results"]] == [2, 4]
+    assert report["xfeat_precision"] == "fp32" and "models offline, XFeat fp32;" in out  # preset paper
     for r in report["results"]:
         assert set(r["stage_cpu_ms"]) == set(r["stage_ms"]) and r["gate_score_cpu_ms"]["n"] == 2 * r["n_robots"]
         assert (r["registration"] is None) == (registration == "inline")

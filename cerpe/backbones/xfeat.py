@@ -120,10 +120,10 @@ class XFeatEncoder:
     batch norm folded into the convolution before it (:func:`fold_batchnorm`; exact algebra,
     outputs differ by float rounding). It uses the channels-last memory layout, which oneDNN's
     CPU convolutions prefer; :attr:`model` keeps the original. With precision ``bf16`` its deeper
-    blocks run in bfloat16 (:class:`~cerpe.backbones.xfeat_net.MixedPrecisionXFeat`). glibc's allocator is asked to keep
-    freed memory for reuse (:func:`keep_freed_memory`). Each pass allocates tens of MB of
-    feature maps, which glibc would otherwise unmap when freed and fault in again, zeroed, on
-    the next pass.
+    blocks run in bfloat16 (:class:`~cerpe.backbones.xfeat_net.MixedPrecisionXFeat`). glibc's
+    allocator is asked to keep freed memory for reuse (:func:`keep_freed_memory`). Each pass
+    allocates tens of MB of feature maps, which glibc would otherwise unmap when freed and fault in
+    again, zeroed, on the next pass.
 
     Args:
         top_k: keypoints kept per image.

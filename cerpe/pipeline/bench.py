@@ -215,12 +215,13 @@ def main(args: argparse.Namespace) -> int:
 
     registrar = WorkerRegistrar if args.registration == "worker" else None
 
-    precision = ""
+    precision = None  # the XFeat precision that runs (offline models)
     if tree.backbone.models == "offline":
         from ..backbones.xfeat_net import resolve_precision
 
-        precision = f", XFeat {resolve_precision(tree.backbone.offline.precision)}"
-    print(f"bench: {what}; preset {args.preset}, models {tree.backbone.models}{precision}; {args.width}x{args.height}; "
+        precision = resolve_precision(tree.backbone.offline.precision)
+    models = tree.backbone.models + (f", XFeat {precision}" if precision else "")
+    print(f"bench: {what}; preset {args.preset}, models {models}; {args.width}x{args.height}; "
           f"registration {args.registration}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"torch and BLAS threads {torch_threads()} / {blas_threads()} "
           f"(CERPE_THREADS), OMP_NUM_THREADS="
@@ -234,8 +235,9 @@ def main(args: argparse.Namespace) -> int:
     plugins = fresh()
     d = plugins.descriptor
     info = {"dim": int(d.dim), "wire_bytes": d.wire_bytes() if hasattr(d, "wire_bytes") else {}}
-    report = {"manifest": what, "preset": args.preset, "sets": parse_sets(args.sets), "width": args.width,
-              "height": args.height, "registration": args.registration, "load_average": list(os.getloadavg()),
+    report = {"manifest": what, "preset": args.preset, "sets": parse_sets(args.sets), "xfeat_precision": precision,
+              "width": args.width, "height": args.height, "registration": args.registration,
+              "load_average": list(os.getloadavg()),
               "torch_threads": torch_threads(), "blas_threads": blas_threads(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "cpu_count": os.cpu_count(),
               "descriptor": info, "results": results}
