@@ -162,7 +162,7 @@ class XFeatEncoder:
         # the network the encoder runs; the model keeps the original for anyone reading it
         self.net = fold_batchnorm(model.net).to(memory_format=torch.channels_last)
         if self.precision == "bf16":
-            warn_if_emulated(self.precision)
+            warn_if_emulated()
             self.net = MixedPrecisionXFeat(self.net)
         self._cache: LRUCache[XFeatFeatures] = LRUCache(int(cache_size))
         self.n_encoded = 0  # network passes actually run (cache misses)

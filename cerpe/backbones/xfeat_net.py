@@ -55,9 +55,10 @@ def resolve_precision(precision: str, native: bool | None = None) -> str:
     return "bf16" if (native_bf16() if native is None else native) else "fp32"
 
 
-def warn_if_emulated(precision: str) -> None:
-    """Log a warning when ``bf16`` runs on a CPU without native bfloat16 (it may be slower than fp32)."""
-    if precision == "bf16" and not native_bf16():
+def warn_if_emulated() -> None:
+    """Log a warning, for a network about to run in ``bf16``, when the CPU has no native bfloat16
+    (it may then be slower than fp32)."""
+    if not native_bf16():
         logger.warning("XFeat precision bf16 on a CPU without native bfloat16 (no %s in /proc/cpuinfo): "
                        "it may run slower than fp32", " or ".join(_NATIVE_FLAGS))
 
