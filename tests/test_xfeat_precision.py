@@ -79,3 +79,18 @@ def test_backbone_built_alone_takes_the_precision_of_its_conf():
 
     assert OfflineGeometryBackbone(OfflineConfig(precision="bf16")).encoder.precision == "bf16"
     assert OfflineGeometryBackbone(OfflineConfig()).encoder.precision == "fp32"
+
+
+def test_bf16_on_a_cpu_without_it_warns_once_and_still_runs(monkeypatch, caplog):
+    import logging
+
+    from cerpe.backbones import xfeat_net
+    from cerpe.backbones.xfeat import XFeatEncoder
+
+    monkeypatch.setattr(xfeat_net, "native_bf16", lambda cpuinfo="/proc/cpuinfo": False)
+    with caplog.at_level(logging.WARNING, logger="cerpe.backbones.xfeat_net"):
+        enc = XFeatEncoder(precision="bf16")
+        assert XFeatEncoder(precision="auto").precision == "fp32"  # auto never picks an emulated bf16
+    assert enc.precision == "bf16"
+    warnings = [r for r in caplog.records if "without native bfloat16" in r.getMessage()]
+    assert len(warnings) == 1
