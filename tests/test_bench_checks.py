@@ -76,6 +76,21 @@ def test_suite_printout_carries_the_gate_figures():
     assert "gate" not in "\n".join(format_accuracy({"direct_rot_err_rad": median_p90([]), "ego_per_robot": {}}))
 
 
+def test_ego_table_says_which_robot_misses_its_targets():
+    from cerpe.pipeline.bench_report import format_accuracy
+    from cerpe.pipeline.bench_walk import median_p90
+
+    def ego(trans: float, rot: float) -> dict:
+        return {"rpe_trans_pct": trans, "rpe_rot_deg_median": rot, "end_drift_pct": 0.1, "path_m": 1.0, "n_steps": 9}
+
+    text = "\n".join(format_accuracy({"direct_rot_err_rad": median_p90([0.01]), "ego_per_robot": {
+        "r0": ego(10.9, 0.004), "r1": ego(0.3, 0.004), "r2": ego(1.0, 0.7), "r3": ego(float("nan"), float("nan"))}}))
+    rows = {line.split()[0]: line for line in text.splitlines() if line.strip().startswith("r")}
+    assert rows["r0"].endswith("NOT met (trans)") and rows["r1"].endswith("   met")
+    assert rows["r2"].endswith("NOT met (rot)") and rows["r3"].endswith("n/a")
+    assert "(targets: < 2 %, < 0.5 deg median)" in text
+
+
 def test_bench_renders_the_default_suite_once_then_reuses_it(tmp_path, monkeypatch, capsys):
     """A fresh clone: `cerpe bench` renders its default suite into the cache `make paper` uses
     ($CERPE_CACHE here), runs 2 and 3 robots against the paper's 438 / 780 ms; the next run renders nothing."""

@@ -8,16 +8,31 @@ from typing import Any
 from .bench_walk import OVERLAP_MIN, ROBOT_TARGET_P90_MS, TEAM_GROWTH_MAX
 from .evaluate import COVIS_NEGATIVE, COVIS_POSITIVE, GATE_OVERLAP
 
+# the ego-motion check's targets: per-step translation error summed over the path, median per-step rotation error
+EGO_RPE_TRANS_MAX_PCT = 2.0
+EGO_RPE_ROT_MAX_DEG = 0.5
+
+def _ego_verdict(e: dict[str, Any]) -> str:
+    """``met``, ``NOT met`` (naming the figure over its target) or ``n/a`` (no path, no steps)."""
+    trans, rot = e["rpe_trans_pct"], e["rpe_rot_deg_median"]
+    if not (trans == trans and rot == rot):  # NaN: the robot did not move, or no ground truth
+        return "n/a"
+    over = [name for name, v, bound in (("trans", trans, EGO_RPE_TRANS_MAX_PCT), ("rot", rot, EGO_RPE_ROT_MAX_DEG))
+            if not v < bound]
+    return "met" if not over else f"NOT met ({', '.join(over)})"
+
+
 def format_accuracy(a: dict[str, Any]) -> list[str]:
     """The accuracy lines under a team size's table (or of the whole suite)."""
     d = a["direct_rot_err_rad"]
     lines = [f"   direct relative rotation error, overlapping pairs (overlap >= {OVERLAP_MIN}): median "
              f"{d['median']:.4f} rad, p90 {d['p90']:.4f} rad, n={d['n']} (target < 0.05 rad)"]
     lines.append(f"   {'ego-motion per robot':<22}{'RPE trans %':>12}{'RPE rot deg':>12}{'end drift %':>12}"
-                 f"{'path m':>9}{'steps':>7}   (targets: < 2 %, < 0.5 deg median)")
+                 f"{'path m':>9}{'steps':>7}   (targets: < {EGO_RPE_TRANS_MAX_PCT:g} %, "
+                 f"< {EGO_RPE_ROT_MAX_DEG:g} deg median)")
     for r, e in a["ego_per_robot"].items():
         lines.append(f"   {r:<22}{e['rpe_trans_pct']:>12.2f}{e['rpe_rot_deg_median']:>12.3f}"
-                     f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}")
+                     f"{e['end_drift_pct']:>12.2f}{e['path_m']:>9.2f}{e['n_steps']:>7d}   {_ego_verdict(e)}")
     g = a.get("gate")
     if g:
         lines.append(f"   descriptor gate vs GT co-visibility (unordered pairs: overlap >= {COVIS_POSITIVE} both ways "
