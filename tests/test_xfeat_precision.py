@@ -88,9 +88,10 @@ def test_bf16_on_a_cpu_without_it_warns_once_and_still_runs(monkeypatch, caplog)
     from cerpe.backbones.xfeat import XFeatEncoder
 
     monkeypatch.setattr(xfeat_net, "native_bf16", lambda cpuinfo="/proc/cpuinfo": False)
-    with caplog.at_level(logging.WARNING, logger="cerpe.backbones.xfeat_net"):
+    with caplog.at_level(logging.INFO):
         enc = XFeatEncoder(precision="bf16")
         assert XFeatEncoder(precision="auto").precision == "fp32"  # auto never picks an emulated bf16
     assert enc.precision == "bf16"
     warnings = [r for r in caplog.records if "without native bfloat16" in r.getMessage()]
-    assert len(warnings) == 1
+    assert len(warnings) == 1 and warnings[0].levelno == logging.WARNING
+    assert any(r.getMessage() == "XFeat precision auto: fp32 on this CPU" for r in caplog.records)

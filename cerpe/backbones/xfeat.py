@@ -143,6 +143,8 @@ class XFeatEncoder:
             self.precision = resolve_precision(precision)
         except ValueError as exc:
             raise XFeatError(str(exc)) from None
+        if precision == "auto":  # the configuration says auto: say once what runs on this CPU
+            logger.info("XFeat precision auto: %s on this CPU", self.precision)
         keep_freed_memory()
         apply_threads(None)
         path = Path(weights) if weights else default_weights_path()
