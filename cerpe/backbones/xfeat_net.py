@@ -20,7 +20,8 @@ from typing import Any
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PRECISIONS", "BF16_BLOCKS", "native_bf16", "resolve_precision", "warn_if_emulated", "MixedPrecisionXFeat"]
+__all__ = ["PRECISIONS", "BF16_BLOCKS", "native_bf16", "resolve_precision", "warn_if_emulated",
+           "MixedPrecisionXFeat"]
 
 #: ``fp32``; ``bf16``: :data:`BF16_BLOCKS` in bfloat16; ``auto``: bf16 where :func:`native_bf16`, else fp32
 PRECISIONS = ("fp32", "bf16", "auto")

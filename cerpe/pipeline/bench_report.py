@@ -3,6 +3,7 @@ update's line, and the report's latencies as rows for the paper's communication 
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from .bench_walk import OVERLAP_MIN, ROBOT_TARGET_P90_MS, TEAM_GROWTH_MAX
@@ -15,7 +16,7 @@ EGO_RPE_ROT_MAX_DEG = 0.5
 def _ego_verdict(e: dict[str, Any]) -> str:
     """``met``, ``NOT met`` (naming the figure over its target) or ``n/a`` (no path, no steps)."""
     trans, rot = e["rpe_trans_pct"], e["rpe_rot_deg_median"]
-    if not (trans == trans and rot == rot):  # NaN: the robot did not move, or no ground truth
+    if math.isnan(trans) or math.isnan(rot):  # the robot did not move, or no ground truth
         return "n/a"
     over = [name for name, v, bound in (("trans", trans, EGO_RPE_TRANS_MAX_PCT), ("rot", rot, EGO_RPE_ROT_MAX_DEG))
             if not v < bound]
